@@ -1,0 +1,66 @@
+"""YAML configuration validated on load with pydantic.
+
+Every error names the file and the offending key, on one line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message names the file and the key."""
+
+
+class StrictModel(BaseModel):
+    """Base of every config section: unknown keys are errors, values are validated."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def read_yaml(path: str | Path) -> Any:
+    """Parse a YAML file; a missing or malformed file is a ConfigError naming it."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read ({e.strerror or e})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{p}: invalid YAML{where}: {getattr(e, 'problem', e)}") from None
+
+
+def format_validation_error(err: ValidationError, source: str) -> str:
+    """One line: file, dotted key and what is wrong (first error, count of the rest)."""
+    errs = err.errors()
+    first = errs[0]
+    key = ".".join(str(x) for x in first.get("loc", ())) or "(top level)"
+    msg = first.get("msg", "invalid")
+    if first.get("type") == "extra_forbidden":
+        msg = "unknown key"
+    more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+    return f"{source}: key '{key}': {msg}{more}"
+
+
+def validate(model: type[M], data: Any, source: str) -> M:
+    """Validate already-parsed data against ``model``; errors name ``source`` and the key."""
+    if data is None:
+        data = {}
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(e, source)) from None
+
+
+def load(model: type[M], path: str | Path) -> M:
+    """Read a YAML file and validate it against ``model``."""
+    return validate(model, read_yaml(path), str(path))

@@ -1,0 +1,153 @@
+"""The rig: the scanners on the backpack, their models and extrinsics ``T_body_scanner``.
+
+Frames: ``body`` is the rig frame (x forward, y left, z up); the reference
+scanner defines it (its extrinsic is the identity). ``scanner_i`` has x along
+the 0-rad beam and the scan plane at z = 0. ``T_body_scanner`` maps points
+from the scanner frame to the body frame: ``p_body = R p_scanner + t``.
+Rotations are given as roll, pitch, yaw in radians (``R = Rz(yaw) Ry(pitch)
+Rx(roll)``). Covariances are 6x6 over (rotation, translation) tangent
+coordinates, gtsam's Pose3 order.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field, field_validator, model_validator
+
+from backpack_slam.config import StrictModel, load
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class ScannerModel(StrictModel):
+    """A 2D scanner's geometry, timing and noise.
+
+    Beam i has angle ``angle_min + i * angle_increment`` and is taken at
+    ``stamp + i * time_increment`` (a continuously turning mirror).
+    """
+
+    name: str = "utm30lx"
+    n_beams: int = Field(1081, gt=1)
+    angle_min: float = -math.radians(135.0)
+    angle_increment: float = Field(math.radians(0.25), gt=0)
+    scan_period: float = Field(0.025, gt=0, description="s per mirror turn (1 / scan rate)")
+    time_increment: float = Field(0.025 / 1440.0, ge=0, description="s between beams")
+    range_min: float = Field(0.1, ge=0)
+    range_max: float = Field(30.0, gt=0)
+    range_sigma: float = Field(0.003, ge=0, description="range noise standard deviation (m)")
+
+    @property
+    def angle_max(self) -> float:
+        return self.angle_min + (self.n_beams - 1) * self.angle_increment
+
+    def beam_angles(self) -> NDArray[np.float64]:
+        return self.angle_min + self.angle_increment * np.arange(self.n_beams, dtype=np.float64)
+
+    def beam_offsets(self) -> NDArray[np.float64]:
+        """Time of each beam after the scan's stamp (s)."""
+        return self.time_increment * np.arange(self.n_beams, dtype=np.float64)
+
+
+MODELS: dict[str, ScannerModel] = {"utm30lx": ScannerModel()}
+
+
+class Extrinsic(StrictModel):
+    """``T_body_scanner``: translation (m) and roll/pitch/yaw (rad)."""
+
+    translation: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rpy: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    covariance: list[list[float]] | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _cov_shape(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None:
+            a = np.asarray(v, dtype=float)
+            if a.shape != (6, 6) or not np.allclose(a, a.T):
+                raise ValueError("must be a symmetric 6x6 matrix over (rotation, translation)")
+        return v
+
+    def matrix(self) -> NDArray[np.float64]:
+        """The 4x4 homogeneous transform."""
+        T = np.eye(4)
+        T[:3, :3] = rpy_to_matrix(*self.rpy)
+        T[:3, 3] = self.translation
+        return T
+
+
+class ScannerConfig(StrictModel):
+    name: str
+    topic: str
+    model: str | ScannerModel = "utm30lx"
+    T_body_scanner: Extrinsic = Field(default_factory=Extrinsic)
+    time_offset: float = 0.0
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, v: str | ScannerModel) -> str | ScannerModel:
+        if isinstance(v, str) and v not in MODELS:
+            raise ValueError(f"unknown scanner model '{v}'; known: {', '.join(MODELS)}")
+        return v
+
+    @cached_property
+    def scanner_model(self) -> ScannerModel:
+        return MODELS[self.model] if isinstance(self.model, str) else self.model
+
+
+class Rig(StrictModel):
+    """Three (or any number of) 2D scanners rigidly mounted on the backpack."""
+
+    name: str
+    reference: str = Field(description="name of the scanner that defines the body frame")
+    scanners: list[ScannerConfig] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> Rig:
+        names = [s.name for s in self.scanners]
+        if len(set(names)) != len(names):
+            raise ValueError("scanner names must be unique")
+        if self.reference not in names:
+            raise ValueError(f"reference '{self.reference}' is not one of the scanners {names}")
+        return self
+
+    def scanner(self, name: str) -> ScannerConfig:
+        for s in self.scanners:
+            if s.name == name:
+                return s
+        raise KeyError(f"rig '{self.name}' has no scanner '{name}'")
+
+    def by_topic(self) -> dict[str, ScannerConfig]:
+        return {s.topic: s for s in self.scanners}
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Load and validate a rig YAML file (errors name the file and the key)."""
+    return load(Rig, path)
+
+
+def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
+    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def matrix_to_rpy(R: NDArray[np.float64]) -> tuple[float, float, float]:
+    """Inverse of ``rpy_to_matrix`` (pitch in [-pi/2, pi/2])."""
+    pitch = math.asin(max(-1.0, min(1.0, -float(R[2, 0]))))
+    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    return roll, pitch, yaw
