@@ -1,5 +1,12 @@
-"""Every segmenter module; importing this package registers them all."""
+"""Every segmenter module; importing this package registers them all.
 
-from segmentation.methods import line_tracking as line_tracking
+Each public module here (name not starting with ``_``) registers its segmenters
+with ``segmentation.registry.register`` when imported.
+"""
 
-__all__ = ["line_tracking"]
+import importlib
+import pkgutil
+
+for _info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+    if not _info.name.startswith("_"):
+        importlib.import_module(f"{__name__}.{_info.name}")
