@@ -1,0 +1,469 @@
+"""Writers and readers of a SLAM run's output folder (all geometry in the world frame).
+
+Files of a run folder ``DIR``:
+
+- ``trajectory.tum``: ``T_world_body`` as TUM lines ``t tx ty tz qx qy qz qw`` (evo's format).
+- ``planes.json``: planes ``n . x + d = 0`` (world frame, metres) with extent polygon,
+  number of segments, covariance over (Unit3 tangent of the normal (2), d) and a kind guess.
+  The ground truth's ``planes.json`` reads with the same reader.
+- ``cloud.ply``: every valid point in the world frame with per-point ``scanner`` (int32),
+  ``time`` (float64, s) and ``plane_id`` (int32, -1 = unassociated), written with open3d's
+  tensor API.
+- ``segments.npz``: one row per segment (scanner index, scan index, stamp, inclusive beam range,
+  plane id).
+- ``summary.json``: free-form run summary (config, counts, timings, residuals).
+
+Every writer is atomic: it writes to a temporary name in the target folder and renames it
+over the target only when complete, so an interrupted write never leaves a partial file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import uuid
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int32]
+
+PLANE_CONVENTION = "n . x + d = 0, world frame, metres"
+COVARIANCE_CONVENTION = "3x3 over (Unit3 tangent basis of the normal (2), d)"
+
+
+class OutputFileError(ValueError):
+    """An output or ground-truth file that cannot be read or written; the message names it."""
+
+
+# ---------------------------------------------------------------------------- atomic writes
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` when the block succeeds.
+
+    The temporary name keeps the suffix (open3d and matplotlib pick the format from it). On any
+    exception the temporary file is removed and the target is left untouched.
+    """
+    target = Path(path)
+    if not target.parent.is_dir():
+        raise OutputFileError(f"{target}: folder {target.parent} does not exist")
+    tmp = target.with_name(f".{target.stem}.tmp-{uuid.uuid4().hex[:12]}{target.suffix}")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise OutputFileError(f"{target}: nothing was written")
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _finite_json(obj: Any) -> Any:
+    """Replace non-finite floats by None so the file stays strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_json(v) for v in obj]
+    return obj
+
+
+def write_json(path: str | Path, data: Any) -> Path:
+    """Atomically write ``data`` (numpy arrays and scalars allowed) as indented strict JSON."""
+    target = Path(path)
+    # Round trip through the encoder first so numpy values become plain floats before the
+    # non-finite check.
+    plain = _finite_json(json.loads(json.dumps(data, default=_json_default)))
+    text = json.dumps(plain, indent=2, allow_nan=False) + "\n"
+    with atomic_path(target) as tmp:
+        tmp.write_text(text)
+    return target
+
+
+def read_json(path: str | Path) -> Any:
+    """Parse a JSON file; a missing or malformed file is an OutputFileError naming it."""
+    p = Path(path)
+    try:
+        return json.loads(p.read_text())
+    except OSError as e:
+        raise OutputFileError(f"{p}: cannot read ({e.strerror or e})") from None
+    except json.JSONDecodeError as e:
+        raise OutputFileError(f"{p}: invalid JSON at line {e.lineno}: {e.msg}") from None
+
+
+# ------------------------------------------------------------------------------ trajectory
+
+
+def write_trajectory_tum(path: str | Path, times: ArrayLike, T_world_body: ArrayLike) -> Path:
+    """Write poses ``T_world_body`` (N,4,4) at ``times`` (N,) as a TUM file via evo."""
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.tools import file_interface
+
+    t = np.asarray(times, dtype=np.float64)
+    T = np.asarray(T_world_body, dtype=np.float64)
+    target = Path(path)
+    if t.ndim != 1 or T.shape != (t.shape[0], 4, 4):
+        raise OutputFileError(
+            f"{target}: need times (N,) and T_world_body (N,4,4), got {t.shape} and {T.shape}"
+        )
+    if t.shape[0] == 0:
+        raise OutputFileError(f"{target}: empty trajectory")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(T))):
+        raise OutputFileError(f"{target}: non-finite times or poses")
+    traj = PoseTrajectory3D(poses_se3=list(T), timestamps=t)
+    with atomic_path(target) as tmp, tmp.open("w") as f:
+        file_interface.write_tum_trajectory_file(f, traj)
+    return target
+
+
+def read_trajectory_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
+    """Read a TUM file; return times (N,) and ``T_world_body`` (N,4,4)."""
+    from evo.tools import file_interface
+    from evo.tools.file_interface import FileInterfaceException
+
+    p = Path(path)
+    if not p.is_file():
+        raise OutputFileError(f"{p}: no such file")
+    try:
+        traj = file_interface.read_tum_trajectory_file(str(p))
+    except FileInterfaceException as e:
+        raise OutputFileError(f"{p}: {e}") from None
+    times = np.asarray(traj.timestamps, dtype=np.float64)
+    T = np.asarray(traj.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
+    if times.shape[0] == 0:
+        raise OutputFileError(f"{p}: empty trajectory")
+    return times, T
+
+
+# ---------------------------------------------------------------------------------- planes
+
+
+@dataclass(frozen=True)
+class PlaneRecord:
+    """A plane ``normal . x + d = 0`` in the world frame with its extent.
+
+    ``polygon`` (k,3) is the extent in the world frame (may be empty); ``covariance`` (3,3) is
+    over (Unit3 tangent of the normal, d), or None when unknown (ground truth).
+    """
+
+    id: int
+    normal: FloatArray
+    d: float
+    polygon: FloatArray
+    kind: str = ""
+    n_segments: int = 0
+    covariance: FloatArray | None = None
+
+
+def _plane_to_dict(p: PlaneRecord) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "id": int(p.id),
+        "kind": p.kind,
+        "normal": np.asarray(p.normal, dtype=float).tolist(),
+        "d": float(p.d),
+        "polygon": np.asarray(p.polygon, dtype=float).reshape(-1, 3).tolist(),
+        "n_segments": int(p.n_segments),
+    }
+    if p.covariance is not None:
+        out["covariance"] = np.asarray(p.covariance, dtype=float).reshape(3, 3).tolist()
+    return out
+
+
+def write_planes_json(path: str | Path, planes: Sequence[PlaneRecord]) -> Path:
+    """Atomically write planes (world frame) as ``{"convention", "covariance", "planes"}``."""
+    target = Path(path)
+    ids = [int(p.id) for p in planes]
+    if len(set(ids)) != len(ids):
+        raise OutputFileError(f"{target}: duplicate plane ids")
+    for p in planes:
+        n = np.asarray(p.normal, dtype=float)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(np.linalg.norm(n) - 1) > 1e-6:
+            raise OutputFileError(f"{target}: plane {p.id}: normal must be a finite unit 3-vector")
+    data = {
+        "convention": PLANE_CONVENTION,
+        "covariance": COVARIANCE_CONVENTION,
+        "planes": [_plane_to_dict(p) for p in planes],
+    }
+    return write_json(target, data)
+
+
+def read_planes_json(path: str | Path) -> list[PlaneRecord]:
+    """Read a ``planes.json`` (ours or the ground truth's); normals come back unit length."""
+    p = Path(path)
+    data = read_json(p)
+    if not isinstance(data, dict) or not isinstance(data.get("planes"), list):
+        raise OutputFileError(f"{p}: expected an object with a 'planes' list")
+    out: list[PlaneRecord] = []
+    for i, rec in enumerate(data["planes"]):
+        try:
+            normal = np.asarray(rec["normal"], dtype=np.float64)
+            norm = float(np.linalg.norm(normal))
+            if normal.shape != (3,) or not norm > 0:
+                raise ValueError("normal must be a non-zero 3-vector")
+            poly = np.asarray(rec.get("polygon", []), dtype=np.float64).reshape(-1, 3)
+            cov = rec.get("covariance")
+            out.append(
+                PlaneRecord(
+                    id=int(rec["id"]),
+                    normal=normal / norm,
+                    d=float(rec["d"]) / norm,
+                    polygon=poly,
+                    kind=str(rec.get("kind", "")),
+                    n_segments=int(rec.get("n_segments", 0)),
+                    covariance=None
+                    if cov is None
+                    else np.asarray(cov, dtype=np.float64).reshape(3, 3),
+                )
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            what = f"missing key {e}" if isinstance(e, KeyError) else str(e)
+            raise OutputFileError(f"{p}: plane #{i}: {what}") from None
+    return out
+
+
+# ----------------------------------------------------------------------------------- cloud
+
+
+@dataclass(frozen=True)
+class CloudRecord:
+    """Points in the world frame with per-point scanner index, time (s) and plane id."""
+
+    points_world: FloatArray
+    scanner: IntArray
+    time: FloatArray
+    plane_id: IntArray
+
+    def __len__(self) -> int:
+        return int(self.points_world.shape[0])
+
+
+def _as_cloud(
+    points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike, what: str
+) -> CloudRecord:
+    pts = np.asarray(points_world, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise OutputFileError(f"{what}: points_world must be (N,3), got {pts.shape}")
+    n = pts.shape[0]
+    sc = np.asarray(scanner).astype(np.int32, copy=False)
+    tm = np.asarray(time, dtype=np.float64)
+    pid = np.asarray(plane_id).astype(np.int32, copy=False)
+    for name, col in (("scanner", sc), ("time", tm), ("plane_id", pid)):
+        if col.shape != (n,):
+            raise OutputFileError(f"{what}: {name} must be ({n},), got {col.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise OutputFileError(f"{what}: non-finite points (invalid returns must be masked)")
+    return CloudRecord(pts, sc, tm, pid)
+
+
+def voxel_thin(points_world: FloatArray, voxel: float) -> NDArray[np.int64]:
+    """Indices (sorted) of one real point per occupied voxel: the one nearest the voxel's mean.
+
+    Keeping a real point (rather than averaging as open3d's voxel_down_sample does) keeps its
+    scanner, time and plane id consistent with its position.
+    """
+    if not voxel > 0:
+        raise ValueError(f"voxel size must be > 0, got {voxel}")
+    n = points_world.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    keys = np.floor(points_world / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    n_vox = counts.shape[0]
+    mean = np.zeros((n_vox, 3))
+    np.add.at(mean, inverse, points_world)
+    mean /= counts[:, None]
+    dist2 = np.sum((points_world - mean[inverse]) ** 2, axis=1)
+    order = np.lexsort((np.arange(n), dist2, inverse))
+    first = np.ones(n, dtype=bool)
+    first[1:] = inverse[order[1:]] != inverse[order[:-1]]
+    return np.sort(order[first])
+
+
+def write_cloud_ply(
+    path: str | Path,
+    points_world: ArrayLike,
+    scanner: ArrayLike,
+    time: ArrayLike,
+    plane_id: ArrayLike,
+    voxel: float | None = None,
+) -> int:
+    """Atomically write a binary PLY with attributes scanner, time, plane_id; return the count.
+
+    ``voxel`` (m) thins the cloud to one real point per voxel (see :func:`voxel_thin`).
+    """
+    import open3d as o3d
+
+    target = Path(path)
+    cloud = _as_cloud(points_world, scanner, time, plane_id, str(target))
+    if voxel is not None:
+        if not voxel > 0:
+            raise OutputFileError(f"{target}: voxel size must be > 0, got {voxel}")
+        keep = voxel_thin(cloud.points_world, voxel)
+        cloud = CloudRecord(
+            cloud.points_world[keep], cloud.scanner[keep], cloud.time[keep], cloud.plane_id[keep]
+        )
+    tensor = o3d.core.Tensor.from_numpy
+    pc = o3d.t.geometry.PointCloud(tensor(np.ascontiguousarray(cloud.points_world)))
+    pc.point["scanner"] = tensor(np.ascontiguousarray(cloud.scanner[:, None]))
+    pc.point["time"] = tensor(np.ascontiguousarray(cloud.time[:, None]))
+    pc.point["plane_id"] = tensor(np.ascontiguousarray(cloud.plane_id[:, None]))
+    with atomic_path(target) as tmp:
+        if not o3d.t.io.write_point_cloud(tmp, pc, write_ascii=False):
+            raise OutputFileError(f"{target}: open3d could not write the point cloud")
+    return len(cloud)
+
+
+def read_cloud_ply(path: str | Path) -> CloudRecord:
+    """Read a cloud written by :func:`write_cloud_ply` (points in the world frame)."""
+    import open3d as o3d
+
+    p = Path(path)
+    if not p.is_file():
+        raise OutputFileError(f"{p}: no such file")
+    pc = o3d.t.io.read_point_cloud(p)
+    if "positions" not in pc.point:
+        raise OutputFileError(f"{p}: no points (unreadable or empty PLY)")
+    missing = [k for k in ("scanner", "time", "plane_id") if k not in pc.point]
+    if missing:
+        raise OutputFileError(f"{p}: missing point attribute(s) {', '.join(missing)}")
+    return CloudRecord(
+        points_world=pc.point["positions"].numpy().astype(np.float64, copy=False),
+        scanner=pc.point["scanner"].numpy().ravel().astype(np.int32, copy=False),
+        time=pc.point["time"].numpy().ravel().astype(np.float64, copy=False),
+        plane_id=pc.point["plane_id"].numpy().ravel().astype(np.int32, copy=False),
+    )
+
+
+# -------------------------------------------------------------------------------- segments
+
+
+@dataclass(frozen=True)
+class SegmentTable:
+    """One row per segment: which scan of which scanner, its inclusive beam range, its plane.
+
+    ``scanner`` indexes ``scanner_names``; ``scan_index`` is the row of that scanner's scan in
+    its stream (and in the ground truth's ``beams.npz``); ``stamp`` is that scan's first-beam
+    time (s); ``plane_id`` is -1 when the segment is not associated with a plane.
+    """
+
+    scanner_names: tuple[str, ...]
+    scanner: NDArray[np.int32]
+    scan_index: NDArray[np.int64]
+    stamp: FloatArray
+    first_beam: NDArray[np.int32]
+    last_beam: NDArray[np.int32]
+    plane_id: NDArray[np.int32]
+
+    def __len__(self) -> int:
+        return int(self.scanner.shape[0])
+
+
+_SEGMENT_COLUMNS: dict[str, type[np.generic]] = {
+    "scanner": np.int32,
+    "scan_index": np.int64,
+    "stamp": np.float64,
+    "first_beam": np.int32,
+    "last_beam": np.int32,
+    "plane_id": np.int32,
+}
+
+
+def make_segment_table(
+    scanner_names: Sequence[str],
+    scanner: ArrayLike,
+    scan_index: ArrayLike,
+    stamp: ArrayLike,
+    first_beam: ArrayLike,
+    last_beam: ArrayLike,
+    plane_id: ArrayLike,
+    what: str = "segments",
+) -> SegmentTable:
+    """Build a validated :class:`SegmentTable` (dtypes fixed, shapes and ranges checked)."""
+    raw = {
+        "scanner": scanner,
+        "scan_index": scan_index,
+        "stamp": stamp,
+        "first_beam": first_beam,
+        "last_beam": last_beam,
+        "plane_id": plane_id,
+    }
+    cols: dict[str, Any] = {}
+    for name, dtype in _SEGMENT_COLUMNS.items():
+        arr = np.asarray(raw[name])
+        if arr.ndim != 1:
+            raise OutputFileError(f"{what}: column {name} must be 1-D, got shape {arr.shape}")
+        cols[name] = arr.astype(dtype, copy=False)
+    n = cols["scanner"].shape[0]
+    if any(c.shape[0] != n for c in cols.values()):
+        raise OutputFileError(f"{what}: columns have different lengths")
+    names = tuple(str(s) for s in scanner_names)
+    if n and (cols["scanner"].min() < 0 or cols["scanner"].max() >= len(names)):
+        raise OutputFileError(f"{what}: scanner index outside scanner_names ({len(names)})")
+    if n and (np.any(cols["first_beam"] < 0) or np.any(cols["last_beam"] < cols["first_beam"])):
+        raise OutputFileError(f"{what}: need 0 <= first_beam <= last_beam")
+    return SegmentTable(scanner_names=names, **cols)
+
+
+def write_segments_npz(path: str | Path, table: SegmentTable) -> Path:
+    """Atomically write the segment table as an uncompressed ``.npz``."""
+    target = Path(path)
+    arrays = {name: getattr(table, name) for name in _SEGMENT_COLUMNS}
+    with atomic_path(target) as tmp, tmp.open("wb") as f:
+        np.savez(f, scanner_names=np.asarray(table.scanner_names, dtype=np.str_), **arrays)
+    return target
+
+
+def read_segments_npz(path: str | Path) -> SegmentTable:
+    """Read a segment table written by :func:`write_segments_npz`."""
+    p = Path(path)
+    if not p.is_file():
+        raise OutputFileError(f"{p}: no such file")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise OutputFileError(f"{p}: not a readable .npz ({e})") from None
+    missing = [k for k in ("scanner_names", *_SEGMENT_COLUMNS) if k not in data]
+    if missing:
+        raise OutputFileError(f"{p}: missing array(s) {', '.join(missing)}")
+    cols = {k: data[k] for k in _SEGMENT_COLUMNS}
+    return make_segment_table(
+        [str(s) for s in data["scanner_names"].tolist()], what=str(p), **cols
+    )
+
+
+# --------------------------------------------------------------------------------- summary
+
+
+def write_summary_json(path: str | Path, summary: Mapping[str, Any]) -> Path:
+    """Atomically write the run summary (config, counts, timings, residual statistics)."""
+    return write_json(path, dict(summary))
+
+
+def read_summary_json(path: str | Path) -> dict[str, Any]:
+    """Read a run summary; it must be a JSON object."""
+    data = read_json(path)
+    if not isinstance(data, dict):
+        raise OutputFileError(f"{path}: expected a JSON object")
+    return data
