@@ -1,0 +1,106 @@
+"""The SLAM run configuration (``configs/slam/*.yaml``), validated on load.
+
+Every section is a strict pydantic model: an unknown key or a bad value is an
+error naming the file and the key. The segmenter is chosen by name with its
+parameters, so swapping segmenters is one line of configuration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, model_validator
+
+from backpack_slam.config import ConfigError, StrictModel, load
+from segmentation import segmenter_class
+
+
+class SegmenterConfig(StrictModel):
+    """Which segmenter, with which parameters (see ``segmentation.available()``)."""
+
+    method: str = "ror"
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _known(self) -> SegmenterConfig:
+        # raises ValueError naming the method or parameter; pydantic reports it with the key
+        segmenter_class(self.method).make_params(**self.params)
+        return self
+
+
+class TrajectoryConfig(StrictModel):
+    """Continuous-time trajectory: knots at ``knot_rate`` Hz, SE(3) interpolation between them."""
+
+    knot_rate: float = Field(40.0, gt=0, le=400)
+
+
+class FrontEndConfig(StrictModel):
+    """Association gates and plane creation."""
+
+    point_sigma: float = Field(0.003, gt=0, description="range noise of one point (m)")
+    sigma_pose: float = Field(0.004, gt=0, description="pose uncertainty at a segment for association (m)")
+    sigma_rotation_deg: float = Field(0.3, gt=0)
+    drift_rate: float = Field(0.003, ge=0, description="offset uncertainty per metre walked since a plane was seen")
+    tracking_loosen: float = Field(8.0, ge=1, description="gate factor of the tracking (pre-)association")
+    tracking_iterations: int = Field(3, ge=0)
+    extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
+    extent_margin_cells: int = Field(2, ge=0)
+    min_support: int = Field(3, ge=2)
+    min_spread: float = Field(0.04, gt=0)
+    coplanar_distance: float = Field(0.012, gt=0)
+    pool_window: float = Field(1.0, gt=0, description="s an unassociated segment waits for a plane")
+    min_segment_points: int = Field(10, ge=2)
+    merge_angle_deg: float = Field(1.5, gt=0)
+    merge_distance: float = Field(0.015, gt=0)
+    vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
+
+
+class BackEndConfig(StrictModel):
+    """Factor graph: noise, robust kernel, priors, update cadence."""
+
+    robust: str = Field("huber", pattern="^(none|huber|cauchy)$")
+    robust_k: float = Field(2.5, gt=0, description="kernel width in sigmas")
+    motion_sigma_acc: float = Field(3.0, gt=0, description="m/s^2, constant-velocity prior")
+    motion_sigma_angacc: float = Field(10.0, gt=0, description="rad/s^2")
+    horizontal_prior_deg: float = Field(0.01, gt=0, description="sigma keeping floors/ceilings horizontal")
+    vertical_prior_deg: float = Field(0.05, gt=0, description="sigma keeping walls vertical")
+    vertical_walls: bool = True
+    update_every: int = Field(10, ge=1, description="knots between iSAM2 updates")
+    final_batch: bool = True
+    batch_iterations: int = Field(30, ge=1)
+
+
+class OutputConfig(StrictModel):
+    cloud: bool = True
+    voxel: float = Field(0.0, ge=0, description="voxel size of cloud.ply (m), 0 = every point")
+    rerun: bool = True
+    rerun_scan_every: int = Field(8, ge=1, description="log every n-th scan in map.rrd")
+
+
+class SlamConfig(StrictModel):
+    segmenter: SegmenterConfig = Field(default_factory=SegmenterConfig)
+    trajectory: TrajectoryConfig = Field(default_factory=TrajectoryConfig)
+    frontend: FrontEndConfig = Field(default_factory=FrontEndConfig)
+    backend: BackEndConfig = Field(default_factory=BackEndConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+
+def load_slam_config(path: str | Path | None) -> SlamConfig:
+    """Load a SLAM config file, or the defaults when ``path`` is None."""
+    if path is None:
+        return SlamConfig()
+    return load(SlamConfig, path)
+
+
+def with_segmenter(cfg: SlamConfig, method: str | None, params: dict[str, Any]) -> SlamConfig:
+    """Override the segmenter from the command line (``--segmenter``, ``--param k=v``)."""
+    if method is None and not params:
+        return cfg
+    seg = cfg.segmenter
+    new_method = method or seg.method
+    merged = ({} if new_method != seg.method else dict(seg.params)) | params
+    try:
+        return cfg.model_copy(update={"segmenter": SegmenterConfig(method=new_method, params=merged)})
+    except ValueError as e:
+        raise ConfigError(f"--segmenter/--param: {e}") from None

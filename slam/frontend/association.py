@@ -1,0 +1,127 @@
+"""Association of line segments (world frame) to map planes.
+
+A segment ``s`` with centroid ``c``, unit direction ``u`` and two virtual
+points ``v1, v2`` (see ``observations``) lies on plane ``(n, d)`` when
+
+* its direction lies in the plane: ``|n . u|`` is small against the
+  direction's uncertainty (angle test),
+* its points are near the plane: ``n . c + d`` is small against the combined
+  uncertainty of the segment, the plane, the current pose estimate and the
+  drift accumulated since the plane was last seen (distance test, which thus
+  grows with the distance walked: the loop-closing search gate),
+* it overlaps the plane's known extent (dilated), so that coplanar walls of
+  different rooms are not confused.
+
+The squared Mahalanobis distance combines the two tests; the best candidate
+under the chi-square gate wins, and a segment with a second candidate also
+under the gate on a *different* surface (offset differing by more than the
+gate) is ambiguous and left unassociated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam.frontend.planemap import PlaneMap
+
+FloatArray = NDArray[np.float64]
+CHI2_2DOF_99 = 9.21
+
+
+@dataclass(frozen=True)
+class WorldSegments:
+    """Segments placed in the world by the current trajectory estimate (k rows)."""
+
+    centroid: FloatArray  # (k, 3)
+    direction: FloatArray  # (k, 3) unit
+    endpoints: FloatArray  # (k, 2, 3)
+    sigma_centroid: FloatArray  # (k,) m
+    sigma_direction: FloatArray  # (k,) rad
+
+    @property
+    def n(self) -> int:
+        return int(self.centroid.shape[0])
+
+
+@dataclass(frozen=True)
+class Gates:
+    """Uncertainties added to every test, and the extent margin."""
+
+    sigma_pose: float = 0.004  # m, current pose estimate at the segment
+    sigma_rotation: float = np.radians(0.3)  # rad
+    drift_rate: float = 0.003  # m of offset uncertainty per m walked since the plane was seen
+    extent_margin_cells: int = 2
+    max_extra_cells: int = 8  # cap of the drift-grown extent margin
+    chi2: float = CHI2_2DOF_99
+    max_endpoint_distance: float = 0.05  # m, hard cap on either endpoint's distance
+
+    def loosened(self, factor: float) -> Gates:
+        return Gates(
+            self.sigma_pose * factor,
+            self.sigma_rotation * factor,
+            self.drift_rate,
+            self.extent_margin_cells,
+            self.max_extra_cells,
+            self.chi2,
+            self.max_endpoint_distance * factor,
+        )
+
+
+def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtual_sigma: FloatArray,
+                   point_sigma: float, n_points: NDArray[np.int64]) -> WorldSegments:
+    """Summaries from the virtual points (k, 2, 3) and endpoints (k, 2, 3) already placed in the world."""
+    c = virtual_world.mean(axis=1)
+    diff = endpoints_world[:, 1] - endpoints_world[:, 0]
+    length = np.linalg.norm(diff, axis=1)
+    u = diff / np.maximum(length, 1e-9)[:, None]
+    n = n_points.astype(np.float64)
+    # TLS direction error: sigma / sqrt(sum s_i^2), sum s_i^2 ~ n L^2 / 12
+    sig_dir = point_sigma / np.maximum(length * np.sqrt(n / 12.0), 1e-9)
+    return WorldSegments(c, u, endpoints_world, virtual_sigma / np.sqrt(2.0), sig_dir)
+
+
+def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
+    """Plane id per segment, or -1 (no candidate, or ambiguous)."""
+    out = np.full(segs.n, -1, dtype=np.int64)
+    ids = pmap.active_ids()
+    if ids.size == 0 or segs.n == 0:
+        return out
+    normals, offs = pmap.arrays(ids)
+    sig_plane = np.array([pmap.planes[i].sigma_offset for i in ids])
+    since = np.array([odometer - pmap.planes[i].last_seen_odometer for i in ids])
+    sig_drift = gates.drift_rate * np.maximum(since, 0.0)
+    dist_c = segs.centroid @ normals.T + offs  # (k, P)
+    sin_a = np.abs(segs.direction @ normals.T)
+    sig_d2 = segs.sigma_centroid[:, None] ** 2 + sig_plane[None] ** 2 + gates.sigma_pose**2 + sig_drift[None] ** 2
+    sig_a2 = segs.sigma_direction[:, None] ** 2 + gates.sigma_rotation**2 + (sig_drift[None] / 5.0) ** 2
+    m2 = dist_c**2 / sig_d2 + sin_a**2 / sig_a2
+    e0 = np.abs(segs.endpoints[:, 0] @ normals.T + offs)
+    e1 = np.abs(segs.endpoints[:, 1] @ normals.T + offs)
+    cap = gates.max_endpoint_distance + 3.0 * sig_drift[None]
+    ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap)
+    cell = pmap.cell_size
+    for k in np.flatnonzero(ok.any(axis=1)):
+        cand = np.flatnonzero(ok[k])
+        cand = cand[np.argsort(m2[k, cand])]
+        pts = np.vstack((segs.endpoints[k], segs.centroid[k : k + 1]))
+        passing = []
+        for j in cand:
+            extra = min(int(3.0 * sig_drift[j] / cell), gates.max_extra_cells)
+            if pmap.overlaps(int(ids[j]), pts, gates.extent_margin_cells + extra):
+                passing.append(j)
+        if not passing:
+            continue
+        best = passing[0]
+        ambiguous = False
+        for j in passing[1:]:
+            # same surface seen twice (a duplicate awaiting merge) is not ambiguity
+            same = (normals[best] @ normals[j] > np.cos(np.radians(2.0))) and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best])
+            if not same:
+                ambiguous = True
+                break
+        if not ambiguous:
+            out[k] = ids[best]
+    return out

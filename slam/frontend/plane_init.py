@@ -1,0 +1,169 @@
+"""Creation of new planes from unassociated segments of recent scans (world frame).
+
+A plane needs two segments that are coplanar and not collinear: either their
+directions differ (segments of different scanners, or of the tilted scanners
+crossing a wall), or they are parallel but apart within the plane (parallel
+segments of consecutive scans once the rig has moved across them). The seed
+pair's plane gathers every pooled segment that lies on it (angle and point
+distances within tolerance, close to the seed in space); the plane enters the
+map only with ``min_support`` segments from at least two scans and when the
+gathered points span two dimensions (their second principal spread above
+``min_spread``). It is then refitted by total least squares on those points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class PooledSegment:
+    """An unassociated segment waiting for a plane; ``ref`` lets the caller find its observation."""
+
+    ref: tuple[int, int]  # (scan serial, segment index in that scan)
+    time: float
+    scan_serial: int
+    centroid: FloatArray
+    direction: FloatArray
+    endpoints: FloatArray  # (2, 3)
+    samples: FloatArray  # (m, 3) points, world frame
+
+
+@dataclass(frozen=True)
+class PlaneInitParams:
+    min_support: int = 3
+    min_scans: int = 2
+    coplanar_distance: float = 0.012  # m, every sample of a member within this of the plane
+    coplanar_angle: float = np.radians(2.0)
+    min_spread: float = 0.04  # m, second principal standard deviation of the members' points
+    min_angle_between: float = np.radians(10.0)  # non-parallel seed pair
+    min_parallel_separation: float = 0.05  # m, parallel seed pair
+    neighbourhood: float = 3.0  # m, members within this of the seed
+    window: float = 1.0  # s, pooled segments older than this are dropped
+
+
+@dataclass
+class NewPlane:
+    normal: FloatArray
+    d: float
+    members: list[PooledSegment]
+    rms: float
+
+
+@dataclass
+class SegmentPool:
+    """Recent unassociated segments, oldest first."""
+
+    params: PlaneInitParams = field(default_factory=PlaneInitParams)
+    items: list[PooledSegment] = field(default_factory=list)
+    dropped: int = 0
+    _tried: set[int] = field(default_factory=set)
+
+    def add(self, seg: PooledSegment) -> None:
+        self.items.append(seg)
+
+    def expire(self, now: float) -> list[PooledSegment]:
+        """Drop and return segments older than the window."""
+        keep, gone = [], []
+        for s in self.items:
+            (keep if now - s.time <= self.params.window else gone).append(s)
+        self.items = keep
+        self.dropped += len(gone)
+        for g in gone:
+            self._tried.discard(id(g))
+        return gone
+
+    def remove(self, members: list[PooledSegment]) -> None:
+        ids = {id(m) for m in members}
+        self.items = [s for s in self.items if id(s) not in ids]
+        self._tried -= ids
+
+    def create_planes(self) -> list[NewPlane]:
+        """Find and remove groups of pooled segments that define new planes, newest seeds first."""
+        out: list[NewPlane] = []
+        while True:
+            found = self._one_plane()
+            if found is None:
+                return out
+            out.append(found)
+            self.remove(found.members)
+
+    def _one_plane(self) -> NewPlane | None:
+        p = self.params
+        items = self.items
+        if len(items) < p.min_support:
+            return None
+        C = np.array([s.centroid for s in items])
+        U = np.array([s.direction for s in items])
+        serial = np.array([s.scan_serial for s in items])
+        # a segment already tried as a seed is still found as a partner of newer seeds
+        for a in range(len(items) - 1, -1, -1):
+            if id(items[a]) in self._tried:
+                continue
+            self._tried.add(id(items[a]))
+            ca, ua = C[a], U[a]
+            near = np.linalg.norm(C - ca, axis=1) < p.neighbourhood
+            other = near & (serial != serial[a])
+            other[a] = False
+            if not other.any():
+                continue
+            cross = np.cross(ua, U)
+            sin_ab = np.linalg.norm(cross, axis=1)
+            sep = C - ca
+            sep_perp = sep - (sep @ ua)[:, None] * ua
+            sep_norm = np.linalg.norm(sep_perp, axis=1)
+            normals = np.where(
+                (sin_ab > np.sin(p.min_angle_between))[:, None],
+                cross / np.maximum(sin_ab, 1e-12)[:, None],
+                np.cross(ua, sep_perp) / np.maximum(sep_norm, 1e-12)[:, None],
+            )
+            usable = other & ((sin_ab > np.sin(p.min_angle_between)) | (sep_norm > p.min_parallel_separation))
+            # coplanarity of b with the plane through a: b's centroid and direction
+            dist_b = np.abs(np.einsum("ij,ij->i", normals, C - ca))
+            ang_b = np.abs(np.einsum("ij,ij->i", normals, U))
+            cand = np.flatnonzero(usable & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle)))
+            for b in cand[np.argsort(dist_b[cand])]:
+                plane = self._grow(a, int(b), normals[b], near)
+                if plane is not None:
+                    return plane
+        return None
+
+    def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_]) -> NewPlane | None:
+        p = self.params
+        items = self.items
+        n, d, _ = fit_plane(np.vstack((items[a].samples, items[b].samples)))
+        if n @ normal < 0:
+            n, d = -n, -d
+        members = []
+        for i in np.flatnonzero(near):
+            s = items[i]
+            if abs(s.direction @ n) > np.sin(p.coplanar_angle):
+                continue
+            if np.max(np.abs(s.samples @ n + d)) > p.coplanar_distance:
+                continue
+            members.append(s)
+        if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
+            return None
+        pts = np.vstack([s.samples for s in members])
+        n2, d2, spreads = fit_plane(pts)
+        if spreads[1] < p.min_spread:
+            return None
+        res = pts @ n2 + d2
+        if np.max(np.abs(res)) > p.coplanar_distance * 1.5:
+            return None
+        return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))))
+
+
+def fit_plane(points: FloatArray) -> tuple[FloatArray, float, FloatArray]:
+    """TLS plane ``n . x + d = 0`` through (m, 3) points, and the principal standard deviations (descending)."""
+    c = points.mean(axis=0)
+    q = points - c
+    _, s, vt = np.linalg.svd(q, full_matrices=False)
+    n = vt[2]
+    spreads = s / np.sqrt(max(points.shape[0], 1))
+    return n, float(-n @ c), spreads

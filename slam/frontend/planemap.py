@@ -1,0 +1,170 @@
+"""The map of planes seen by the front end, in the world frame.
+
+A plane is ``n . x + d = 0`` (unit normal ``n``). Its *extent* is the set of
+cells (``cell_size`` squares) of its own 2D coordinate frame ``(u, v)`` that
+observed points have fallen into; association requires a segment to overlap
+the (dilated) extent, so that coplanar walls of different rooms are not
+confused. The back end owns the estimates; the front end copies them in after
+each update (``set_estimates``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+KIND_OTHER, KIND_WALL, KIND_FLOOR, KIND_CEILING = 0, 1, 2, 3
+KIND_NAMES = {KIND_OTHER: "other", KIND_WALL: "wall", KIND_FLOOR: "floor", KIND_CEILING: "ceiling"}
+
+
+def plane_basis(normal: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two unit vectors spanning the plane: ``u`` horizontal where possible, ``v = n x u``."""
+    n = normal / np.linalg.norm(normal)
+    ref = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(ref, n)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    return u, v
+
+
+def classify(normal: FloatArray, d: float, body_z_world: float, vertical_tol: float) -> int:
+    """Wall (normal within ``vertical_tol`` rad of horizontal), floor/ceiling (normal near vertical), else other."""
+    nz = abs(float(normal[2]))
+    if nz < np.sin(vertical_tol):
+        return KIND_WALL
+    if nz > np.cos(vertical_tol):
+        z_plane = -d / normal[2]
+        return KIND_FLOOR if z_plane < body_z_world else KIND_CEILING
+    return KIND_OTHER
+
+
+@dataclass
+class Plane:
+    """One map plane: estimate, extent, bookkeeping."""
+
+    id: int
+    normal: FloatArray
+    d: float
+    kind: int
+    u: FloatArray
+    v: FloatArray
+    cells: set[tuple[int, int]] = field(default_factory=set)
+    n_segments: int = 0
+    last_seen_time: float = 0.0
+    last_seen_odometer: float = 0.0
+    sigma_offset: float = 0.005
+    active: bool = True
+    merged_into: int = -1
+
+
+class PlaneMap:
+    """Planes with extents; ids are stable (a merged plane stays, inactive, pointing to its survivor)."""
+
+    def __init__(self, cell_size: float = 0.25) -> None:
+        self.cell_size = cell_size
+        self.planes: list[Plane] = []
+
+    def __len__(self) -> int:
+        return len(self.planes)
+
+    def add(self, normal: FloatArray, d: float, kind: int, time: float, odometer: float) -> Plane:
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        u, v = plane_basis(n)
+        p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer)
+        self.planes.append(p)
+        return p
+
+    def resolve(self, pid: int) -> int:
+        """Follow merges to the surviving plane id."""
+        while self.planes[pid].merged_into >= 0:
+            pid = self.planes[pid].merged_into
+        return pid
+
+    def active_ids(self) -> NDArray[np.int64]:
+        return np.array([p.id for p in self.planes if p.active], dtype=np.int64)
+
+    def arrays(self, ids: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        """Normals (m, 3) and offsets (m,) of the given planes."""
+        if ids.size == 0:
+            return np.empty((0, 3)), np.empty(0)
+        return (
+            np.array([self.planes[i].normal for i in ids]),
+            np.array([self.planes[i].d for i in ids]),
+        )
+
+    def cells_of(self, pid: int, points_world: FloatArray) -> NDArray[np.int64]:
+        """Cell indices (m, 2) of points in the plane's (u, v) frame."""
+        p = self.planes[pid]
+        uv = np.column_stack((points_world @ p.u, points_world @ p.v))
+        return np.floor(uv / self.cell_size).astype(np.int64)
+
+    def extend(self, pid: int, points_world: FloatArray) -> None:
+        """Add the cells of ``points_world`` to the plane's extent."""
+        cells = self.cells_of(pid, points_world)
+        self.planes[pid].cells.update(map(tuple, np.unique(cells, axis=0).tolist()))
+
+    def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
+        """Whether any of the points' cells is within ``dilate`` cells of the plane's extent."""
+        ext = self.planes[pid].cells
+        if not ext:
+            return False
+        cells = np.unique(self.cells_of(pid, points_world), axis=0)
+        r = range(-dilate, dilate + 1)
+        for cu, cv in cells.tolist():
+            for du in r:
+                for dv in r:
+                    if (cu + du, cv + dv) in ext:
+                        return True
+        return False
+
+    def extents_touch(self, a: int, b: int, dilate: int) -> bool:
+        """Whether two planes' extents are within ``dilate`` cells (measured in plane ``a``'s frame)."""
+        pa, pb = self.planes[a], self.planes[b]
+        if not pa.cells or not pb.cells:
+            return False
+        # cell centres of b, lifted to 3D on b and re-expressed in a's cells
+        cb = np.array(list(pb.cells), dtype=np.float64) + 0.5
+        pts = (cb[:, :1] * pb.u + cb[:, 1:] * pb.v) * self.cell_size - pb.d * pb.normal
+        return self.overlaps(a, pts, dilate)
+
+    def polygon(self, pid: int) -> FloatArray:
+        """The extent's bounding rectangle as a closed (5, 3) polygon on the plane (world frame)."""
+        p = self.planes[pid]
+        if not p.cells:
+            return np.empty((0, 3))
+        c = np.array(list(p.cells), dtype=np.float64)
+        lo = c.min(axis=0) * self.cell_size
+        hi = (c.max(axis=0) + 1.0) * self.cell_size
+        corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]], [lo[0], lo[1]]])
+        return corners[:, :1] * p.u + corners[:, 1:] * p.v - p.d * p.normal
+
+    def merge(self, keep: int, drop: int) -> None:
+        """Fold plane ``drop`` into ``keep``: union of extents and counts; ``drop`` becomes inactive."""
+        pk, pd = self.planes[keep], self.planes[drop]
+        if pd.cells:
+            cd = np.array(list(pd.cells), dtype=np.float64) + 0.5
+            pts = (cd[:, :1] * pd.u + cd[:, 1:] * pd.v) * self.cell_size - pd.d * pd.normal
+            self.extend(keep, pts)
+        pk.n_segments += pd.n_segments
+        pk.last_seen_time = max(pk.last_seen_time, pd.last_seen_time)
+        pk.last_seen_odometer = max(pk.last_seen_odometer, pd.last_seen_odometer)
+        pd.active = False
+        pd.merged_into = keep
+
+    def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
+        """Copy a back-end estimate in, keeping the in-plane basis continuous."""
+        p = self.planes[pid]
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        if float(n @ p.normal) < 0:  # keep the orientation the map started with
+            n, d = -n, -d
+        u = p.u - (p.u @ n) * n
+        u /= np.linalg.norm(u)
+        p.normal, p.d, p.u, p.v = n, float(d), u, np.cross(n, u)
+        if sigma_offset is not None:
+            p.sigma_offset = float(sigma_offset)
