@@ -448,9 +448,7 @@ def read_segments_npz(path: str | Path) -> SegmentTable:
     if missing:
         raise OutputFileError(f"{p}: missing array(s) {', '.join(missing)}")
     cols = {k: data[k] for k in _SEGMENT_COLUMNS}
-    return make_segment_table(
-        [str(s) for s in data["scanner_names"].tolist()], what=str(p), **cols
-    )
+    return make_segment_table([str(s) for s in data["scanner_names"].tolist()], what=str(p), **cols)
 
 
 # --------------------------------------------------------------------------------- summary

@@ -1,0 +1,260 @@
+"""A SLAM run as a rerun recording (``map.rrd``), written without a viewer.
+
+Entities (all in the ``world`` frame, z up, timeline ``sensor`` = the data's own time in s):
+
+- ``world``: ``ViewCoordinates.RIGHT_HAND_Z_UP`` (static).
+- ``world/scans/<scanner>``: the points of each scanner over time, one frame per
+  ``frame_period``, coloured by plane id (grey = unassociated).
+- ``world/segments``: segments as 3D lines over time, coloured by plane id (when given).
+- ``world/planes/<id>``: each plane's extent polygon as a translucent ``Mesh3D`` patch (static)
+  with its outline and label in ``world/planes/<id>/outline``.
+- ``world/trajectory``: the whole path as a ``LineStrips3D`` (static); ``world/body``: the
+  current pose ``T_world_body`` as a ``Transform3D`` over time, with axes.
+- ``world/cloud``: the final cloud (static), coloured by plane id.
+
+Long series go through ``rr.send_columns``; the file is written to a temporary name and
+renamed when complete.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from slam.export import (
+    CloudRecord,
+    OutputFileError,
+    PlaneRecord,
+    atomic_path,
+    read_cloud_ply,
+    read_planes_json,
+    read_trajectory_tum,
+)
+
+FloatArray = NDArray[np.float64]
+
+UNASSOCIATED_RGB = (150, 150, 150)
+# matplotlib's tab20 reordered so that consecutive ids get contrasting colours.
+_PALETTE = np.array(
+    [
+        (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+        (140, 86, 75), (227, 119, 194), (188, 189, 34), (23, 190, 207), (174, 199, 232),
+        (255, 187, 120), (152, 223, 138), (255, 152, 150), (197, 176, 213), (196, 156, 148),
+        (247, 182, 210), (219, 219, 141), (158, 218, 229), (57, 59, 121), (99, 121, 57),
+    ],
+    dtype=np.uint8,
+)  # fmt: skip
+
+
+def plane_colors(plane_id: NDArray[np.integer]) -> NDArray[np.uint8]:
+    """RGB (N,3) per plane id: a fixed palette cycled by id; -1 (unassociated) is grey."""
+    ids = np.asarray(plane_id, dtype=np.int64)
+    out = _PALETTE[np.mod(ids, len(_PALETTE))]
+    out[ids < 0] = UNASSOCIATED_RGB
+    return out
+
+
+@dataclass(frozen=True)
+class SegmentLines:
+    """Segments for display: endpoints (M,2,3) in the world frame at their scan's stamp (s)."""
+
+    stamp: FloatArray
+    endpoints_world: FloatArray
+    plane_id: NDArray[np.int32]
+
+
+@dataclass(frozen=True)
+class MapOptions:
+    """What goes into the recording and how much of it.
+
+    ``max_scan_points`` and ``max_cloud_points`` cap the points logged over time and in the
+    final cloud (a regular stride over the time-ordered points keeps the recording viewable
+    for long walks); ``frame_period`` (s) groups the points of a scanner into frames.
+    """
+
+    app_id: str = "backpack_slam"
+    frame_period: float = 0.1
+    max_scan_points: int = 3_000_000
+    max_cloud_points: int = 2_000_000
+    point_radius: float = 0.01
+    axis_length: float = 0.3
+    plane_alpha: int = 90
+
+
+def _stride(n: int, cap: int) -> int:
+    return max(1, math.ceil(n / cap)) if cap > 0 else n + 1
+
+
+def fan_triangles(n_vertices: int) -> NDArray[np.uint32]:
+    """Triangle indices of a fan over a convex polygon of ``n_vertices`` (k-2, 3)."""
+    k = np.arange(1, n_vertices - 1, dtype=np.uint32)
+    return np.stack([np.zeros_like(k), k, k + 1], axis=1)
+
+
+def _frames(times: FloatArray, t0: float, period: float) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Group sorted ``times`` into frames of ``period``: (frame start times, run lengths)."""
+    idx = np.floor((times - t0) / period).astype(np.int64)
+    frame_ids, lengths = np.unique(idx, return_counts=True)
+    return (t0 + frame_ids * period).astype(np.float64), lengths.astype(np.int64)
+
+
+def write_map_rrd(
+    path: str | Path,
+    *,
+    times: FloatArray,
+    T_world_body: FloatArray,
+    planes: Sequence[PlaneRecord] = (),
+    cloud: CloudRecord | None = None,
+    scanner_names: Sequence[str] = (),
+    segments: SegmentLines | None = None,
+    options: MapOptions | None = None,
+) -> Path:
+    """Write the recording of a run to ``path`` (atomically); return ``path``.
+
+    ``times`` (N,) and ``T_world_body`` (N,4,4) are the trajectory; ``cloud`` (world frame)
+    gives both the scans over time (grouped per scanner by the points' own times) and the
+    final cloud; ``scanner_names`` names the cloud's scanner indices (else ``scanner_<i>``).
+    """
+    opt = options or MapOptions()
+    target = Path(path)
+    t = np.asarray(times, dtype=np.float64)
+    T = np.asarray(T_world_body, dtype=np.float64)
+    if t.ndim != 1 or T.shape != (t.shape[0], 4, 4) or t.shape[0] == 0:
+        raise OutputFileError(f"{target}: need times (N>0,) and T_world_body (N,4,4)")
+
+    with atomic_path(target) as tmp:
+        rec = rr.RecordingStream(opt.app_id)
+        rec.save(tmp)
+        try:
+            rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+            _log_trajectory(rec, t, T, opt)
+            _log_planes(rec, planes, opt)
+            if cloud is not None and len(cloud) > 0:
+                _log_scans(rec, cloud, scanner_names, opt)
+                _log_cloud(rec, cloud, opt)
+            if segments is not None and segments.stamp.shape[0] > 0:
+                _log_segments(rec, segments, float(t[0]), opt)
+            rec.flush()
+        finally:
+            rec.disconnect()
+    return target
+
+
+def _log_trajectory(rec: rr.RecordingStream, t: FloatArray, T: FloatArray, opt: MapOptions) -> None:
+    positions = T[:, :3, 3]
+    rec.log(
+        "world/trajectory",
+        rr.LineStrips3D([positions], colors=[(255, 80, 0)], radii=[opt.point_radius]),
+        static=True,
+    )
+    quat_xyzw = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    rec.send_columns(
+        "world/body",
+        indexes=[rr.TimeColumn("sensor", timestamp=t)],
+        columns=rr.Transform3D.columns(translation=positions, quaternion=quat_xyzw),
+    )
+    rec.log("world/body", rr.TransformAxes3D(opt.axis_length), static=True)
+
+
+def _log_planes(rec: rr.RecordingStream, planes: Sequence[PlaneRecord], opt: MapOptions) -> None:
+    for p in planes:
+        poly = np.asarray(p.polygon, dtype=np.float64).reshape(-1, 3)
+        if poly.shape[0] < 3:
+            continue
+        rgb = plane_colors(np.array([p.id]))[0]
+        rec.log(
+            f"world/planes/{p.id}",
+            rr.Mesh3D(
+                vertex_positions=poly,
+                triangle_indices=fan_triangles(poly.shape[0]),
+                vertex_normals=np.tile(p.normal, (poly.shape[0], 1)),
+                albedo_factor=[*rgb.tolist(), opt.plane_alpha],
+            ),
+            static=True,
+        )
+        label = f"plane {p.id}" + (f" ({p.kind})" if p.kind else "")
+        rec.log(
+            f"world/planes/{p.id}/outline",
+            rr.LineStrips3D([np.vstack([poly, poly[:1]])], colors=[rgb], labels=[label]),
+            static=True,
+        )
+
+
+def _log_scans(
+    rec: rr.RecordingStream, cloud: CloudRecord, names: Sequence[str], opt: MapOptions
+) -> None:
+    step = _stride(len(cloud), opt.max_scan_points)
+    t0 = float(np.min(cloud.time))
+    for s in np.unique(cloud.scanner):
+        sel = np.flatnonzero(cloud.scanner == s)
+        sel = sel[np.argsort(cloud.time[sel], kind="stable")][::step]
+        if sel.size == 0:
+            continue
+        frame_t, lengths = _frames(cloud.time[sel], t0, opt.frame_period)
+        name = names[s] if 0 <= s < len(names) else f"scanner_{s}"
+        rec.send_columns(
+            f"world/scans/{name}",
+            indexes=[rr.TimeColumn("sensor", timestamp=frame_t)],
+            columns=rr.Points3D.columns(
+                positions=cloud.points_world[sel], colors=plane_colors(cloud.plane_id[sel])
+            ).partition(lengths),
+        )
+
+
+def _log_cloud(rec: rr.RecordingStream, cloud: CloudRecord, opt: MapOptions) -> None:
+    step = _stride(len(cloud), opt.max_cloud_points)
+    rec.log(
+        "world/cloud",
+        rr.Points3D(
+            cloud.points_world[::step],
+            colors=plane_colors(cloud.plane_id[::step]),
+            radii=[opt.point_radius / 2],
+        ),
+        static=True,
+    )
+
+
+def _log_segments(rec: rr.RecordingStream, seg: SegmentLines, t0: float, opt: MapOptions) -> None:
+    order = np.argsort(seg.stamp, kind="stable")
+    stamps = np.asarray(seg.stamp, dtype=np.float64)[order]
+    frame_t, lengths = _frames(stamps, min(t0, float(stamps[0])), opt.frame_period)
+    rec.send_columns(
+        "world/segments",
+        indexes=[rr.TimeColumn("sensor", timestamp=frame_t)],
+        columns=rr.LineStrips3D.columns(
+            strips=list(np.asarray(seg.endpoints_world, dtype=np.float64)[order]),
+            colors=plane_colors(np.asarray(seg.plane_id)[order]),
+        ).partition(lengths),
+    )
+
+
+def write_map_from_dir(
+    run_dir: str | Path,
+    out: str | Path | None = None,
+    scanner_names: Sequence[str] = (),
+    options: MapOptions | None = None,
+) -> Path:
+    """Build ``map.rrd`` from a run folder's trajectory.tum, planes.json and cloud.ply.
+
+    planes.json and cloud.ply are optional; the trajectory is required.
+    """
+    d = Path(run_dir)
+    times, T = read_trajectory_tum(d / "trajectory.tum")
+    planes = read_planes_json(d / "planes.json") if (d / "planes.json").is_file() else []
+    cloud = read_cloud_ply(d / "cloud.ply") if (d / "cloud.ply").is_file() else None
+    return write_map_rrd(
+        Path(out) if out is not None else d / "map.rrd",
+        times=times,
+        T_world_body=T,
+        planes=planes,
+        cloud=cloud,
+        scanner_names=scanner_names,
+        options=options,
+    )

@@ -1,0 +1,125 @@
+"""A small rerun recording is written atomically and verified with the rerun CLI."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam.export import CloudRecord, PlaneRecord, write_cloud_ply, write_trajectory_tum
+from slam.rerun_map import (
+    MapOptions,
+    SegmentLines,
+    fan_triangles,
+    plane_colors,
+    write_map_from_dir,
+    write_map_rrd,
+)
+
+
+def _rerun_cli() -> str:
+    exe = Path(sys.executable).with_name("rerun")
+    found = str(exe) if exe.exists() else shutil.which("rerun")
+    assert found, "the rerun CLI ships with rerun-sdk and must be installed beside python"
+    return found
+
+
+def _rrd(*args: str) -> str:
+    env = {**os.environ, "RERUN_ANALYTICS": "false"}
+    res = subprocess.run(
+        [_rerun_cli(), "rrd", *args], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert res.returncode == 0, res.stderr
+    return res.stdout + res.stderr
+
+
+def _walk(n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    t = 100.0 + 0.025 * np.arange(n)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, 0, 3] = 1.2 * (t - t[0])
+    T[:, 2, 3] = 1.5
+    return t, T
+
+
+def _cloud(t: np.ndarray) -> CloudRecord:
+    rng = np.random.default_rng(0)
+    n = 3000
+    time = np.sort(rng.uniform(t[0], t[-1], n))
+    pts = rng.uniform(-3, 3, (n, 3))
+    return CloudRecord(pts, rng.integers(0, 3, n).astype(np.int32), time,
+                       rng.integers(-1, 6, n).astype(np.int32))  # fmt: skip
+
+
+def _planes() -> list[PlaneRecord]:
+    floor = np.array([[0, -2, 0], [5, -2, 0], [5, 2, 0], [0, 2, 0]], float)
+    wall = np.array([[0, 2, 0], [5, 2, 0], [5, 2, 3], [0, 2, 3]], float)
+    return [
+        PlaneRecord(0, np.array([0, 0, 1.0]), 0.0, floor, kind="floor"),
+        PlaneRecord(1, np.array([0, -1.0, 0]), 2.0, wall, kind="wall"),
+        PlaneRecord(2, np.array([1.0, 0, 0]), 0.0, np.zeros((0, 3))),  # no extent: skipped
+    ]
+
+
+def test_palette_and_fan() -> None:
+    c = plane_colors(np.array([-1, 0, 20, 3]))
+    assert c.dtype == np.uint8 and c.shape == (4, 3)
+    assert tuple(c[0]) == (150, 150, 150)
+    assert tuple(c[1]) == tuple(c[2])  # cycled
+    assert tuple(c[1]) != tuple(c[3])
+    np.testing.assert_array_equal(fan_triangles(5), [[0, 1, 2], [0, 2, 3], [0, 3, 4]])
+
+
+def test_write_and_verify(tmp_path: Path) -> None:
+    t, T = _walk()
+    seg = SegmentLines(
+        stamp=t[::4],
+        endpoints_world=np.stack([T[::4, :3, 3], T[::4, :3, 3] + [0, 1, 0]], axis=1),
+        plane_id=np.arange(len(t[::4]), dtype=np.int32) % 3 - 1,
+    )
+    out = write_map_rrd(
+        tmp_path / "map.rrd",
+        times=t,
+        T_world_body=T,
+        planes=_planes(),
+        cloud=_cloud(t),
+        scanner_names=["top", "left", "right"],
+        segments=seg,
+        options=MapOptions(max_scan_points=1000),
+    )
+    assert out.stat().st_size > 1000
+    assert [p.name for p in tmp_path.iterdir()] == ["map.rrd"]  # no temporary left
+    assert "verified without error" in _rrd("verify", str(out))
+    printed = _rrd("print", str(out))
+    for entity in (
+        "/world/scans/top",
+        "/world/scans/left",
+        "/world/scans/right",
+        "/world/segments",
+        "/world/planes/0",
+        "/world/planes/1/outline",
+        "/world/trajectory",
+        "/world/body",
+        "/world/cloud",
+    ):
+        assert entity in printed, entity
+    assert "/world/planes/2" not in printed
+    assert "Transform3D:quaternion" in printed and "Points3D:positions" in printed
+
+
+def test_from_dir_and_bad_input(tmp_path: Path) -> None:
+    t, T = _walk()
+    write_trajectory_tum(tmp_path / "trajectory.tum", t, T)
+    c = _cloud(t)
+    write_cloud_ply(tmp_path / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id)
+    out = write_map_from_dir(tmp_path)
+    assert out == tmp_path / "map.rrd"
+    printed = _rrd("print", str(out))
+    assert "/world/scans/scanner_0" in printed and "/world/cloud" in printed
+    with pytest.raises(ValueError, match=r"map2\.rrd"):
+        write_map_rrd(tmp_path / "map2.rrd", times=t, T_world_body=T[:3])
+    assert not (tmp_path / "map2.rrd").exists()
