@@ -1,0 +1,332 @@
+"""Batched point-on-plane factors: many laser points, one ``gtsam.CustomFactor``.
+
+A block holds the N points that the body saw on one plane ``P(j)`` between two consecutive
+trajectory knots ``X(i)``, ``X(i+1)``. Point k was measured at its own beam time, which maps onto
+the trajectory by its fraction ``alpha_k`` in [0, 1] (see :mod:`slam.interpolation`)::
+
+    T_k = T_i Exp(alpha_k Log(T_i^-1 T_{i+1}))          pose of the body at the beam time
+    e_k = (n . (T_k p_k) + d) / sigma_k                  whitened signed point-to-plane distance
+
+with the plane ``n . x + d = 0`` in the world frame (``gtsam.OrientedPlane3``) and ``p_k`` the
+point in the body frame at its beam time (scanner extrinsic already applied). Variants:
+
+* :func:`point_plane_factor` with ``pose_key_b=None``: keys ``(X(i), P(j))``; every alpha is 0.
+* :func:`scanner_point_plane_factor`: points in the scanner frame and ``T_body_scanner`` a
+  variable ``E(s)``: keys ``(X(i)[, X(i+1)], P(j), E(s))`` (for calibration).
+
+Jacobians are analytic and exact (no small-motion approximation): with right perturbations of
+both poses, ``D = T_i^-1 T_{i+1}``, ``xi = Log(D)``, ``Jr`` the SE(3) right Jacobian and
+``g_k = d e_k / d(right perturbation of T_k)``::
+
+    H_{i+1} = alpha_k g_k Jr(alpha_k xi) Jr(xi)^-1
+    H_i     = d e_k / d(perturbation of T_i at fixed Exp(alpha_k xi)) - H_{i+1} Ad(D^-1)
+    H_plane = [ (T_k p_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
+
+All per-point work is vectorised numpy: the interpolated poses all lie on one geodesic, so the
+per-point exponentials and Jacobians are scalar functions of ``alpha_k`` times shared 3x3
+matrices.
+
+Robustness (per point, wrong associations): a robust noise model on the block would weight
+the whole block by its total error, so the kernel is applied inside the factor, point by point.
+Each point contributes ``r_k = sign(e_k) sqrt(2 rho(e_k))`` with Jacobian
+``(psi(e_k) / r_k) de_k/dx`` (``rho`` Huber or Cauchy, threshold in sigmas, ``psi = rho'``),
+recomputed from the current residuals at every linearisation. So the factor's error is exactly
+``sum_k rho(e_k)`` (Levenberg-Marquardt accepts and rejects steps on the true robust cost), the
+gradient is exactly the IRLS gradient ``sum_k w_k e_k de_k/dx`` with ``w_k = psi(e_k)/e_k``, and
+the fixed point is the robust M-estimate. Plain IRLS (``sqrt(w_k) e_k`` with weights recomputed
+at every call) would make the reported error ``sum w_k e_k^2``, a different cost than the one
+the steps minimise. :func:`robust_weights` gives the IRLS weights ``w_k`` for diagnostics.
+Cauchy (threshold 3 sigma) is the default in the back end: it is redescending, so a wall point
+associated with the wrong wall stops pulling; Huber keeps a constant pull and is convex.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from slam.interpolation import exp_coefficients, hat
+
+FloatArray = NDArray[np.float64]
+KernelName = Literal["none", "huber", "cauchy"]
+
+
+@dataclass(frozen=True)
+class RobustKernel:
+    """Per-point robust kernel; ``threshold`` is in units of the point's sigma."""
+
+    name: KernelName = "cauchy"
+    threshold: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.name not in ("none", "huber", "cauchy"):
+            raise ValueError(f"robust kernel name: expected none, huber or cauchy, got {self.name!r}")
+        if not (np.isfinite(self.threshold) and self.threshold > 0.0):
+            raise ValueError(f"robust kernel threshold: must be > 0, got {self.threshold}")
+
+
+def robust_loss(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
+    """``rho(e)`` per whitened residual (``e^2 / 2`` without a kernel)."""
+    e = np.asarray(e, dtype=float)
+    k = kernel.threshold
+    if kernel.name == "none":
+        return 0.5 * e * e
+    if kernel.name == "huber":
+        a = np.abs(e)
+        return np.where(a <= k, 0.5 * e * e, k * a - 0.5 * k * k)
+    return 0.5 * k * k * np.log1p((e / k) ** 2)
+
+
+def robust_weights(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
+    """IRLS weights ``w = psi(e) / e`` in [0, 1] per whitened residual."""
+    e = np.asarray(e, dtype=float)
+    k = kernel.threshold
+    if kernel.name == "none":
+        return np.ones_like(e)
+    if kernel.name == "huber":
+        return np.minimum(1.0, k / np.maximum(np.abs(e), 1e-300))
+    return 1.0 / (1.0 + (e / k) ** 2)
+
+
+def robust_residual(e: FloatArray, kernel: RobustKernel) -> tuple[FloatArray, FloatArray]:
+    """``(r, s)``: ``r = sign(e) sqrt(2 rho(e))`` and ``s = dr/de = psi(e) / r`` (> 0)."""
+    if kernel.name == "none":
+        return e, np.ones_like(e)
+    k = kernel.threshold
+    if kernel.name == "huber":
+        a = np.abs(e)
+        out = a > k
+        r = np.where(out, np.sign(e) * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)), e)
+        s = np.where(out, k / np.sqrt(np.maximum(2.0 * k * a - k * k, 1e-300)), 1.0)
+        return r, s
+    x = (e / k) ** 2
+    lg = np.log1p(x)
+    r = np.sign(e) * k * np.sqrt(lg)
+    tiny = x < 1e-12
+    s = np.where(tiny, 1.0, np.sqrt(np.where(tiny, 1.0, x / np.where(tiny, 1.0, lg))) / (1.0 + x))
+    return r, s
+
+
+@dataclass
+class PointPlaneTerms:
+    """Unwhitened residuals (N,) [m] and their Jacobians for one block at one linearisation point.
+
+    ``H_a``/``H_b`` (N, 6) are wrt right perturbations of ``T_world_body`` at knots i and i+1
+    (``H_b`` is None for single-pose blocks), ``H_plane`` (N, 3) wrt the plane's retract
+    coordinates, ``normal_beam`` (N, 3) is the plane normal in the body frame at each beam time
+    (``R_k^T n``, for chaining to the extrinsic).
+    """
+
+    residuals: FloatArray
+    H_a: FloatArray | None = None
+    H_b: FloatArray | None = None
+    H_plane: FloatArray | None = None
+    normal_beam: FloatArray | None = None
+
+
+def point_plane_terms(
+    T_a: gtsam.Pose3,
+    T_b: gtsam.Pose3 | None,
+    plane: gtsam.OrientedPlane3,
+    points_body: FloatArray,
+    alphas: FloatArray | None,
+    jacobians: bool = True,
+) -> PointPlaneTerms:
+    """Signed distances of body-frame points (N, 3) placed by the interpolated pose to a world plane.
+
+    ``T_b`` None means a single-pose block (alphas ignored). See the module docstring for the
+    formulas; the Jacobians are exact.
+    """
+    Ma = T_a.matrix()
+    Ra, ta = Ma[:3, :3], Ma[:3, 3]
+    n = plane.normal().point3()
+    d = plane.distance()
+    m_a = Ra.T @ n  # plane normal in the body frame of knot i
+    if T_b is None:
+        q = points_body
+        w = q @ Ra.T + ta
+        res = w @ n + d
+        if not jacobians:
+            return PointPlaneTerms(res)
+        H_a = np.empty((q.shape[0], 6))
+        H_a[:, :3] = np.cross(q, m_a)
+        H_a[:, 3:] = m_a
+        return PointPlaneTerms(res, H_a, None, _plane_jacobian(w, plane), np.broadcast_to(m_a, q.shape))
+
+    assert alphas is not None
+    D = T_a.between(T_b)
+    xi = gtsam.Pose3.Logmap(D)
+    phi, rho = xi[:3], xi[3:]
+    al = alphas
+    A, B, C, Dc, F = exp_coefficients(al * np.linalg.norm(phi))
+    Aa, Ba2, Ca3 = A * al, B * al * al, C * al**3
+    p = points_body
+    # q_k = Exp(alpha_k xi) p_k: rotation I + A a Phi + B a^2 Phi^2, translation V(a phi) a rho
+    phi_x_p = np.cross(phi, p)
+    q = p + Aa[:, None] * phi_x_p + Ba2[:, None] * np.cross(phi, phi_x_p)
+    phi_x_rho = np.cross(phi, rho)
+    q += al[:, None] * rho + Ba2[:, None] * phi_x_rho + Ca3[:, None] * np.cross(phi, phi_x_rho)
+    w = q @ Ra.T + ta
+    res = w @ n + d
+    if not jacobians:
+        return PointPlaneTerms(res)
+
+    N = p.shape[0]
+    H_a = np.empty((N, 6))
+    H_a[:, :3] = np.cross(q, m_a)
+    H_a[:, 3:] = m_a
+    # normal in the body frame at the beam time: R_delta^T m_a
+    c1 = np.cross(phi, m_a)
+    m_k = m_a - Aa[:, None] * c1 + Ba2[:, None] * np.cross(phi, c1)
+    a = np.cross(p, m_k)  # g_k = [a, m_k]
+    # a Jr_SO3(alpha phi) = a + B alpha (phi x a) + C alpha^2 phi x (phi x a)
+    phi_x_a = np.cross(phi, a)
+    aJ = a + (B * al)[:, None] * phi_x_a + (C * al * al)[:, None] * np.cross(phi, phi_x_a)
+    phi_x_m = np.cross(phi, m_k)
+    mJ = m_k + (B * al)[:, None] * phi_x_m + (C * al * al)[:, None] * np.cross(phi, phi_x_m)
+    # m_k Q_r(alpha rho, alpha phi) with shared matrices and scalar coefficients per point
+    K, P = hat(phi), hat(rho)
+    KP, PK, KK = K @ P, P @ K, K @ K
+    KPK = KP @ K
+    mats = np.concatenate([P, KP + PK, KPK, KK @ P + P @ KK, KPK @ K + K @ KPK], axis=1)
+    coef = np.stack([-0.5 * al, C * al**2, (3.0 * Dc - C) * al**3, -Dc * al**3, F * al**4], axis=1)
+    mQ = np.einsum("nj,nji->ni", coef, (m_k @ mats).reshape(N, 5, 3))
+    u = np.empty((N, 6))
+    u[:, :3] = aJ + mQ
+    u[:, 3:] = mJ
+    u *= al[:, None]
+    Jinv = gtsam.Pose3.LogmapDerivative(D)
+    H_b = u @ Jinv
+    H_a -= u @ (Jinv @ D.inverse().AdjointMap())
+    return PointPlaneTerms(res, H_a, H_b, _plane_jacobian(w, plane), m_k)
+
+
+def _plane_jacobian(points_world: FloatArray, plane: gtsam.OrientedPlane3) -> FloatArray:
+    H = np.ones((points_world.shape[0], 3))
+    H[:, :2] = points_world @ plane.normal().basis()
+    return H
+
+
+def _check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, two_poses: bool,
+                 name: str) -> tuple[FloatArray, FloatArray | None, FloatArray]:
+    p = np.ascontiguousarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
+        raise ValueError(f"{name}: expected a non-empty (N, 3) array, got shape {p.shape}")
+    s = np.asarray(sigmas, dtype=float)
+    if s.ndim == 0:
+        s = np.full(p.shape[0], float(s))
+    if s.shape != (p.shape[0],) or not np.all(np.isfinite(s)) or np.any(s <= 0.0):
+        raise ValueError(f"sigmas: expected {p.shape[0]} finite values > 0 (or one scalar)")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    if not two_poses:
+        if alphas is not None and np.any(np.asarray(alphas) != 0.0):
+            raise ValueError("alphas: a single-pose block needs every alpha = 0 (or alphas=None)")
+        return p, None, s
+    if alphas is None:
+        raise ValueError("alphas: required for a block between two knots")
+    a = np.ascontiguousarray(alphas, dtype=float)
+    if a.shape != (p.shape[0],) or not np.all((a >= 0.0) & (a <= 1.0)):
+        raise ValueError(f"alphas: expected {p.shape[0]} values in [0, 1]")
+    return p, a, s
+
+
+def point_plane_factor(
+    pose_key_a: int,
+    pose_key_b: int | None,
+    plane_key: int,
+    points_body: ArrayLike,
+    alphas: ArrayLike | None,
+    sigmas: ArrayLike,
+    kernel: RobustKernel | None = None,
+) -> gtsam.CustomFactor:
+    """One factor for N body-frame points (N, 3) [m] observed between knots a and b on a plane.
+
+    Keys ``(pose_key_a, pose_key_b, plane_key)``, or ``(pose_key_a, plane_key)`` when
+    ``pose_key_b`` is None (then alphas must be None or all 0). ``sigmas`` (N,) or scalar [m]:
+    point-to-plane standard deviations from the scanner noise model. Error dimension N.
+    """
+    kernel = kernel or RobustKernel()
+    two = pose_key_b is not None
+    p, al, s = _check_block(points_body, alphas, sigmas, two, "points_body")
+    inv_s = 1.0 / s
+    keys = [pose_key_a, pose_key_b, plane_key] if two else [pose_key_a, plane_key]
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+        T_b = v.atPose3(pose_key_b) if two else None
+        t = point_plane_terms(v.atPose3(pose_key_a), T_b, v.atOrientedPlane3(plane_key), p, al,
+                              H is not None)
+        r, scale = robust_residual(t.residuals * inv_s, kernel)
+        if H is not None:
+            f = (scale * inv_s)[:, None]
+            H[0] = t.H_a * f
+            if two:
+                H[1] = t.H_b * f
+            H[len(keys) - 1] = t.H_plane * f
+        return r
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(p.shape[0]), keys, error)
+
+
+def scanner_point_plane_factor(
+    pose_key_a: int,
+    pose_key_b: int | None,
+    plane_key: int,
+    extrinsic_key: int,
+    points_scanner: ArrayLike,
+    alphas: ArrayLike | None,
+    sigmas: ArrayLike,
+    kernel: RobustKernel | None = None,
+) -> gtsam.CustomFactor:
+    """Like :func:`point_plane_factor` with points (N, 3) in the scanner frame and
+    ``T_body_scanner`` the Pose3 variable ``extrinsic_key`` (last key; right perturbation)."""
+    kernel = kernel or RobustKernel()
+    two = pose_key_b is not None
+    p_s, al, s = _check_block(points_scanner, alphas, sigmas, two, "points_scanner")
+    inv_s = 1.0 / s
+    keys = [pose_key_a, pose_key_b, plane_key, extrinsic_key] if two else [
+        pose_key_a, plane_key, extrinsic_key]
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+        E = v.atPose3(extrinsic_key).matrix()
+        R_bs = E[:3, :3]
+        p_b = p_s @ R_bs.T + E[:3, 3]
+        T_b = v.atPose3(pose_key_b) if two else None
+        t = point_plane_terms(v.atPose3(pose_key_a), T_b, v.atOrientedPlane3(plane_key), p_b, al,
+                              H is not None)
+        r, scale = robust_residual(t.residuals * inv_s, kernel)
+        if H is not None:
+            f = (scale * inv_s)[:, None]
+            H[0] = t.H_a * f
+            if two:
+                H[1] = t.H_b * f
+            H[len(keys) - 2] = t.H_plane * f
+            assert t.normal_beam is not None
+            m_s = t.normal_beam @ R_bs  # normal in the scanner frame at each beam time
+            He = np.empty((p_s.shape[0], 6))
+            He[:, :3] = np.cross(p_s, m_s)
+            He[:, 3:] = m_s
+            H[len(keys) - 1] = He * f
+        return r
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(p_s.shape[0]), keys, error)
+
+
+def whitened_residuals(
+    values: gtsam.Values,
+    pose_key_a: int,
+    pose_key_b: int | None,
+    plane_key: int,
+    points_body: FloatArray,
+    alphas: FloatArray | None,
+    sigmas: FloatArray,
+) -> FloatArray:
+    """Whitened point-to-plane residuals e_k (N,) of a body-frame block at ``values`` (no kernel)."""
+    T_b = values.atPose3(pose_key_b) if pose_key_b is not None else None
+    t = point_plane_terms(values.atPose3(pose_key_a), T_b, values.atOrientedPlane3(plane_key),
+                          points_body, alphas, jacobians=False)
+    return t.residuals / sigmas

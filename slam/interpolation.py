@@ -1,0 +1,201 @@
+"""SE(3) tools for the continuous-time trajectory: exp/log, right Jacobians, interpolation.
+
+The trajectory is a sequence of knots ``T_world_body(t_i)`` (one per scan of the reference
+scanner, 40 Hz). Between knots i and i+1 the pose follows the constant body twist that joins
+them (SE(3) geodesic interpolation)::
+
+    T(t) = T_i Exp(alpha Log(T_i^-1 T_{i+1})),   alpha = (t - t_i) / (t_{i+1} - t_i)
+
+which is what the factors in :mod:`slam.factors` use, so deskewing with
+:func:`interpolate_trajectory` places points exactly as the back end does.
+
+Conventions follow gtsam: a twist ``xi = (omega, v)`` (rotation first, then translation),
+``Exp``/``Log`` are gtsam's ``Pose3.Expmap``/``Pose3.Logmap`` and the right Jacobian ``Jr``
+satisfies ``Exp(xi + d) ~= Exp(xi) Exp(Jr(xi) d)`` (gtsam's ``Pose3.ExpmapDerivative``).
+All functions work on numpy arrays; poses are 4x4 homogeneous matrices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+FloatArray = NDArray[np.float64]
+
+_SMALL = 1e-4  # below this angle (rad) the Taylor series of the coefficients are exact to 1e-17
+
+
+def hat(v: ArrayLike) -> FloatArray:
+    """Skew-symmetric matrices ``[v]x`` of vectors ``v`` with shape (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def exp_coefficients(theta: ArrayLike) -> tuple[FloatArray, ...]:
+    """Coefficients of the SO(3)/SE(3) series at rotation angles ``theta`` (any shape).
+
+    Returns ``(A, B, C, D, F)`` with ``A = sin t / t``, ``B = (1 - cos t) / t^2``,
+    ``C = (t - sin t) / t^3``, ``D = (t^2/2 + cos t - 1) / t^4`` and
+    ``F = (2 t - 3 sin t + t cos t) / (2 t^5)``, using Taylor series for small angles.
+    """
+    t = np.asarray(theta, dtype=float)
+    small = t < _SMALL
+    ts = np.where(small, 1.0, t)  # avoid 0/0 in the branch that is discarded
+    t2 = t * t
+    s, c = np.sin(ts), np.cos(ts)
+    a = np.where(small, 1.0 - t2 / 6.0, s / ts)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - c) / ts**2)
+    cc = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - s) / ts**3)
+    d = np.where(small, 1.0 / 24.0 - t2 / 720.0, (ts**2 / 2.0 + c - 1.0) / ts**4)
+    f = np.where(small, -1.0 / 60.0 + t2 / 5040.0, (2.0 * ts - 3.0 * s + ts * c) / (2.0 * ts**5))
+    return a, b, cc, d, f
+
+
+def so3_exp(phi: ArrayLike) -> FloatArray:
+    """Rotation matrices ``Exp(phi)`` for rotation vectors ``phi`` (..., 3) -> (..., 3, 3)."""
+    phi = np.asarray(phi, dtype=float)
+    a, b, *_ = exp_coefficients(np.linalg.norm(phi, axis=-1))
+    K = hat(phi)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def se3_exp(xi: ArrayLike) -> FloatArray:
+    """Poses ``Exp(xi)`` for twists ``xi = (omega, v)`` with shape (..., 6) -> (..., 4, 4)."""
+    xi = np.asarray(xi, dtype=float)
+    phi, rho = xi[..., :3], xi[..., 3:]
+    a, b, c, *_ = exp_coefficients(np.linalg.norm(phi, axis=-1))
+    K = hat(phi)
+    K2 = K @ K
+    T = np.zeros((*xi.shape[:-1], 4, 4))
+    T[..., :3, :3] = np.eye(3) + a[..., None, None] * K + b[..., None, None] * K2
+    V = np.eye(3) + b[..., None, None] * K + c[..., None, None] * K2
+    T[..., :3, 3] = np.einsum("...ij,...j->...i", V, rho)
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def se3_log(T: ArrayLike) -> FloatArray:
+    """Twists ``Log(T)`` = (omega, v) of poses (..., 4, 4) -> (..., 6)."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    phi = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*R.shape[:-2], 3)
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < _SMALL
+    ts = np.where(small, 1.0, theta)
+    # V^-1 = I - K/2 + e K^2 with e = (1 - A / (2 B)) / t^2
+    e = np.where(
+        small,
+        1.0 / 12.0 + theta**2 / 720.0,
+        (1.0 - ts * np.sin(ts) / (2.0 * (1.0 - np.cos(ts)))) / ts**2,
+    )
+    K = hat(phi)
+    Vinv = np.eye(3) - 0.5 * K + e[..., None, None] * (K @ K)
+    rho = np.einsum("...ij,...j->...i", Vinv, T[..., :3, 3])
+    return np.concatenate([phi, rho], axis=-1)
+
+
+def se3_inverse(T: ArrayLike) -> FloatArray:
+    """Inverses of poses (..., 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def adjoint(T: ArrayLike) -> FloatArray:
+    """Adjoint matrices (..., 6, 6) of poses (..., 4, 4) in gtsam's (rotation, translation) order."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    out = np.zeros((*T.shape[:-2], 6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., 3:, :3] = hat(T[..., :3, 3]) @ R
+    return out
+
+
+def se3_right_jacobian(xi: ArrayLike) -> FloatArray:
+    """Exact right Jacobians ``Jr(xi)`` (..., 6, 6) of SE(3) for twists (..., 6).
+
+    ``Jr = [[J, 0], [Q, J]]`` with ``J`` the SO(3) right Jacobian and ``Q`` the coupling block
+    (Barfoot's ``Q(rho, phi)`` evaluated at ``(-rho, -phi)``); equal to gtsam's
+    ``Pose3.ExpmapDerivative``.
+    """
+    xi = np.asarray(xi, dtype=float)
+    phi, rho = xi[..., :3], xi[..., 3:]
+    _, b, c, d, f = exp_coefficients(np.linalg.norm(phi, axis=-1))
+    K, P = hat(phi), hat(rho)
+    J = np.eye(3) - b[..., None, None] * K + c[..., None, None] * (K @ K)
+    Q = _q_right(K, P, c, d, f)
+    out = np.zeros((*xi.shape[:-1], 6, 6))
+    out[..., :3, :3] = J
+    out[..., 3:, 3:] = J
+    out[..., 3:, :3] = Q
+    return out
+
+
+def _q_right(K: FloatArray, P: FloatArray, c: FloatArray, d: FloatArray, f: FloatArray) -> FloatArray:
+    KP, PK = K @ P, P @ K
+    KPK = KP @ K
+    KK = K @ K
+    return (
+        -0.5 * P
+        + c[..., None, None] * (KP + PK)
+        + (3.0 * d - c)[..., None, None] * KPK
+        - d[..., None, None] * (KK @ P + P @ KK)
+        + f[..., None, None] * (KPK @ K + K @ KPK)
+    )
+
+
+def interpolate_poses(T_a: ArrayLike, T_b: ArrayLike, alpha: ArrayLike) -> FloatArray:
+    """``T_a Exp(alpha Log(T_a^-1 T_b))`` for broadcastable poses (..., 4, 4) and fractions (...)."""
+    T_a = np.asarray(T_a, dtype=float)
+    xi = se3_log(se3_inverse(T_a) @ np.asarray(T_b, dtype=float))
+    alpha = np.asarray(alpha, dtype=float)
+    return T_a @ se3_exp(alpha[..., None] * xi)
+
+
+def knot_fractions(knot_times: ArrayLike, times: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
+    """Interval index i and fraction alpha in [0, 1] of each time: ``t = t_i + alpha (t_{i+1} - t_i)``.
+
+    ``knot_times`` must be strictly increasing (at least two knots) and every time must lie in
+    ``[knot_times[0], knot_times[-1]]``; otherwise a ValueError names the offending input.
+    Times equal to the last knot map to the last interval with alpha = 1.
+    """
+    kt = np.asarray(knot_times, dtype=float)
+    t = np.asarray(times, dtype=float)
+    if kt.ndim != 1 or kt.size < 2:
+        raise ValueError(f"knot_times: need a 1-D array of at least 2 knots, got shape {kt.shape}")
+    if np.any(np.diff(kt) <= 0.0):
+        raise ValueError("knot_times: must be strictly increasing")
+    if t.size and (not np.all(np.isfinite(t)) or t.min() < kt[0] or t.max() > kt[-1]):
+        raise ValueError(
+            f"times: must lie within the knots [{kt[0]:.6f}, {kt[-1]:.6f}] s, "
+            f"got [{np.nanmin(t):.6f}, {np.nanmax(t):.6f}] s"
+        )
+    idx = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, kt.size - 2)
+    alpha = (t - kt[idx]) / (kt[idx + 1] - kt[idx])
+    return idx.astype(np.int64), alpha
+
+
+def interpolate_trajectory(
+    knot_times: ArrayLike, knot_poses: ArrayLike, times: ArrayLike
+) -> FloatArray:
+    """Poses ``T_world_body(t)`` (M, 4, 4) at ``times`` (M,) from knots (K,) and poses (K, 4, 4)."""
+    poses = np.asarray(knot_poses, dtype=float)
+    kt = np.asarray(knot_times, dtype=float)
+    if poses.shape != (kt.size, 4, 4):
+        raise ValueError(f"knot_poses: expected shape ({kt.size}, 4, 4), got {poses.shape}")
+    idx, alpha = knot_fractions(kt, times)
+    xi = se3_log(se3_inverse(poses[:-1]) @ poses[1:])  # one twist per interval
+    return poses[idx] @ se3_exp(alpha[:, None] * xi[idx])
