@@ -129,10 +129,10 @@ def _describe(e: BaseException) -> str:
 
 def _messages(reader: AnyReader, p: Path, connections: list[Any]) -> Iterator[tuple[Any, int, Any]]:
     """(connection, log time ns, deserialized message); read errors become ``InputError``."""
-    topic: str | None = connections[0].topic if len({c.topic for c in connections}) == 1 else None
+    names = {c.topic for c in connections}
+    topic = next(iter(names)) if len(names) == 1 else None  # which message broke is unknown otherwise
     try:
         for conn, t_ns, raw in reader.messages(connections=connections):
-            topic = conn.topic
             yield conn, t_ns, reader.deserialize(raw, conn.msgtype)
     except InputError:
         raise

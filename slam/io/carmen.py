@@ -35,13 +35,16 @@ is valid iff ``0 < r < range_max``, where ``range_max`` is the logged parameter
 
 Per-beam times. CARMEN logs only one timestamp per scan (``timestamp``, the
 scanner's clock); the beam interval is not logged, so beam i is at
-``timestamp + i * time_increment`` with ``time_increment = 0`` by default.
+``timestamp + i * time_increment`` with ``time_increment = 0`` by default. Scans come
+in file order, which is time order except where a log's own timestamps step back (the
+intel log does so 4 times, by up to 0.86 s).
 """
 
 from __future__ import annotations
 
 import gzip
 import math
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -153,7 +156,7 @@ def _iter_carmen(
                 elif head == "ROBOTLASER1":
                     yield _robotlaser(tok, p, line_no, time_increment, scanner_id)
                     n_scans += 1
-    except (OSError, EOFError, gzip.BadGzipFile, UnicodeDecodeError) as e:
+    except (OSError, EOFError, zlib.error, UnicodeDecodeError) as e:
         raise input_error(p, f"unreadable or truncated at line {line_no + 1}: {e}") from None
     if n_scans == 0:
         raise input_error(p, "no FLASER or ROBOTLASER1 lines: not a CARMEN laser log")

@@ -64,7 +64,7 @@ def _npz_scanlines(p: Path, data: dict[str, np.ndarray]) -> list[Scanline]:
         r = r[None]
     if r.ndim != 2:
         raise input_error(p, f"key 'ranges' has shape {data['ranges'].shape}, expected (n,) or (k, n)")
-    if a.ndim == 1:
+    if a.ndim == 1 and a.shape[0] == r.shape[1]:
         a = np.broadcast_to(a, r.shape)
     if a.shape != r.shape:
         raise input_error(p, f"key 'angles' has shape {data['angles'].shape}, does not match 'ranges' {data['ranges'].shape}")
