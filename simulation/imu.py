@@ -34,12 +34,12 @@ GRAVITY = 9.80665
 class ImuConfig(StrictModel):
     """Noise of a consumer MEMS IMU (roughly a Bosch BMI088 / Xsens MTi-3 class)."""
 
-    gyro_noise: float = Field(0.003, ge=0, description="gyro white noise density (rad/s/sqrt(Hz))")
-    accel_noise: float = Field(0.02, ge=0, description="accel white noise density (m/s^2/sqrt(Hz))")
-    gyro_bias_walk: float = Field(1e-4, ge=0, description="gyro bias random walk (rad/s^2/sqrt(Hz))")
-    accel_bias_walk: float = Field(1e-3, ge=0, description="accel bias random walk (m/s^3/sqrt(Hz))")
-    gyro_bias_init: float = Field(0.002, ge=0, description="std of the initial gyro bias (rad/s)")
-    accel_bias_init: float = Field(0.02, ge=0, description="std of the initial accel bias (m/s^2)")
+    gyro_noise: float = Field(default=0.003, ge=0, description="gyro white noise density (rad/s/sqrt(Hz))")
+    accel_noise: float = Field(default=0.02, ge=0, description="accel white noise density (m/s^2/sqrt(Hz))")
+    gyro_bias_walk: float = Field(default=1e-4, ge=0, description="gyro bias random walk (rad/s^2/sqrt(Hz))")
+    accel_bias_walk: float = Field(default=1e-3, ge=0, description="accel bias random walk (m/s^3/sqrt(Hz))")
+    gyro_bias_init: float = Field(default=0.002, ge=0, description="std of the initial gyro bias (rad/s)")
+    accel_bias_init: float = Field(default=0.02, ge=0, description="std of the initial accel bias (m/s^2)")
 
 
 @dataclass(frozen=True, eq=False)

@@ -53,26 +53,26 @@ FloatArray = NDArray[np.float64]
 class GaitConfig(StrictModel):
     """Parameters of the walking operator (defaults: a relaxed indoor walk)."""
 
-    height: float = Field(1.90, gt=0, description="reference scanner above the floor (m)")
-    speed: float | None = Field(None, ge=0.3, le=2.0, description="walk speed (m/s); None: the world's")
-    rate: float = Field(200.0, ge=200.0, description="pose sample rate (Hz)")
-    step_frequency: float = Field(1.9, gt=0, description="steps per second at the walk speed (Hz)")
-    bob: float = Field(0.03, ge=0, description="vertical bob, peak to peak (m)")
-    sway: float = Field(0.02, ge=0, description="lateral sway amplitude (m)")
-    roll: float = Field(math.radians(2.0), ge=0, description="roll amplitude at stride frequency (rad)")
-    pitch: float = Field(math.radians(1.5), ge=0, description="pitch amplitude at step frequency (rad)")
-    yaw: float = Field(math.radians(1.5), ge=0, description="yaw oscillation amplitude (rad)")
-    lean: float = Field(math.radians(1.0), ge=0, description="slow random roll/pitch wander, std (rad)")
-    variation: float = Field(0.1, ge=0, lt=1, description="relative random amplitude/frequency variation")
-    corner_radius: float = Field(0.8, gt=0, description="max radius of rounded corners (m)")
-    lateral_accel: float = Field(0.8, gt=0, description="max lateral acceleration at corners (m/s^2)")
-    yaw_rate: float = Field(math.radians(60.0), gt=0, description="max yaw rate walking a corner (rad/s)")
-    pivot_angle: float = Field(math.radians(100.0), gt=0, description="turns sharper than this are on the spot (rad)")
-    pivot_rate: float = Field(math.radians(90.0), gt=0, description="yaw rate turning on the spot (rad/s)")
-    accel: float = Field(0.6, gt=0, description="longitudinal acceleration (m/s^2)")
-    smoothing: float = Field(0.15, gt=0, description="Gaussian smoothing of position and heading (s)")
-    start_rest: float = Field(1.0, ge=0, description="standing still before walking (s)")
-    stops: bool = Field(True, description="honour the walk's stops")
+    height: float = Field(default=1.90, gt=0, description="reference scanner above the floor (m)")
+    speed: float | None = Field(default=None, ge=0.3, le=2.0, description="walk speed (m/s); None: the world's")
+    rate: float = Field(default=200.0, ge=200.0, description="pose sample rate (Hz)")
+    step_frequency: float = Field(default=1.9, gt=0, description="steps per second at the walk speed (Hz)")
+    bob: float = Field(default=0.03, ge=0, description="vertical bob, peak to peak (m)")
+    sway: float = Field(default=0.02, ge=0, description="lateral sway amplitude (m)")
+    roll: float = Field(default=math.radians(2.0), ge=0, description="roll amplitude at stride frequency (rad)")
+    pitch: float = Field(default=math.radians(1.5), ge=0, description="pitch amplitude at step frequency (rad)")
+    yaw: float = Field(default=math.radians(1.5), ge=0, description="yaw oscillation amplitude (rad)")
+    lean: float = Field(default=math.radians(1.0), ge=0, description="slow random roll/pitch wander, std (rad)")
+    variation: float = Field(default=0.1, ge=0, lt=1, description="relative random amplitude/frequency variation")
+    corner_radius: float = Field(default=0.8, gt=0, description="max radius of rounded corners (m)")
+    lateral_accel: float = Field(default=0.8, gt=0, description="max lateral acceleration at corners (m/s^2)")
+    yaw_rate: float = Field(default=math.radians(60.0), gt=0, description="max yaw rate walking a corner (rad/s)")
+    pivot_angle: float = Field(default=math.radians(100.0), gt=0, description="turns sharper than this are on the spot (rad)")
+    pivot_rate: float = Field(default=math.radians(90.0), gt=0, description="yaw rate turning on the spot (rad/s)")
+    accel: float = Field(default=0.6, gt=0, description="longitudinal acceleration (m/s^2)")
+    smoothing: float = Field(default=0.15, gt=0, description="Gaussian smoothing of position and heading (s)")
+    start_rest: float = Field(default=1.0, ge=0, description="standing still before walking (s)")
+    stops: bool = Field(default=True, description="honour the walk's stops")
 
 
 # ---------------------------------------------------------------------------
@@ -120,7 +120,7 @@ def pose_at(
     """
     n = positions.shape[0]
     u = (t - t0) / dt
-    k = int(math.floor(u))
+    k = math.floor(u)
     if k < 0:
         k = 0
     if k > n - 2:
