@@ -1,0 +1,118 @@
+"""Sequential RANSAC line extraction (as compared by Nguyen et al. 2005).
+
+Repeat on the points not yet taken: draw ``n_iter`` random point pairs
+(seeded: ``seed``, a numpy ``Generator``, so the same input and seed give the
+same output), keep the pair's line with the most inliers (points within
+``threshold``, scaled per point by the noise model; ties go to the earlier
+draw), refit it by total least squares on its inliers (twice), and take
+every run of at least ``min_len`` consecutive inliers as a segment (see
+``segmentation.methods._consensus``). Stop when fewer than ``min_len``
+points remain or the best line has fewer than ``min_len`` inliers. If a best
+line has enough inliers but no run long enough (scattered clutter), its
+inliers are discarded (left unsegmented) so the search moves on.
+
+RANSAC ignores scan order while fitting, so collinear but separate faces (a
+wall either side of a door recessed by less than ``threshold``) share a
+line: the classic extractors were found less reliable for this reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
+from segmentation.methods._consensus import discard_inliers, mark_inliers, refine_line, take_runs
+from segmentation.registry import register
+
+
+@dataclass(frozen=True)
+class RansacParams(CommonParams):
+    """threshold: inlier distance (m) at the noise ``point_sigma``. n_iter: pairs drawn per line.
+    seed: seed of the random pairs."""
+
+    threshold: float = 0.01
+    n_iter: int = 100
+    seed: int = 0
+
+    def validate(self) -> None:
+        super().validate()
+        _check(self.threshold > 0, "threshold", self.threshold, "> 0")
+        _check(self.n_iter >= 1, "n_iter", self.n_iter, ">= 1")
+        _check(self.seed >= 0, "seed", self.seed, ">= 0")
+
+
+@nb.njit(cache=True)
+def _count_pair(points: FloatArray, thr: FloatArray, pool: IntArray, q: int, a: int, b: int) -> int:
+    ax = points[a, 0]
+    ay = points[a, 1]
+    ex = points[b, 0] - ax
+    ey = points[b, 1] - ay
+    ln = np.sqrt(ex * ex + ey * ey)
+    nx = -ey / ln
+    ny = ex / ln
+    count = 0
+    for t in range(q):
+        i = pool[t]
+        if abs((points[i, 0] - ax) * nx + (points[i, 1] - ay) * ny) <= thr[i]:
+            count += 1
+    return count
+
+
+@nb.njit(cache=True)
+def ransac_labels(points: FloatArray, thr: FloatArray, n_iter: int, min_len: int, max_gap: float,
+                  rng: np.random.Generator) -> IntArray:
+    """Raw labels of sequential RANSAC over the points (scan order)."""
+    m = points.shape[0]
+    labels = np.full(m, -1, dtype=np.int64)
+    alive = np.ones(m, dtype=np.bool_)
+    inl = np.zeros(m, dtype=np.bool_)
+    pool = np.arange(m)
+    q = m
+    seg = 0
+    while q >= min_len:
+        best = -1
+        best_a = 0
+        best_b = 0
+        for _ in range(n_iter):
+            a = pool[rng.integers(0, q)]
+            b = pool[rng.integers(0, q)]
+            if a == b or (points[a, 0] == points[b, 0] and points[a, 1] == points[b, 1]):
+                continue
+            c = _count_pair(points, thr, pool, q, a, b)
+            if c > best:
+                best = c
+                best_a = a
+                best_b = b
+        if best < min_len:
+            break
+        ex = points[best_b, 0] - points[best_a, 0]
+        ey = points[best_b, 1] - points[best_a, 1]
+        ln = np.sqrt(ex * ex + ey * ey)
+        mark_inliers(points, thr, alive, points[best_a, 0], points[best_a, 1], -ey / ln, ex / ln, inl)
+        refine_line(points, thr, alive, inl, 2)
+        seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
+        if taken == 0 and discard_inliers(inl, alive) == 0:
+            break
+        q = 0
+        for i in range(m):
+            if alive[i]:
+                pool[q] = i
+                q += 1
+    return labels
+
+
+@register("ransac")
+class Ransac(Segmenter):
+    """Sequential RANSAC; see the module docstring."""
+
+    Params = RansacParams
+
+    def _raw_labels(self, points_xy: FloatArray, scale: FloatArray) -> IntArray:
+        p = self.params
+        assert isinstance(p, RansacParams)
+        thr = np.ascontiguousarray(p.threshold * scale)
+        rng = np.random.default_rng(p.seed)
+        return ransac_labels(points_xy, thr, p.n_iter, p.min_len, p.max_gap, rng)
