@@ -1,0 +1,130 @@
+"""Plots of an evaluation (matplotlib, Agg canvas, no display): PNGs written atomically.
+
+- ``trajectory_error_topview.png``: top view (x, y in the ground-truth world) of the ground
+  truth and of the start-aligned estimate coloured by its position error.
+- ``error_over_distance.png``: position error against distance walked, for the three ATE
+  variants.
+- ``plane_errors.png``: histograms of plane angle (deg) and offset (mm) errors.
+- ``cloud_to_mesh.png``: histogram of the cloud's distances to the true mesh (mm).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+
+from slam.evaluate import CloudEval, EvalResult, PlaneEval, TrajectoryEval
+from slam.export import atomic_path
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    FigureCanvasAgg(fig)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    return path
+
+
+def plot_topview(traj: TrajectoryEval, path: Path) -> Path:
+    """Ground truth (grey) and start-aligned estimate coloured by its error (mm)."""
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot()
+    ax.plot(traj.gt_xyz[:, 0], traj.gt_xyz[:, 1], color="0.6", lw=3, label="ground truth")
+    xy = traj.est_xyz_start[:, :2]
+    segs = np.stack([xy[:-1], xy[1:]], axis=1)
+    err_mm = 1000.0 * traj.err_start
+    lc = LineCollection(list(segs), cmap="viridis", linewidths=1.5)
+    lc.set_array(0.5 * (err_mm[:-1] + err_mm[1:]))
+    ax.add_collection(lc)
+    fig.colorbar(lc, ax=ax, label="position error, start-aligned (mm)")
+    ax.plot(*xy[0], "k^", label="start")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ate = traj.ate
+    ax.set_title(
+        f"ATE RMSE: start-aligned {1000 * ate['start_aligned'].rmse:.1f} mm, "
+        f"SE(3)-aligned {1000 * ate['se3_aligned'].rmse:.1f} mm",
+        fontsize=10,
+    )
+    ax.legend(loc="best", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_error_over_distance(traj: TrajectoryEval, path: Path) -> Path:
+    """Position error (mm) of the three ATE variants against distance walked (m)."""
+    fig = Figure(figsize=(8, 4))
+    ax = fig.add_subplot()
+    for err, label in (
+        (traj.err_unaligned, "unaligned"),
+        (traj.err_start, "start-aligned (datum)"),
+        (traj.err_se3, "SE(3)-aligned"),
+    ):
+        ax.plot(traj.distance, 1000.0 * err, lw=1, label=label)
+    ax.set_xlabel("distance walked (m)")
+    ax.set_ylabel("position error (mm)")
+    ax.set_title(
+        f"drift: {traj.drift_endpoint_per_100m:.3f} % (end point), "
+        f"{traj.rot_drift_deg_per_100m:.3f} deg/100 m",
+        fontsize=10,
+    )
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
+    """Histograms of angle (deg) and signed offset (mm) errors of the matched planes."""
+    fig = Figure(figsize=(9, 3.8))
+    ax1, ax2 = fig.subplots(1, 2)
+    ang = np.array([m.angle_deg for m in planes.matches])
+    off = 1000.0 * np.array([m.offset_m for m in planes.matches])
+    ax1.hist(ang, bins=30, color="tab:blue")
+    ax1.set_xlabel("normal angle error (deg)")
+    ax1.set_ylabel("planes")
+    ax1.set_title(f"median {np.median(ang):.3f} deg" if ang.size else "no matches", fontsize=10)
+    ax2.hist(off, bins=30, color="tab:orange")
+    ax2.set_xlabel("offset error (mm)")
+    ax2.set_title(
+        f"median |offset| {np.median(np.abs(off)):.1f} mm" if off.size else "no matches",
+        fontsize=10,
+    )
+    fig.suptitle(
+        f"{len(planes.matches)} of {planes.n_estimated} estimated planes matched", fontsize=10
+    )
+    return _save(fig, path)
+
+
+def plot_cloud_distances(cloud: CloudEval, path: Path) -> Path:
+    """Histogram of point-to-mesh distances (mm) with median and 95th percentile."""
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    d = 1000.0 * cloud.distances
+    hi = float(np.percentile(d, 99.5)) if d.size else 1.0
+    ax.hist(np.clip(d, 0, hi), bins=80, color="tab:green")
+    for q, style in ((50, "-"), (95, "--")):
+        v = float(np.percentile(d, q)) if d.size else 0.0
+        ax.axvline(v, color="k", ls=style, lw=1, label=f"{q}th percentile {v:.1f} mm")
+    ax.set_xlabel("distance to the true mesh (mm, clipped at the 99.5th percentile)")
+    ax.set_ylabel("points")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def write_plots(result: EvalResult, out_dir: str | Path) -> list[Path]:
+    """Write every plot the result supports into ``out_dir``; return the files written."""
+    d = Path(out_dir)
+    out = [
+        plot_topview(result.trajectory, d / "trajectory_error_topview.png"),
+        plot_error_over_distance(result.trajectory, d / "error_over_distance.png"),
+    ]
+    if result.planes is not None and result.planes.matches:
+        out.append(plot_plane_errors(result.planes, d / "plane_errors.png"))
+    if result.cloud is not None and result.cloud.distances.size:
+        out.append(plot_cloud_distances(result.cloud, d / "cloud_to_mesh.png"))
+    return out
