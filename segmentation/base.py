@@ -12,6 +12,11 @@ range noise ``sigma(r) = point_sigma + noise_slope * r``; a method's
 thresholds, stated for the constant noise ``point_sigma``, are scaled per
 point by ``sigma(r) / point_sigma``. With ``noise_slope = 0`` (the default)
 thresholds are constant, as in the paper.
+
+Input errors (ValueError, one line): empty input, all beams invalid, fewer
+valid points than ``Segmenter.min_points`` (``max(2, n_init)``), NaN/inf
+coordinates in an (n, 2) array input. Duplicate points and a single straight
+line are ordinary input.
 """
 
 from __future__ import annotations
@@ -23,10 +28,11 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from segmentation.labels import combine_runs, finalize_runs
+from segmentation.labels import combine_directions, finalize_runs, reverse_labels
 from segmentation.lines import fit_segments
 from segmentation.result import Segmentation
 from segmentation.scanline import Scanline
@@ -136,6 +142,8 @@ class Segmenter(ABC):
 
     def __init__(self, **params: Any) -> None:
         self.params = self.make_params(**params)
+        self._params_dict: dict[str, Any] = dataclasses.asdict(self.params)
+        self._const_noise: dict[int, tuple[FloatArray, FloatArray]] = {}
 
     @classmethod
     def param_names(cls) -> list[str]:
@@ -174,43 +182,75 @@ class Segmenter(ABC):
         """
 
     # ---- shared machinery ---------------------------------------------------------------------
+    @property
+    def min_points(self) -> int:
+        """Fewest valid points this segmenter accepts: ``max(2, n_init)``."""
+        return max(2, int(getattr(self.params, "n_init", 2)))
+
     def segment(self, data: Scanline | ArrayLike) -> Segmentation:
-        """Segment a ``Scanline`` or an (n, 2) array of points (scanner frame, scan order)."""
-        line = as_scanline(data)
+        """Segment a ``Scanline`` or an (n, 2) array of points (scanner frame, scan order).
+
+        Raises ValueError on empty input, all-invalid input, fewer valid points
+        than ``min_points`` and NaN/inf coordinates in an array input.
+        """
+        line = data if type(data) is Scanline else as_scanline(data)
         pts = line.points_xy
+        m = pts.shape[0]
+        if m < self.min_points:
+            if line.n_beams == 0:
+                raise ValueError("empty input: the scanline has no beams")
+            if m == 0:
+                raise ValueError(f"all {line.n_beams} beams of the input are invalid")
+            raise ValueError(f"input has {m} valid points, fewer than the {self.min_points} "
+                             f"segmenter '{self.name}' needs")
+        scale, sigma_pts = self._noise(pts)
+        lab, first, last = self._final_labels(pts, scale)
+        return build_segmentation(line, lab, first, last, sigma_pts, self.name, dict(self._params_dict))
+
+    def _noise(self, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Per-point threshold scale ``sigma(r) / point_sigma`` and noise ``sigma(r)`` (m)."""
         p = self.params
-        if pts.shape[0] == 0:
-            raise ValueError("empty input: the scanline has no valid points")
-        if not np.all(np.isfinite(pts)):
-            raise ValueError("input has NaN or inf coordinates among its valid points")
+        m = pts.shape[0]
+        if p.noise_slope == 0.0:
+            cached = self._const_noise.get(m)
+            if cached is None:
+                cached = (np.ones(m), np.full(m, p.point_sigma))
+                if len(self._const_noise) > 8:
+                    self._const_noise.clear()
+                self._const_noise[m] = cached
+            return cached
         r = np.hypot(pts[:, 0], pts[:, 1])
         sigma_pts = p.point_sigma + p.noise_slope * r
-        scale = sigma_pts / p.point_sigma
-        raw = self._directional_labels(pts, scale)
-        lab, first, last = finalize_runs(raw, pts, p.max_gap, p.min_len)
-        return build_segmentation(line, lab, first, last, sigma_pts, self.name, dataclasses.asdict(p))
+        return sigma_pts / p.point_sigma, sigma_pts
 
-    def _directional_labels(self, pts: FloatArray, scale: FloatArray) -> IntArray:
+    def _final_labels(self, pts: FloatArray, scale: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+        """Final point labels and each segment's first and last point, for the configured direction."""
         p = self.params
-        if not self.sequential:
-            return self._raw_labels(pts, scale)
-        direction = getattr(p, "direction", "forward")
+        direction = getattr(p, "direction", "forward") if self.sequential else "forward"
         if direction == "forward":
-            return self._raw_labels(pts, scale)
-        rev = self._run_reversed(pts, scale)
+            return finalize_runs(self._raw_labels(pts, scale), pts, p.max_gap, p.min_len)  # type: ignore[no-any-return]
+        # the backward run is the forward pass on the reversed points
+        rscale = scale if self._is_const_noise(scale) else np.ascontiguousarray(scale[::-1])
+        raw_bwd = self._raw_labels(reverse_rows(pts), rscale)
         if direction == "backward":
-            return rev
-        fwd, _, _ = finalize_runs(self._raw_labels(pts, scale), pts, p.max_gap, p.min_len)
-        bwd, _, _ = finalize_runs(rev, pts, p.max_gap, p.min_len)
-        return combine_runs(fwd, bwd)
+            return finalize_runs(reverse_labels(raw_bwd), pts, p.max_gap, p.min_len)  # type: ignore[no-any-return]
+        raw_fwd = self._raw_labels(pts, scale)
+        return combine_directions(raw_fwd, raw_bwd, pts, p.max_gap, p.min_len)  # type: ignore[no-any-return]
 
-    def _run_reversed(self, pts: FloatArray, scale: FloatArray) -> IntArray:
-        rpts = np.ascontiguousarray(pts[::-1])
-        rscale = np.ascontiguousarray(scale[::-1])
-        raw = self._raw_labels(rpts, rscale)
-        # finalise in the reversed order (so runs and min_len match a true backward pass), then flip
-        lab, _, _ = finalize_runs(raw, rpts, self.params.max_gap, self.params.min_len)
-        return np.ascontiguousarray(lab[::-1])
+    def _is_const_noise(self, scale: FloatArray) -> bool:
+        cached = self._const_noise.get(scale.shape[0])
+        return cached is not None and cached[0] is scale
+
+
+@nb.njit(cache=True)
+def reverse_rows(a: FloatArray) -> FloatArray:
+    """A C-contiguous copy of an (m, 2) array with its rows in reverse order."""
+    m = a.shape[0]
+    out = np.empty((m, 2))
+    for i in range(m):
+        out[i, 0] = a[m - 1 - i, 0]
+        out[i, 1] = a[m - 1 - i, 1]
+    return out
 
 
 def as_scanline(data: Scanline | ArrayLike) -> Scanline:
@@ -235,9 +275,12 @@ def build_segmentation(
     params: dict[str, Any],
 ) -> Segmentation:
     """Map point-level segments back to beams and fit their lines."""
-    labels = np.full(line.n_beams, -1, dtype=np.int64)
     idx = line.valid_index
-    labels[idx] = point_labels
+    if idx.shape[0] == line.n_beams:
+        labels = point_labels
+    else:
+        labels = np.full(line.n_beams, -1, dtype=np.int64)
+        labels[idx] = point_labels
     normal, offset, centroid, direction, endpoints, rms, cov = fit_segments(line.points_xy, first, last, sigma_pts)
     return Segmentation(
         labels=labels,

@@ -77,3 +77,28 @@ def combine_runs(fwd: IntArray, bwd: IntArray) -> IntArray:
         prev_f = f
         prev_b = b
     return out
+
+
+@nb.njit(cache=True)
+def reverse_labels(labels: IntArray) -> IntArray:
+    """A contiguous copy of ``labels`` in reverse order."""
+    m = labels.shape[0]
+    out = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        out[i] = labels[m - 1 - i]
+    return out
+
+
+@nb.njit(cache=True)
+def combine_directions(
+    raw_fwd: IntArray, raw_bwd_reversed: IntArray, points: FloatArray, max_gap: float, min_len: int
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Forward and backward runs combined (section 2.2), as ``finalize_runs`` returns them.
+
+    ``raw_bwd_reversed`` are the raw labels of the backward pass in its own
+    (reversed) order. Each run is finalised (depth jumps, ``min_len``) before
+    combining, and the combination is finalised again.
+    """
+    fwd, _, _ = finalize_runs(raw_fwd, points, max_gap, min_len)
+    bwd, _, _ = finalize_runs(reverse_labels(raw_bwd_reversed), points, max_gap, min_len)
+    return finalize_runs(combine_runs(fwd, bwd), points, max_gap, min_len)

@@ -21,41 +21,72 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+@nb.njit(cache=True, inline="always")
+def scatter_normal(a: float, c: float, b: float) -> tuple[float, float]:
+    """Unit eigenvector of the smallest eigenvalue of the scatter matrix [[a, b], [b, c]].
+
+    Closed form, no trigonometry; a degenerate (isotropic or empty) scatter gives (0, 1).
+    """
+    h = 0.5 * (a - c)
+    d = np.sqrt(h * h + b * b)
+    # two algebraically equivalent eigenvectors; take the better-conditioned one
+    if h >= 0.0:
+        vx = -b
+        vy = h + d
+    else:
+        vx = d - h
+        vy = -b
+    q = vx * vx + vy * vy
+    if q == 0.0:
+        return 0.0, 1.0
+    inv = 1.0 / np.sqrt(q)
+    return vx * inv, vy * inv
+
+
 @nb.njit(cache=True)
-def _fit_one(x: FloatArray, y: FloatArray, i0: int, i1: int) -> tuple[float, float, float, float, float, float]:
-    """TLS fit of points i0..i1 (inclusive): returns (cx, cy, nx, ny, offset, sum of squared residuals)."""
+def _fit_one(x: FloatArray, y: FloatArray, i0: int, i1: int) -> tuple[float, float, float, float, float, float, float]:
+    """TLS fit of points i0..i1 (inclusive).
+
+    Returns (cx, cy, nx, ny, offset, sum of squared residuals, sum of squared
+    along-line coordinates about the centroid). One pass over the points, with
+    sums about the first point so that no precision is lost far from the scanner.
+    """
     n = i1 - i0 + 1
-    cx = 0.0
-    cy = 0.0
+    ox = x[i0]
+    oy = y[i0]
+    su = 0.0
+    sv = 0.0
+    suu = 0.0
+    svv = 0.0
+    suv = 0.0
     for i in range(i0, i1 + 1):
-        cx += x[i]
-        cy += y[i]
-    cx /= n
-    cy /= n
-    sxx = 0.0
-    syy = 0.0
-    sxy = 0.0
-    for i in range(i0, i1 + 1):
-        dx = x[i] - cx
-        dy = y[i] - cy
-        sxx += dx * dx
-        syy += dy * dy
-        sxy += dx * dy
-    # direction of the principal axis; the normal is perpendicular to it
-    phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    nx = -np.sin(phi)
-    ny = np.cos(phi)
+        u = x[i] - ox
+        v = y[i] - oy
+        su += u
+        sv += v
+        suu += u * u
+        svv += v * v
+        suv += u * v
+    mu = su / n
+    mv = sv / n
+    sxx = max(suu - mu * su, 0.0)
+    syy = max(svv - mv * sv, 0.0)
+    sxy = suv - mu * sv
+    nx, ny = scatter_normal(sxx, syy, sxy)
+    cx = mu + ox
+    cy = mv + oy
     off = nx * cx + ny * cy
     if off < 0.0:
         nx = -nx
         ny = -ny
         off = -off
-    # smallest eigenvalue = sum of squared orthogonal residuals
+    # eigenvalues of the scatter: the smallest = sum of squared orthogonal residuals
     tr = sxx + syy
     det = sxx * syy - sxy * sxy
-    disc = max(0.25 * tr * tr - det, 0.0)
-    ssr = max(0.5 * tr - np.sqrt(disc), 0.0)
-    return cx, cy, nx, ny, off, ssr
+    disc = np.sqrt(max(0.25 * tr * tr - det, 0.0))
+    ssr = max(0.5 * tr - disc, 0.0)
+    ss_along = 0.5 * tr + disc
+    return cx, cy, nx, ny, off, ssr, ss_along
 
 
 @nb.njit(cache=True)
@@ -73,8 +104,8 @@ def fit_segments(
     and the (angle, offset) covariance (k, 2, 2).
     """
     k = first.shape[0]
-    x = points[:, 0]
-    y = points[:, 1]
+    x = np.ascontiguousarray(points[:, 0])
+    y = np.ascontiguousarray(points[:, 1])
     normal = np.empty((k, 2))
     offset = np.empty(k)
     centroid = np.empty((k, 2))
@@ -86,7 +117,7 @@ def fit_segments(
         i0 = first[s]
         i1 = last[s]
         n = i1 - i0 + 1
-        cx, cy, nx, ny, off, ssr = _fit_one(x, y, i0, i1)
+        cx, cy, nx, ny, off, ssr, ss = _fit_one(x, y, i0, i1)
         normal[s, 0] = nx
         normal[s, 1] = ny
         offset[s] = off
@@ -106,11 +137,8 @@ def fit_segments(
             endpoints[s, e, 1] = cy + t * dy
         rms[s] = np.sqrt(ssr / n)
         s2 = 0.0
-        ss = 0.0
         for i in range(i0, i1 + 1):
             s2 += sigma_pts[i] * sigma_pts[i]
-            t = (x[i] - cx) * dx + (y[i] - cy) * dy
-            ss += t * t
         s2 /= n
         var_a = s2 / ss if ss > 0.0 else np.inf
         var_c = s2 / n

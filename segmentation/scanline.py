@@ -53,6 +53,8 @@ class Scanline:
         r = self.ranges[idx]
         a = self.angles[idx]
         pts = np.column_stack((r * np.cos(a), r * np.sin(a))) if idx.size else np.empty((0, 2))
+        if idx.size and not np.isfinite(pts).all():
+            raise ValueError("Scanline: a beam marked valid has a NaN or inf range or angle")
         object.__setattr__(self, "points_xy", np.ascontiguousarray(pts, dtype=np.float64))
         object.__setattr__(self, "valid_index", idx.astype(np.intp))
 

@@ -10,7 +10,8 @@ describes them:
 * ``variant="segment"`` (Vosselman 2014): the candidate's distance to the line
   of the segment's points only (without it) is tested.
 
-A rejected point closes the segment and starts a new one from itself.
+A rejected point (or one beyond ``max_gap`` from its predecessor) closes the
+segment and starts a new one from itself.
 Sequential: ``direction`` gives forward, backward or combined runs.
 """
 
@@ -23,7 +24,13 @@ import numba as nb
 import numpy as np
 
 from segmentation.base import FloatArray, IntArray, Segmenter, SequentialParams, _check
-from segmentation.methods._incremental import moments_add, moments_line, moments_of, point_line_distance
+from segmentation.methods._incremental import (
+    gaps_ok,
+    moments_add,
+    moments_line,
+    moments_of,
+    point_line_distance,
+)
 from segmentation.registry import register
 
 
@@ -54,22 +61,30 @@ def _init_ok(points: FloatArray, i0: int, i1: int, thr: FloatArray) -> bool:
 
 
 @nb.njit(cache=True)
-def line_tracking_labels(points: FloatArray, thr: FloatArray, n_init: int, refit: bool) -> IntArray:
-    """Raw labels of the line-tracking pass over points in the given order."""
+def line_tracking_labels(points: FloatArray, thr: FloatArray, n_init: int, refit: bool, max_gap: float) -> IntArray:
+    """Raw labels of the line-tracking pass over points in the given order.
+
+    A point farther than ``max_gap`` from its predecessor never joins its segment.
+    """
     m_pts = points.shape[0]
     labels = np.full(m_pts, -1, dtype=np.int64)
+    near = gaps_ok(points, max_gap)
     seg = 0
     i = 0
     while i + n_init <= m_pts:
         i_end = i + n_init - 1
-        if not _init_ok(points, i, i_end, thr):
+        gap = False
+        for q in range(i + 1, i_end + 1):
+            if not near[q]:
+                gap = True
+        if gap or not _init_ok(points, i, i_end, thr):
             i += 1
             continue
         mom = moments_of(points, i, i_end)
         for q in range(i, i_end + 1):
             labels[q] = seg
         j = i_end + 1
-        while j < m_pts:
+        while j < m_pts and near[j]:
             x = points[j, 0]
             y = points[j, 1]
             if refit:
@@ -100,7 +115,5 @@ class LineTracking(Segmenter):
     def _raw_labels(self, points_xy: FloatArray, scale: FloatArray) -> IntArray:
         p = self.params
         assert isinstance(p, LineTrackingParams)
-        if points_xy.shape[0] < p.n_init:
-            raise ValueError(f"input has {points_xy.shape[0]} valid points, fewer than n_init={p.n_init}")
         thr = np.ascontiguousarray(p.threshold * scale)
-        return line_tracking_labels(points_xy, thr, p.n_init, p.variant == "refit")
+        return line_tracking_labels(points_xy, thr, p.n_init, p.variant == "refit", p.max_gap)
