@@ -9,24 +9,24 @@ CSV: a header row naming the columns, then one row per beam: ``range,angle`` or
 ``x,y`` (scanner frame, m and rad), optionally ``time``. Rows of invalid returns may
 hold ``nan`` / ``inf``; they stay beams and are masked.
 
-Writers go to a temporary name in the target directory and rename when complete.
+Writers go to a temporary name in the target directory and rename when complete
+(``slam.export.atomic_path``); the directory must exist.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import os
-import tempfile
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from segmentation import Scanline, validity_mask
+from slam.export import atomic_path
 from slam.io.errors import input_error
 
 FloatArray = NDArray[np.float64]
@@ -152,21 +152,6 @@ def _existing(path: str | Path) -> Path:
     return p
 
 
-def atomic_write(path: str | Path, write: Callable[[IO[bytes]], Any]) -> Path:
-    """Call ``write(binary_file)`` on a temporary file beside ``path``, then rename it to ``path``."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
-
-
 def write_npz(path: str | Path, scanline: Scanline) -> Path:
     """Write one scanline as ``.npz`` (ranges, angles, times, scanner_id, range limits)."""
     arrays: dict[str, Any] = {
@@ -177,7 +162,9 @@ def write_npz(path: str | Path, scanline: Scanline) -> Path:
         "range_min": np.array(scanline.range_min),
         "range_max": np.array(scanline.range_max),
     }
-    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
 
 
 def write_csv(path: str | Path, scanline: Scanline, columns: Literal["polar", "xy"] = "polar") -> Path:
@@ -195,8 +182,9 @@ def write_csv(path: str | Path, scanline: Scanline, columns: Literal["polar", "x
     else:
         raise ValueError(f"columns must be 'polar' or 'xy', got {columns!r}")
     w.writerows((repr(float(a)), repr(float(b)), repr(float(c))) for a, b, c in rows)
-    data = buf.getvalue().encode()
-    return atomic_write(path, lambda f: f.write(data))
+    with atomic_path(path) as tmp:
+        tmp.write_text(buf.getvalue())
+    return Path(path)
 
 
-__all__ = ["atomic_write", "read_csv", "read_npz", "write_csv", "write_npz"]
+__all__ = ["read_csv", "read_npz", "write_csv", "write_npz"]

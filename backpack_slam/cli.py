@@ -1,0 +1,83 @@
+"""``backpack-slam``: the command-line interface (wiring only).
+
+Each subcommand lives in ``backpack_slam/commands/<name>.py`` and exposes
+``add_parser(subparsers) -> argparse.ArgumentParser`` and ``run(args) -> int``. To add
+a command, add its module name to ``COMMANDS``.
+
+Bad input never shows a traceback: input errors (``ValueError`` and its subclasses such
+as ``ConfigError`` and the readers' ``InputError``, and ``OSError`` such as a missing
+file) print one line ``backpack-slam: error: ...`` to stderr and exit with code 2;
+Ctrl-C exits with 130. Set ``BACKPACK_SLAM_DEBUG=1`` to get the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any, NoReturn
+
+PROG = "backpack-slam"
+
+# one entry per module in backpack_slam/commands/
+COMMANDS: list[str] = ["segment", "demo"]
+
+
+class UsageError(ValueError):
+    """A command line that argparse rejects."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are exceptions (printed on one line by ``main``)."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(f"{self.prog}: {message}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog=PROG, description="Backpack indoor mobile laser scanning: line segmentation and SLAM.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    for name in COMMANDS:
+        module = importlib.import_module(f"backpack_slam.commands.{name}")
+        p = module.add_parser(sub)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def one_line(e: BaseException) -> str:
+    """The error as one line; an OSError names its file."""
+    if isinstance(e, OSError) and e.filename is not None:
+        text = f"{e.filename}: {e.strerror or e}"
+    else:
+        text = str(e) or type(e).__name__
+    return " ".join(text.split())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
+    debug = os.environ.get("BACKPACK_SLAM_DEBUG", "") not in ("", "0")
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        run: Any = getattr(args, "_run", None)
+        if run is None:
+            parser.print_usage(sys.stderr)
+            print(f"{PROG}: error: a command is required (one of: {', '.join(COMMANDS)})", file=sys.stderr)
+            return 2
+        return int(run(args))
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as e:
+        if debug:
+            raise
+        print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
+        return 2
+    except SystemExit as e:  # --help, --version
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
