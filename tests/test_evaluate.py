@@ -327,3 +327,46 @@ def test_evaluate_bad_folders(tmp_path: Path) -> None:
     (tmp_path / "run").mkdir()
     with pytest.raises(ValueError, match=r"gt"):
         evaluate(tmp_path / "run", tmp_path / "x.gt")
+
+
+def _cli(argv: list[str]) -> int:
+    import argparse
+
+    from backpack_slam.commands import evaluate as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.add_parser(parser.add_subparsers())
+    return cmd.run(parser.parse_args(argv))
+
+
+def test_evaluate_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    t_gt, T_gt = _screw_walk(15.0, 200.0, t0=0.0)
+    _write_gt(tmp_path / "walk.gt", t_gt, T_gt)
+    (tmp_path / "walk.bag").write_bytes(b"")  # the bag itself is not read
+    run = tmp_path / "out"
+    run.mkdir()
+    T_est = T_gt[::5].copy()
+    T_est[:, 2, 3] += 0.05
+    write_trajectory_tum(run / "trajectory.tum", t_gt[::5], T_est)
+
+    assert _cli(["evaluate", str(run), "--gt", str(tmp_path / "walk.bag")]) == 0
+    out = capsys.readouterr().out
+    assert "unaligned 50.0" in out and "start-aligned 0.0" in out
+    assert "skipped planes" in out and "eval.json" in out
+    js = json.loads((run / "eval.json").read_text())
+    assert js["trajectory"]["ate_m"]["unaligned"]["rmse"] == pytest.approx(0.05)
+    assert (run / "trajectory_error_topview.png").is_file()
+
+    # the bag named in summary.json is used when --gt is not given; the .gt folder works too
+    (run / "eval.json").unlink()
+    (run / "summary.json").write_text(json.dumps({"bag": str(tmp_path / "walk.bag")}))
+    assert _cli(["evaluate", str(run), "--no-plots"]) == 0
+    assert (run / "eval.json").is_file()
+    assert _cli(["evaluate", str(run), "--gt", str(tmp_path / "walk.gt"), "--no-plots"]) == 0
+
+    from backpack_slam.commands.evaluate import GroundTruthNotFound
+
+    with pytest.raises(GroundTruthNotFound, match=r"other\.bag"):
+        _cli(["evaluate", str(run), "--gt", str(tmp_path / "other.bag")])
+    with pytest.raises(EvaluationError, match="missing"):
+        _cli(["evaluate", str(tmp_path / "missing"), "--gt", str(tmp_path / "walk.gt")])

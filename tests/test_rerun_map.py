@@ -123,3 +123,35 @@ def test_from_dir_and_bad_input(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"map2\.rrd"):
         write_map_rrd(tmp_path / "map2.rrd", times=t, T_world_body=T[:3])
     assert not (tmp_path / "map2.rrd").exists()
+
+
+def _view(argv: list[str]) -> int:
+    import argparse
+
+    from backpack_slam.commands import view as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.add_parser(parser.add_subparsers())
+    return cmd.run(parser.parse_args(argv))
+
+
+def test_view_command_without_display(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from backpack_slam.commands.view import ViewError, has_display
+
+    t, T = _walk()
+    write_map_rrd(tmp_path / "map.rrd", times=t, T_world_body=T)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if sys.platform.startswith("linux"):
+        assert not has_display()
+        assert _view(["view", str(tmp_path)]) == 0
+        out = capsys.readouterr().out
+        assert "no display" in out and str(tmp_path / "map.rrd") in out and "rerun" in out
+    assert has_display({"DISPLAY": ":0"})
+    assert _view(["view", str(tmp_path / "map.rrd"), "--print"]) == 0
+    assert capsys.readouterr().out.strip().endswith("map.rrd")
+    with pytest.raises(ViewError, match=r"empty[/\\]map\.rrd"):
+        (tmp_path / "empty").mkdir()
+        _view(["view", str(tmp_path / "empty")])
