@@ -1,0 +1,533 @@
+"""The SLAM pipeline: scans in, trajectory and planes out.
+
+Per scan: segment with the configured segmenter, lift the segments into the
+body frame at their beams' times (``frontend.observations``). Knots of the
+trajectory lie on a fixed grid at ``knot_rate`` (the reference scanner's scan
+rate); knot ``k+1`` is processed once every segment whose beams end before
+``t_{k+1}`` has arrived:
+
+1. predict ``T_world_body(t_{k+1})`` by constant velocity;
+2. place the ready segments in the world with the current trajectory
+   (deskewed: every point at its own beam time), associate them with loose
+   gates and refine the new knot by Gauss-Newton against the fixed planes
+   (``frontend.tracking``);
+3. associate again with the tight gates (``frontend.association``): each
+   associated segment becomes observations of its plane in the back end
+   (two moment-matched virtual points, each in its own knot interval);
+4. unassociated segments wait in a pool from which new planes are created
+   (``frontend.plane_init``); planes that converge onto the same surface are
+   merged (this is also how a loop closes: after the walk returns, segments
+   associate with the old planes again through gates that grow with the
+   distance walked since a plane was last seen, and duplicates merge);
+5. every ``update_every`` knots the back end takes an iSAM2 step and the
+   front end copies the new estimates in.
+
+At the end a Levenberg-Marquardt batch over everything gives the final
+trajectory and planes.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+import segmentation
+from backpack_slam.rig import Rig
+from segmentation import Scanline
+from slam.backend import Backend, BackendConfig
+from slam.config import SlamConfig
+from slam.factors import RobustKernel
+from slam.frontend.association import Gates, associate, world_segments
+from slam.frontend.observations import ScanSegments, scan_segments
+from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool
+from slam.frontend.planemap import KIND_CEILING, KIND_FLOOR, KIND_NAMES, PlaneMap, classify
+from slam.frontend.tracking import predict_constant_velocity, refine_knot
+from slam.interpolation import interpolate_poses
+from slam.motion import MotionPriorConfig
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class _Pending:
+    """A scan's segments waiting for (or done with) association."""
+
+    serial: int
+    segs: ScanSegments
+    t_end: float
+    plane_ids: NDArray[np.int64]
+
+
+@dataclass
+class SlamResult:
+    """Final estimates and bookkeeping of a run (world frame)."""
+
+    knot_times: FloatArray
+    T_world_body: FloatArray
+    plane_ids: NDArray[np.int64]
+    plane_normals: FloatArray
+    plane_offsets: FloatArray
+    plane_map: PlaneMap
+    scanner_names: list[str]
+    segment_rows: dict[str, NDArray[Any]]
+    stats: dict[str, Any]
+    timings: dict[str, float]
+    plane_covariances: dict[int, FloatArray] = field(default_factory=dict)
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.t: dict[str, float] = {}
+
+    def add(self, name: str, since: float) -> float:
+        now = _time.perf_counter()
+        self.t[name] = self.t.get(name, 0.0) + now - since
+        return now
+
+
+class SlamRunner:
+    """Online front end + incremental back end over a time-ordered stream of scanlines."""
+
+    def __init__(self, rig: Rig, cfg: SlamConfig) -> None:
+        self.cfg = cfg
+        self.rig = rig
+        self.scanner_names = [s.name for s in rig.scanners]
+        self._scanner_index = {n: i for i, n in enumerate(self.scanner_names)}
+        self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
+        self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
+        self.segmenter = segmentation.get(cfg.segmenter.method, **cfg.segmenter.params)
+        fe, be = cfg.frontend, cfg.backend
+        self.gates = Gates(
+            sigma_pose=fe.sigma_pose,
+            sigma_rotation=np.radians(fe.sigma_rotation_deg),
+            drift_rate=fe.drift_rate,
+            extent_margin_cells=fe.extent_margin_cells,
+        )
+        self.loose = self.gates.loosened(fe.tracking_loosen)
+        self.pmap = PlaneMap(cell_size=fe.extent_cell)
+        self.pool = SegmentPool(
+            PlaneInitParams(
+                min_support=fe.min_support,
+                min_spread=fe.min_spread,
+                coplanar_distance=fe.coplanar_distance,
+                window=fe.pool_window,
+            )
+        )
+        dt = 1.0 / cfg.trajectory.knot_rate
+        self.backend = Backend(
+            BackendConfig(
+                kernel=RobustKernel(be.robust, be.robust_k) if be.robust != "none" else RobustKernel("none"),
+                motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
+                datum="position_yaw",
+                horizontal_sigma=np.radians(be.horizontal_prior_deg),
+            )
+        )
+        self.dt = dt
+        self.t0: float | None = None
+        self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
+        self._n_knots = 0
+        self._pending: list[_Pending] = []
+        self._done: list[_Pending] = []  # associated scans still within reach of the pool
+        self._rows: list[tuple[NDArray[Any], ...]] = []  # compacted segment rows of older scans
+        self._scan_counter = [0] * len(self.scanner_names)
+        self._serial = 0
+        self._odometer = 0.0
+        self._odo_at_knot: list[float] = []
+        self._timer = _Timer()
+        self.stats: dict[str, int] = {
+            "scans": 0,
+            "segments": 0,
+            "associated": 0,
+            "planes_created": 0,
+            "planes_merged": 0,
+            "observation_blocks": 0,
+            "updates": 0,
+            "skipped_scans": 0,
+        }
+        self._since_update = 0
+
+    # ------------------------------------------------------------------ trajectory mirror
+    def _knot_time(self, k: int) -> float:
+        assert self.t0 is not None
+        return self.t0 + k * self.dt
+
+    def _append_knot(self, T: FloatArray) -> int:
+        if self._n_knots == self._T.shape[0]:
+            self._T = np.concatenate((self._T, np.zeros_like(self._T)))
+        k = self._n_knots
+        self._T[k] = T
+        self._n_knots += 1
+        if k > 0:
+            self._odometer += float(np.linalg.norm(T[:3, 3] - self._T[k - 1, :3, 3]))
+        self._odo_at_knot.append(self._odometer)
+        self.backend.add_pose(self._knot_time(k), T)
+        return k
+
+    def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
+        assert self.t0 is not None
+        x = (times - self.t0) / self.dt
+        idx = np.clip(np.floor(x).astype(np.int64), 0, max(self._n_knots - 2, 0))
+        return idx, np.clip(x - idx, 0.0, 1.0)
+
+    def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
+        """Points (m, 3) body frame at their times -> world frame with the current knots."""
+        idx, alpha = self._fractions(times)
+        T = interpolate_poses(self._T[idx], self._T[idx + 1], alpha)
+        return np.einsum("mij,mj->mi", T[:, :3, :3], points_body) + T[:, :3, 3]
+
+    # ------------------------------------------------------------------ input
+    def add_scan(self, line: Scanline) -> None:
+        """Feed the next scanline (time order); knots are processed as soon as they are complete."""
+        t_start = _time.perf_counter()
+        s = self._scanner_index.get(line.scanner_id)
+        if s is None:
+            raise ValueError(f"scan from unknown scanner '{line.scanner_id}' (rig has {', '.join(self.scanner_names)})")
+        scan_index = self._scan_counter[s]
+        self._scan_counter[s] += 1
+        self.stats["scans"] += 1
+        if self.t0 is None:
+            self.t0 = line.stamp
+            self._append_knot(np.eye(4))
+        if line.n_valid < 2 or line.stamp < self.t0:
+            self.stats["skipped_scans"] += 1
+            return
+        try:
+            seg = self.segmenter.segment(line)
+        except ValueError:
+            self.stats["skipped_scans"] += 1
+            return
+        t = self._timer.add("segmentation", t_start)
+        segs = scan_segments(line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s])
+        if segs.n_segments:
+            self.stats["segments"] += segs.n_segments
+            self._pending.append(
+                _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64))
+            )
+            self._serial += 1
+        self._timer.add("frontend", t)
+        # a knot is complete once no later scan can have beams before it
+        while self._knot_time(self._n_knots) + self._scan_span < line.stamp:
+            self._process_knot()
+
+    def finish(self) -> None:
+        """Process the remaining knots (up to the last beam) and take a last iSAM2 step."""
+        last = max((p.t_end for p in self._pending), default=None)
+        if last is not None:
+            while self._knot_time(self._n_knots - 1) < last:
+                self._process_knot()
+        self._update()
+
+    # ------------------------------------------------------------------ one knot
+    def _process_knot(self) -> None:
+        t_start = _time.perf_counter()
+        k_new = self._n_knots
+        t_new = self._knot_time(k_new)
+        if k_new >= 2:
+            T_pred = predict_constant_velocity(self._T[k_new - 2], self._T[k_new - 1])
+        else:
+            T_pred = self._T[k_new - 1].copy()
+        # mirror the prediction so that placing points can use it
+        if self._n_knots == self._T.shape[0]:
+            self._T = np.concatenate((self._T, np.zeros_like(self._T)))
+        self._T[k_new] = T_pred
+        self._n_knots += 1
+        ready = [p for p in self._pending if p.t_end <= t_new]
+        self._pending = [p for p in self._pending if p.t_end > t_new]
+        T_new = self._track(ready, k_new, T_pred)
+        self._n_knots -= 1
+        t = self._timer.add("tracking", t_start)
+        self._append_knot(T_new)
+        self._associate_and_observe(ready)
+        t = self._timer.add("association", t)
+        self._create_planes(t_new)
+        t = self._timer.add("plane_creation", t)
+        self._since_update += 1
+        if self._since_update >= self.cfg.backend.update_every:
+            self._update()
+            self._timer.add("backend", t)
+
+    def _world_summaries(self, p: _Pending) -> tuple[FloatArray, FloatArray]:
+        segs = p.segs
+        k = segs.n_segments
+        v_world = self._place(segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(k, 2, 3)
+        first = segs.offsets[:-1]
+        last = segs.offsets[1:] - 1
+        ends_idx = np.stack((first, last), axis=1).ravel()
+        e_world = self._place(segs.points_body[ends_idx], segs.times[ends_idx]).reshape(k, 2, 3)
+        return v_world, e_world
+
+    def _associate_scan(self, p: _Pending, gates: Gates) -> NDArray[np.int64]:
+        v_world, e_world = self._world_summaries(p)
+        ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points)
+        ids = associate(ws, self.pmap, self._odometer, gates)
+        ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
+        return ids
+
+    def _track(self, ready: list[_Pending], k_new: int, T_pred: FloatArray) -> FloatArray:
+        fe = self.cfg.frontend
+        if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not ready:
+            return T_pred
+        T = T_pred
+        for _ in range(2):
+            pts, al, nrm, off, sig = [], [], [], [], []
+            for p in ready:
+                ids = self._associate_scan(p, self.loose)
+                sel = np.flatnonzero(ids >= 0)
+                if sel.size == 0:
+                    continue
+                vt = p.segs.virtual_times[sel].ravel()
+                idx, alpha = self._fractions(vt)
+                inside = idx == k_new - 1
+                if not inside.any():
+                    continue
+                n, d = self.pmap.arrays(np.repeat(ids[sel], 2)[inside])
+                pts.append(p.segs.virtual_body[sel].reshape(-1, 3)[inside])
+                al.append(alpha[inside])
+                nrm.append(n)
+                off.append(d)
+                sig.append(np.repeat(p.segs.virtual_sigma[sel], 2)[inside])
+            if not pts:
+                return T
+            prior = np.array([np.radians(2.0)] * 3 + [0.05] * 3)
+            T = refine_knot(
+                self._T[k_new - 1],
+                T,
+                np.concatenate(pts),
+                np.concatenate(al),
+                np.concatenate(nrm),
+                np.concatenate(off),
+                np.maximum(np.concatenate(sig), 0.002),
+                prior,
+                iterations=fe.tracking_iterations,
+            )
+            self._T[k_new] = T
+        return T
+
+    def _associate_and_observe(self, ready: list[_Pending]) -> None:
+        fe = self.cfg.frontend
+        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        now = self._knot_time(self._n_knots - 1)
+        for p in ready:
+            ids = self._associate_scan(p, self.gates)
+            p.plane_ids = ids
+            segs = p.segs
+            for j in np.flatnonzero(ids >= 0):
+                pid = int(ids[j])
+                self._observe(segs, j, pid, blocks)
+                pts = self._place(segs.points_of(j)[:: max(1, segs.n_points[j] // 8)], segs.times_of(j)[:: max(1, segs.n_points[j] // 8)])
+                self.pmap.extend(pid, pts)
+                pl = self.pmap.planes[pid]
+                pl.n_segments += 1
+                pl.last_seen_time = now
+                pl.last_seen_odometer = self._odometer
+            self.stats["associated"] += int((ids >= 0).sum())
+            for j in np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points)):
+                step = max(1, int(segs.n_points[j]) // 12)
+                samples = self._place(segs.points_of(j)[::step], segs.times_of(j)[::step])
+                v_world, e_world = self._world_summaries_one(segs, int(j))
+                d = e_world[1] - e_world[0]
+                self.pool.add(
+                    PooledSegment(
+                        ref=(p.serial, int(j)),
+                        time=float(segs.virtual_times[j].mean()),
+                        scan_serial=p.serial,
+                        centroid=v_world.mean(axis=0),
+                        direction=d / max(float(np.linalg.norm(d)), 1e-9),
+                        endpoints=e_world,
+                        samples=samples,
+                    )
+                )
+            self._done.append(p)
+        self._flush_blocks(blocks)
+
+    def _world_summaries_one(self, segs: ScanSegments, j: int) -> tuple[FloatArray, FloatArray]:
+        v = self._place(segs.virtual_body[j], segs.virtual_times[j])
+        i0, i1 = int(segs.offsets[j]), int(segs.offsets[j + 1]) - 1
+        e = self._place(segs.points_body[[i0, i1]], segs.times[[i0, i1]])
+        return v, e
+
+    def _observe(self, segs: ScanSegments, j: int, pid: int,
+                 blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+        idx, alpha = self._fractions(segs.virtual_times[j])
+        for q in range(2):
+            blocks.setdefault((int(idx[q]), pid), []).append(
+                (segs.virtual_body[j, q], np.array([alpha[q]]), np.array([segs.virtual_sigma[j]]))
+            )
+
+    def _flush_blocks(self, blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+        for (knot, pid), rows in blocks.items():
+            pts = np.array([r[0] for r in rows])
+            al = np.concatenate([r[1] for r in rows])
+            sg = np.concatenate([r[2] for r in rows])
+            self.backend.add_observations(knot, pid, pts, al, sg)
+            self.stats["observation_blocks"] += 1
+
+    def _compact(self, now: float) -> None:
+        """Drop the point data of scans the pool can no longer use, keeping their segment rows."""
+        horizon = now - self.pool.params.window - 1.0
+        n_old = 0
+        while n_old < len(self._done) and self._done[n_old].t_end < horizon:
+            n_old += 1
+        if n_old:
+            self._rows.append(self._rows_of(self._done[:n_old]))
+            del self._done[:n_old]
+
+    def _create_planes(self, now: float) -> None:
+        self._compact(now)
+        self.pool.expire(now)
+        new = self.pool.create_planes()
+        if not new:
+            return
+        by_serial = {p.serial: p for p in self._done}
+        fe = self.cfg.frontend
+        body_z = float(self._T[self._n_knots - 1, 2, 3])
+        for plane in new:
+            kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
+            pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
+            self.backend.add_plane(pl.id, plane.normal, plane.d, horizontal=kind in (KIND_FLOOR, KIND_CEILING))
+            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+            for m in plane.members:
+                rec = by_serial.get(m.ref[0])
+                if rec is None:
+                    continue
+                j = m.ref[1]
+                rec.plane_ids[j] = pl.id
+                self._observe(rec.segs, j, pl.id, blocks)
+                self.pmap.extend(pl.id, m.samples)
+                pl.n_segments += 1
+            self._flush_blocks(blocks)
+            self.stats["planes_created"] += 1
+            self.stats["associated"] += len(plane.members)
+
+    def _update(self) -> None:
+        self._since_update = 0
+        if self._n_knots < 2:
+            return
+        self.backend.update()
+        self.stats["updates"] += 1
+        # refresh the recent knots and the recently seen planes
+        k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
+        for k in range(k0, self._n_knots):
+            self._T[k] = self.backend.pose(k)
+        now = self._knot_time(self._n_knots - 1)
+        for pl in self.pmap.planes:
+            if pl.active and now - pl.last_seen_time < 5.0:
+                n, d = self.backend.plane(pl.id)
+                self.pmap.set_estimate(pl.id, n, d)
+        self._merge_planes(now)
+
+    def _merge_planes(self, now: float) -> None:
+        fe = self.cfg.frontend
+        recent = [p for p in self.pmap.planes if p.active and now - p.last_seen_time < 2.0]
+        cos_max = np.cos(np.radians(fe.merge_angle_deg))
+        for a in recent:
+            if not a.active:
+                continue
+            for b in self.pmap.planes:
+                if b.id == a.id or not b.active or not a.active:
+                    continue
+                c = float(a.normal @ b.normal)
+                if abs(c) < cos_max:
+                    continue
+                since = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
+                tol = fe.merge_distance + fe.drift_rate * since
+                # offset difference measured at a's points: both planes through a's extent centre
+                centre = self.pmap.polygon(a.id)[:4].mean(axis=0)
+                if abs(float(b.normal @ centre + b.d)) > tol:
+                    continue
+                if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
+                    continue
+                keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
+                self.backend.merge_planes(keep.id, drop.id)
+                self.pmap.merge(keep.id, drop.id)
+                self.stats["planes_merged"] += 1
+
+    # ------------------------------------------------------------------ results
+    def result(self, batch: bool = True) -> SlamResult:
+        t = _time.perf_counter()
+        summary = None
+        if batch and self._n_knots >= 2:
+            summary = self.backend.batch_optimize(self.cfg.backend.batch_iterations)
+        self._timer.add("batch", t)
+        poses = self.backend.poses()
+        ids, normals, offsets = self.backend.planes()
+        for pid, n, d in zip(ids, normals, offsets, strict=True):
+            self.pmap.set_estimate(int(pid), n, float(d))
+        rows = self._segment_rows()
+        stats: dict[str, Any] = dict(self.stats)
+        stats["knots"] = self._n_knots
+        stats["planes"] = len(ids)
+        stats["pool_dropped"] = self.pool.dropped
+        if summary is not None:
+            stats["batch"] = {
+                "initial_error": summary.initial_error,
+                "final_error": summary.final_error,
+                "iterations": summary.iterations,
+                "seconds": summary.seconds,
+            }
+        stats["residuals"] = self.backend.residual_statistics()
+        return SlamResult(
+            knot_times=self.backend.knot_times(),
+            T_world_body=poses,
+            plane_ids=ids,
+            plane_normals=normals,
+            plane_offsets=offsets,
+            plane_map=self.pmap,
+            scanner_names=self.scanner_names,
+            segment_rows=rows,
+            stats=stats,
+            timings=dict(self._timer.t),
+        )
+
+    @staticmethod
+    def _rows_of(recs: list[_Pending]) -> tuple[NDArray[Any], ...]:
+        if not recs:
+            z = np.zeros(0, dtype=np.int64)
+            return z, z, np.zeros(0), z, z, z
+        return (
+            np.concatenate([np.full(r.segs.n_segments, r.segs.scanner) for r in recs]),
+            np.concatenate([np.full(r.segs.n_segments, r.segs.scan_index) for r in recs]),
+            np.concatenate([np.full(r.segs.n_segments, r.segs.stamp) for r in recs]),
+            np.concatenate([r.segs.first_beam for r in recs]),
+            np.concatenate([r.segs.last_beam for r in recs]),
+            np.concatenate([r.plane_ids for r in recs]),
+        )
+
+    def _segment_rows(self) -> dict[str, NDArray[Any]]:
+        parts = [*self._rows, self._rows_of(self._done + self._pending)]
+        scanner, scan_index, stamp, first, last, pid = (np.concatenate(c) for c in zip(*parts, strict=True))
+        resolved = np.array([self.pmap.resolve(int(i)) if i >= 0 else -1 for i in pid], dtype=np.int64)
+        order = np.lexsort((first, scan_index, scanner))
+        return {
+            "scanner": scanner[order],
+            "scan_index": scan_index[order],
+            "stamp": stamp[order],
+            "first_beam": first[order],
+            "last_beam": last[order],
+            "plane_id": resolved[order],
+        }
+
+    def kind_name(self, pid: int) -> str:
+        return KIND_NAMES[self.pmap.planes[pid].kind]
+
+
+def run_stream(
+    scans: Iterable[Scanline],
+    rig: Rig,
+    cfg: SlamConfig,
+    progress: Callable[[float], None] | None = None,
+) -> SlamResult:
+    """Run SLAM over a time-ordered stream of scanlines; ``progress(t)`` is called with scan stamps."""
+    runner = SlamRunner(rig, cfg)
+    for line in scans:
+        runner.add_scan(line)
+        if progress is not None:
+            progress(line.stamp)
+    runner.finish()
+    return runner.result(batch=cfg.backend.final_batch)
