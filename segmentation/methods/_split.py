@@ -92,16 +92,25 @@ def tls_farthest(points: FloatArray, thr: FloatArray, a: int, b: int) -> tuple[i
 
 
 @nb.njit(cache=True)
+def _tls_ratio(points: FloatArray, thr: FloatArray, a: int, b: int, p: int) -> float:
+    """Distance / threshold of point p to the TLS line of points a..b."""
+    cx, cy, nx, ny = moments_line(moments_of(points, a, b))
+    return point_line_distance(points[p, 0], points[p, 1], cx, cy, nx, ny) / thr[p]
+
+
+@nb.njit(cache=True)
 def split_intervals(points: FloatArray, thr: FloatArray, max_gap: float, min_len: int,
                     tls: bool) -> tuple[IntArray, IntArray]:
     """Leaf intervals (first, last; consecutive leaves of a chunk share their boundary point), in scan order.
 
     ``tls=False``: IEPF, the farthest point from the chord decides and is the
     split point. ``tls=True``: the farthest point from the TLS line decides;
-    it is the split point unless it lies within two points of an end (a split
-    there only peels points off, e.g. the far end of a short second wall
-    pulls the fit), in which case the interval splits at the farthest point
-    from its chord instead.
+    it is the split point unless it lies within two points of an end, where a
+    split would only peel points off one by one. There, an end point whose
+    neighbour fits the line is an outlier and is split off alone; otherwise
+    (typically a short second wall at the end pulling the fit, so that its
+    far end is farthest) the interval is split at the farthest point from its
+    chord, the IEPF rule, which finds the corner.
     """
     m = points.shape[0]
     c_first, c_last = gap_chunks(points, max_gap)
@@ -114,7 +123,6 @@ def split_intervals(points: FloatArray, thr: FloatArray, max_gap: float, min_len
     for c in range(c_first.shape[0]):
         if c_last[c] - c_first[c] + 1 < min_len:
             continue
-        top = 0
         stack_a[0] = c_first[c]
         stack_b[0] = c_last[c]
         top = 1
@@ -129,7 +137,11 @@ def split_intervals(points: FloatArray, thr: FloatArray, max_gap: float, min_len
                     k, ratio = tls_farthest(points, thr, a, b)
                     if ratio > 1.0:
                         split = True
-                        if k - a < 2 or b - k < 2:
+                        if k == b and _tls_ratio(points, thr, a, b, b - 1) <= 1.0:
+                            k = b - 1
+                        elif k == a and _tls_ratio(points, thr, a, b, a + 1) <= 1.0:
+                            k = a + 1
+                        elif k - a < 2 or b - k < 2:
                             k, _ = chord_farthest(points, thr, a, b)
                 else:
                     k, ratio = chord_farthest(points, thr, a, b)

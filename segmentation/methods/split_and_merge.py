@@ -3,14 +3,18 @@
 Split (Pavlidis and Horowitz 1974; Nguyen et al. 2005): fit the total-least-
 squares line of an interval; while its farthest point lies more than
 ``threshold`` (scaled per point by the noise model) from that line, split
-there and recurse. When the farthest point is within two points of an end the
-split would only peel points off, so the interval is split at the farthest
-point from its chord instead (the IEPF rule, always interior).
+there and recurse. When the farthest point is within two points of an end a
+split there would peel points off one at a time: an outlying end point
+(its neighbour fits) is split off alone, otherwise the interval is split at
+the farthest point from its chord (the IEPF rule, which finds the corner
+when a short second wall at the end pulls the fit).
 
 Merge (as in ROS ``laser_line_extraction``): walking the kept intervals
-(>= ``min_len`` points) in scan order, two directly adjacent ones (sharing
-their boundary point, so no depth jump and no dropped interval between them)
-are merged when their lines agree: the (angle, offset) difference ``d`` of
+(>= ``min_len`` points) in scan order, two consecutive ones in the same
+chunk (no depth jump between them) with fewer than ``min_len`` points of
+dropped intervals between them (which then join the merged segment, as an
+outlier does that caused a split) are merged when their lines agree: the
+(angle, offset) difference ``d`` of
 the two TLS lines, with covariances ``C1``, ``C2`` propagated from the point
 noise by ``segmentation.lines.fit_segments``, passes the chi-square test
 ``d' (C1 + C2)^-1 d <= chi2_2(1 - merge_alpha) = -2 ln(merge_alpha)``. The
@@ -86,53 +90,69 @@ def _fit(points: FloatArray, a: int, b: int, sigma_pts: FloatArray) -> tuple[Flo
 @nb.njit(cache=True)
 def merge_collinear(points: FloatArray, first: IntArray, last: IntArray, sigma_pts: FloatArray,
                     min_len: int, crit: float) -> tuple[IntArray, IntArray]:
-    """Greedy scan-order merge of adjacent kept intervals whose lines pass the chi-square test.
+    """Greedy scan-order merge of kept intervals whose lines pass the chi-square test.
 
-    The lines compared leave out the boundary points the intervals share:
-    a split point is the one the split found farthest from a line, and kept
-    at the end of both fits its leverage biases them against each other.
+    Two kept intervals (>= ``min_len`` points) merge when they are consecutive
+    among the kept ones, linked by shared boundary points (same chunk), fewer
+    than ``min_len`` points of dropped short intervals lie between them (those
+    join the merged interval), and their lines agree. The lines compared leave
+    out the boundary points the intervals share: a split point is the one the
+    split found farthest from a line, and at the end of a fit its leverage
+    biases both lines against each other.
     """
     q = first.shape[0]
     out_a = np.empty(q, dtype=np.int64)
     out_b = np.empty(q, dtype=np.int64)
     n_out = 0
+    nxt = 0  # first leaf neither emitted nor absorbed
     cur_a = -1
     cur_b = -1
     cur_ta = -1
+    cur_leaf = -1
     cur_n = np.zeros(2)
     cur_r = 0.0
     cur_c = np.zeros((2, 2))
     for j in range(q):
         if last[j] - first[j] + 1 < min_len:
-            if cur_a >= 0:
-                out_a[n_out] = cur_a
-                out_b[n_out] = cur_b
-                n_out += 1
-                cur_a = -1
-            out_a[n_out] = first[j]
-            out_b[n_out] = last[j]
-            n_out += 1
             continue
-        # the test range of interval j: without the points shared with its neighbours
         ta = first[j] + 1 if j > 0 and last[j - 1] == first[j] else first[j]
         tb = last[j] - 1 if j + 1 < q and first[j + 1] == last[j] else last[j]
-        if cur_a >= 0 and cur_b == first[j]:
-            nj, rj, cj = _fit(points, ta, tb, sigma_pts)
-            if line_chi2(cur_n, cur_r, cur_c, nj, rj, cj) <= crit:
-                cur_b = last[j]
-                cur_n, cur_r, cur_c = _fit(points, cur_ta, tb, sigma_pts)
-                continue
+        if tb - ta < 1:  # too short to leave its boundary points out (min_len 2 or 3)
+            ta = first[j]
+            tb = last[j]
         if cur_a >= 0:
+            chained = first[j] - cur_b - 1 < min_len
+            for t in range(cur_leaf + 1, j + 1):
+                if last[t - 1] != first[t]:
+                    chained = False
+            if chained:
+                nj, rj, cj = _fit(points, ta, tb, sigma_pts)
+                if line_chi2(cur_n, cur_r, cur_c, nj, rj, cj) <= crit:
+                    cur_b = last[j]
+                    cur_leaf = j
+                    nxt = j + 1
+                    cur_n, cur_r, cur_c = _fit(points, cur_ta, tb, sigma_pts)
+                    continue
             out_a[n_out] = cur_a
             out_b[n_out] = cur_b
+            n_out += 1
+        for t in range(nxt, j):
+            out_a[n_out] = first[t]
+            out_b[n_out] = last[t]
             n_out += 1
         cur_a = first[j]
         cur_b = last[j]
         cur_ta = ta
+        cur_leaf = j
+        nxt = j + 1
         cur_n, cur_r, cur_c = _fit(points, ta, tb, sigma_pts)
     if cur_a >= 0:
         out_a[n_out] = cur_a
         out_b[n_out] = cur_b
+        n_out += 1
+    for t in range(nxt, q):
+        out_a[n_out] = first[t]
+        out_b[n_out] = last[t]
         n_out += 1
     return out_a[:n_out].copy(), out_b[:n_out].copy()
 

@@ -1,0 +1,271 @@
+"""The classic baseline segmenters: iepf, split_and_merge, sef, ransac, hough (and line_tracking's directions).
+
+Hand-made polygon scenes are ray cast with ``simulation.scanline`` by a
+UTM-30LX-like scanner (1081 beams, 0.25 deg). A face is "recovered" when one
+result segment starts and ends within +-1 beam of the face's run of beams.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import segmentation as sg
+from segmentation.metrics import segment_bounds
+from simulation.scanline import ScannerSpec, SyntheticScan, World2D, figure1, scan
+
+LINE_METHODS = ["iepf", "split_and_merge", "ransac", "hough", "line_tracking"]
+BASELINES = ["iepf", "split_and_merge", "sef", "ransac", "hough"]
+
+
+def _polygon(verts: list[tuple[float, float]], closed: bool = True) -> World2D:
+    v = [*verts, verts[0]] if closed else verts
+    return World2D.from_pieces([(f"face{k}", [v[k], v[k + 1]]) for k in range(len(v) - 1)])
+
+
+def _scan(world: World2D, pose: tuple[float, float, float], noise: float = 0.0, seed: int = 0) -> SyntheticScan:
+    return scan(world, pose, ScannerSpec(noise_sigma=noise), seed)
+
+
+def _line(s: SyntheticScan) -> sg.Scanline:
+    return sg.Scanline.from_ranges(s.ranges, s.angles, s.times, range_min=s.range_min, range_max=s.range_max)
+
+
+RECTANGLE = (_polygon([(-3.0, -2.0), (5.0, -2.0), (5.0, 4.0), (-3.0, 4.0)]), (0.5, 0.3, 0.3))
+L_CORNER = (_polygon([(4.0, -3.0), (4.0, 3.0), (-3.0, 3.0)], closed=False), (0.0, 0.0, 0.5))
+# a wall with a 0.5 m deep, 2 m wide recess, seen from the side so its far side wall is visible
+RECESS = (_polygon([(-5.0, 3.0), (-1.0, 3.0), (-1.0, 3.5), (1.0, 3.5), (1.0, 3.0), (5.0, 3.0)], closed=False),
+          (2.0, 0.0, np.pi / 2))
+# a wall with a panel 15 cm proud of it: faces separated only by range jumps (< max_gap)
+PANEL = (World2D.from_pieces([("wall_left", [(-6.0, 4.0), (-1.0, 4.0)]), ("panel", [(-1.0, 3.85), (1.0, 3.85)]),
+                              ("wall_right", [(1.0, 4.0), (6.0, 4.0)]),
+                              (None, [(-1.0, 4.0), (-1.0, 3.85)]), (None, [(1.0, 3.85), (1.0, 4.0)])]),
+         (0.0, 0.0, np.pi / 2))
+SCENES = {"rectangle": RECTANGLE, "l_corner": L_CORNER, "recess": RECESS, "panel": PANEL}
+
+
+def _faces(s: SyntheticScan, min_beams: int = 12) -> list[tuple[int, int]]:
+    gs, ge = segment_bounds(s.gt_labels)
+    return [(int(a), int(b)) for a, b in zip(gs, ge, strict=True) if b - a + 1 >= min_beams]
+
+
+def _missed(res: sg.Segmentation, faces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    return [(a, b) for a, b in faces
+            if not np.any((np.abs(res.first_beam - a) <= 1) & (np.abs(res.last_beam - b) <= 1))]
+
+
+def _assert_no_jump_inside(res: sg.Segmentation, line: sg.Scanline, max_gap: float) -> None:
+    pts_beam = np.full((line.n_beams, 2), np.nan)
+    pts_beam[line.valid_index] = line.points_xy
+    for a, b in zip(res.first_beam, res.last_beam, strict=True):
+        idx = np.arange(a, b + 1)
+        idx = idx[line.valid[idx]]
+        steps = np.hypot(*np.diff(pts_beam[idx], axis=0).T)
+        assert np.all(steps <= max_gap), f"segment {a}..{b} spans a jump of {steps.max():.3f} m"
+
+
+def test_scenes_have_the_faces_they_are_meant_to() -> None:
+    counts = {name: len(_faces(_scan(w, pose))) for name, (w, pose) in SCENES.items()}
+    assert counts == {"rectangle": 4, "l_corner": 2, "recess": 4, "panel": 3}
+
+
+@pytest.mark.parametrize("method", LINE_METHODS)
+@pytest.mark.parametrize("scene", ["rectangle", "l_corner", "recess", "panel"])
+def test_noise_free_polygons_every_face_recovered(method: str, scene: str) -> None:
+    if (method, scene) == ("iepf", "panel"):
+        pytest.skip("IEPF splits inside a parallel proud panel by construction: see the dedicated test")
+    world, pose = SCENES[scene]
+    s = _scan(world, pose)
+    res = sg.segment(_line(s), method=method)
+    assert not _missed(res, _faces(s)), (
+        f"{method} on {scene}: faces {_missed(res, _faces(s))} missed; got "
+        f"{list(zip(res.first_beam.tolist(), res.last_beam.tolist(), strict=True))}")
+
+
+def test_iepf_splits_inside_a_parallel_panel_and_split_and_merge_repairs_it() -> None:
+    """The chord between the two wall ends is parallel to the panel, so every panel point is farthest
+    (ties broken by rounding): IEPF cuts the panel in two and, having no merge step, keeps both halves."""
+    s = _scan(*PANEL)
+    line = _line(s)
+    (wl0, wl1), (p0, p1), (wr0, wr1) = _faces(s)
+    res = sg.segment(line, method="iepf")
+    assert not _missed(res, [(wl0, wl1), (wr0, wr1)])
+    inside = (res.first_beam >= p0 - 1) & (res.last_beam <= p1 + 1)
+    assert inside.sum() == 2
+    assert np.sum(res.labels[p0:p1 + 1] >= 0) >= p1 - p0 - 1
+    assert not _missed(sg.segment(line, method="split_and_merge"), _faces(s))
+
+
+def test_sef_recovers_faces_separated_by_range_jumps_and_splits_there() -> None:
+    s = _scan(*PANEL)
+    line = _line(s)
+    res = sg.segment(line, method="sef")
+    assert not _missed(res, _faces(s))
+    # the jump (15 cm) is below max_gap: it is SEF's range criterion that splits
+    assert sg.segment(line, method="sef", threshold=0.2).n_segments == 1
+    assert sg.segment(line, method="sef", max_gap=0.5).n_segments == 3
+
+
+def test_sef_does_not_split_a_corner_by_definition() -> None:
+    """SEF has no linearity test (module docstring): a corner, whose ranges are continuous, stays one segment."""
+    s = _scan(*L_CORNER)
+    assert sg.segment(_line(s), method="sef").n_segments == 1
+
+
+@pytest.mark.parametrize("method", BASELINES)
+def test_depth_jump_beyond_max_gap_is_never_inside_a_segment(method: str) -> None:
+    # a box 1 m in front of a wall, collinear with nothing: jumps of about 1 m at both its edges
+    world = World2D.from_pieces([("wall", [(-6.0, 4.0), (6.0, 4.0)]), ("box", [(-0.8, 3.0), (0.8, 3.0)]),
+                                 (None, [(-0.8, 3.0), (-0.8, 3.3), (0.8, 3.3), (0.8, 3.0)])])
+    for noise in (0.0, 0.003):
+        line = _line(_scan(world, (0.0, 0.0, np.pi / 2), noise))
+        for max_gap in (0.2, 0.5):
+            res = sg.segment(line, method=method, max_gap=max_gap)
+            _assert_no_jump_inside(res, line, max_gap)
+            assert res.n_segments >= 3
+
+
+@pytest.mark.parametrize("method", BASELINES)
+def test_noisy_figure1_gives_sensible_segment_counts(method: str) -> None:
+    for seed in range(4):
+        s = figure1(noise_sigma=0.003, seed=seed)
+        n_gt = len(_faces(s, 10))
+        line = _line(s)
+        res = sg.segment(line, method=method)
+        _assert_no_jump_inside(res, line, 0.2)
+        assert np.all(res.n_points >= 10)
+        # SEF: the closed room has no range jump over its threshold, so the whole scan is one segment
+        low = 1 if method == "sef" else n_gt - 3
+        assert low <= res.n_segments <= 2 * n_gt, f"{method} seed {seed}: {res.n_segments} segments, {n_gt} faces"
+
+
+@pytest.mark.parametrize("method", LINE_METHODS)
+def test_noisy_rectangle_walls_found_with_small_residuals(method: str) -> None:
+    world, pose = RECTANGLE
+    s = _scan(world, pose, 0.003, seed=3)
+    res = sg.segment(_line(s), method=method)
+    assert 4 <= res.n_segments <= 8
+    assert np.all(res.rms < 0.005)
+    # every wall's beams are mostly in segments
+    for a, b in _faces(s):
+        assert np.mean(res.labels[a:b + 1] >= 0) > 0.8
+
+
+@pytest.mark.parametrize("method", BASELINES)
+def test_identical_input_identical_output(method: str) -> None:
+    line = _line(figure1(noise_sigma=0.003, seed=7))
+    a = sg.segment(line, method=method)
+    b = sg.get(method).segment(line)
+    c = sg.segment(line.points_xy.copy(), method=method)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_array_equal(a.first_beam, c.first_beam)
+    np.testing.assert_array_equal(a.last_beam, c.last_beam)
+
+
+def test_ransac_is_seeded() -> None:
+    line = _line(figure1(noise_sigma=0.003, seed=1))
+    runs = [sg.segment(line, method="ransac", seed=s, n_iter=5).labels for s in (0, 0, 1, 2, 3)]
+    np.testing.assert_array_equal(runs[0], runs[1])
+    # with few draws per line, the result does depend on the seed
+    assert any(not np.array_equal(runs[0], r) for r in runs[2:])
+
+
+def test_hough_resolution_parameters_matter_and_are_deterministic() -> None:
+    line = _line(figure1(noise_sigma=0.003, seed=2))
+    a = sg.segment(line, method="hough")
+    np.testing.assert_array_equal(a.labels, sg.segment(line, method="hough").labels)
+    coarse = sg.segment(line, method="hough", theta_res=np.deg2rad(5.0), rho_res=0.3, min_votes=200)
+    assert coarse.n_segments < a.n_segments
+
+
+def _spiked_wall(spike: float) -> sg.Scanline:
+    s = _scan(World2D.from_pieces([("wall", [(-3.0, 3.0), (3.0, 3.0)])]), (0.0, 0.0, np.pi / 2), 0.003, seed=5)
+    r = s.ranges.copy()
+    mid = int(np.flatnonzero(np.isfinite(r)).mean())
+    r[mid] -= spike
+    return sg.Scanline.from_ranges(r, s.angles, s.times, range_min=s.range_min, range_max=s.range_max)
+
+
+def test_split_and_merge_merges_two_collinear_halves() -> None:
+    # one point 6 cm off the wall: the split cuts there, the halves are the same line
+    line = _spiked_wall(0.06)
+    split_only = sg.segment(line, method="split_and_merge", merge=False)
+    merged = sg.segment(line, method="split_and_merge")
+    assert split_only.n_segments == 2
+    assert merged.n_segments == 1
+    assert merged.n_points[0] == split_only.n_points.sum() + 1
+    # IEPF (no merge step) keeps the halves apart
+    assert sg.segment(line, method="iepf").n_segments == 2
+
+
+def test_split_and_merge_does_not_merge_a_step_of_two_centimetres() -> None:
+    world = World2D.from_pieces([("wall_a", [(-4.0, 3.0), (0.0, 3.0)]), (None, [(0.0, 3.0), (0.0, 2.98)]),
+                                 ("board", [(0.0, 2.98), (4.0, 2.98)])])
+    s = _scan(world, (0.0, 0.0, np.pi / 2), 0.003, seed=0)
+    (a0, a1), (b0, b1) = _faces(s)
+    for thr in (0.009, 0.011):
+        res = sg.segment(_line(s), method="split_and_merge", threshold=thr)
+        # no segment holds more than 2 beams of both faces
+        for f, g in zip(res.first_beam, res.last_beam, strict=True):
+            assert min(g, a1) - max(f, a0) < 2 or min(g, b1) - max(f, b0) < 2, (thr, f, g)
+        assert 2 <= res.n_segments <= 3
+
+
+def test_chi2_of_identical_lines_is_zero_and_grows_with_offset() -> None:
+    from segmentation.methods.split_and_merge import line_chi2
+
+    n = np.array([0.0, 1.0])
+    c = np.array([[1e-6, 2e-6], [2e-6, 1e-5]])
+    assert line_chi2(n, 3.0, c, n, 3.0, c) == pytest.approx(0.0)
+    assert line_chi2(n, 3.0, c, -n, -3.0, c) == pytest.approx(0.0)  # same line, opposite normal
+    assert line_chi2(n, 3.0, c, n, 3.01, c) > line_chi2(n, 3.0, c, n, 3.001, c) > 0.0
+
+
+def test_noise_model_scales_thresholds() -> None:
+    # sigma(r) = 3 mm + 3 mm/m * r triples-to-quadruples every threshold at 3-4 m: fewer splits
+    line = _line(figure1(noise_sigma=0.003, seed=4))
+    for method in ("iepf", "split_and_merge", "ransac", "hough"):
+        plain = sg.segment(line, method=method)
+        scaled = sg.segment(line, method=method, noise_slope=0.003)
+        assert scaled.n_segments <= plain.n_segments, method
+    # SEF: a 15 cm jump at ~4 m passes a 10 cm threshold scaled by (1 + 4 * 0.3)
+    panel = _line(_scan(*PANEL))
+    assert sg.segment(panel, method="sef", noise_slope=0.9).n_segments == 1
+
+
+@pytest.mark.parametrize("method", BASELINES)
+def test_parameter_errors_are_clear(method: str) -> None:
+    line = _line(figure1(noise_sigma=0.0))
+    with pytest.raises(ValueError, match="unknown parameter bogus.*valid:"):
+        sg.segment(line, method=method, bogus=1)
+    with pytest.raises(ValueError, match="threshold" if method not in ("hough",) else "rho_res"):
+        if method == "hough":
+            sg.segment(line, method=method, rho_res=-1.0)
+        else:
+            sg.segment(line, method=method, threshold=0.0)
+
+
+def test_sef_directions_coincide() -> None:
+    line = _line(figure1(noise_sigma=0.003, seed=0))
+    fwd = sg.segment(line, method="sef", direction="forward").labels
+    for d in ("backward", "combined"):
+        np.testing.assert_array_equal(fwd, sg.segment(line, method="sef", direction=d).labels)
+
+
+def test_line_tracking_combined_follows_the_forward_backward_rule() -> None:
+    line = _line(figure1(noise_sigma=0.003, seed=0))
+    fwd = sg.segment(line, method="line_tracking", direction="forward")
+    bwd = sg.segment(line, method="line_tracking", direction="backward")
+    comb = sg.segment(line, method="line_tracking", direction="combined")
+    np.testing.assert_array_equal(bwd.labels, sg.segment(line, method="line_tracking", direction="backward").labels)
+    # unsegmented in either run -> unsegmented
+    assert np.all(comb.labels[(fwd.labels < 0) | (bwd.labels < 0)] == -1)
+    # every combined segment lies inside one forward and one backward segment
+    for a, b in zip(comb.first_beam, comb.last_beam, strict=True):
+        assert np.unique(fwd.labels[a:b + 1]).size == 1
+        assert np.unique(bwd.labels[a:b + 1]).size == 1
+    assert np.all(comb.n_points >= 10)
+    # the backward run is the forward run of the reversed scanline, reversed
+    rev = sg.segment(line.reversed(), method="line_tracking", direction="forward").labels[::-1]
+    np.testing.assert_array_equal(rev >= 0, bwd.labels >= 0)
+    assert comb.n_segments >= max(fwd.n_segments, bwd.n_segments) - 2
