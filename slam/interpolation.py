@@ -23,7 +23,13 @@ from scipy.spatial.transform import Rotation
 
 FloatArray = NDArray[np.float64]
 
-_SMALL = 1e-4  # below this angle (rad) the Taylor series of the coefficients are exact to 1e-17
+_SMALL = 1e-4  # below this angle (rad) the two-term Taylor series in se3_log is exact to 1e-17
+
+
+def hat3(v: FloatArray) -> FloatArray:
+    """``[v]x`` (3, 3) of one 3-vector (fast path of :func:`hat`)."""
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def hat(v: ArrayLike) -> FloatArray:
@@ -39,24 +45,41 @@ def hat(v: ArrayLike) -> FloatArray:
     return out
 
 
+_SERIES_MAX = 0.5  # below this angle (rad) the series below are exact to ~1e-16
+_K = np.arange(7)
+_FACT = np.array([float(np.prod(np.arange(1, m + 1))) for m in range(20)])
+# coefficients of theta^(2k), k = 0..6, of A, B, C, D, F (see exp_coefficients)
+_SERIES = np.array([
+    (-1.0) ** _K / _FACT[2 * _K + 1],
+    (-1.0) ** _K / _FACT[2 * _K + 2],
+    (-1.0) ** _K / _FACT[2 * _K + 3],
+    (-1.0) ** _K / _FACT[2 * _K + 4],
+    (-1.0) ** _K * (_K + 1) / _FACT[2 * _K + 5],
+])
+
+
 def exp_coefficients(theta: ArrayLike) -> tuple[FloatArray, ...]:
-    """Coefficients of the SO(3)/SE(3) series at rotation angles ``theta`` (any shape).
+    """Coefficients of the SO(3)/SE(3) series at rotation angles ``theta`` >= 0 (any shape).
 
     Returns ``(A, B, C, D, F)`` with ``A = sin t / t``, ``B = (1 - cos t) / t^2``,
     ``C = (t - sin t) / t^3``, ``D = (t^2/2 + cos t - 1) / t^4`` and
-    ``F = (2 t - 3 sin t + t cos t) / (2 t^5)``, using Taylor series for small angles.
+    ``F = (2 t - 3 sin t + t cos t) / (2 t^5)``: power series in ``t^2`` below 0.5 rad (exact to
+    rounding, no cancellation), closed forms above.
     """
-    t = np.asarray(theta, dtype=float)
-    small = t < _SMALL
-    ts = np.where(small, 1.0, t)  # avoid 0/0 in the branch that is discarded
-    t2 = t * t
-    s, c = np.sin(ts), np.cos(ts)
-    a = np.where(small, 1.0 - t2 / 6.0, s / ts)
-    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - c) / ts**2)
-    cc = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - s) / ts**3)
-    d = np.where(small, 1.0 / 24.0 - t2 / 720.0, (ts**2 / 2.0 + c - 1.0) / ts**4)
-    f = np.where(small, -1.0 / 60.0 + t2 / 5040.0, (2.0 * ts - 3.0 * s + ts * c) / (2.0 * ts**5))
-    return a, b, cc, d, f
+    t0 = np.asarray(theta, dtype=float)
+    t = t0.reshape(-1)
+    out = ((t * t)[:, None] ** _K @ _SERIES.T).T  # (5, M): series in t^2
+    big = t >= _SERIES_MAX
+    if np.any(big):
+        tb = t[big]
+        s, c = np.sin(tb), np.cos(tb)
+        out[0, big] = s / tb
+        out[1, big] = (1.0 - c) / tb**2
+        out[2, big] = (tb - s) / tb**3
+        out[3, big] = (tb**2 / 2.0 + c - 1.0) / tb**4
+        out[4, big] = (2.0 * tb - 3.0 * s + tb * c) / (2.0 * tb**5)
+    out = out.reshape(5, *t0.shape)
+    return out[0], out[1], out[2], out[3], out[4]
 
 
 def so3_exp(phi: ArrayLike) -> FloatArray:

@@ -1,0 +1,686 @@
+"""The SLAM back end: body poses at knots + world planes in one gtsam factor graph.
+
+Inputs are plain numpy (independent of the front end's records)::
+
+    be = Backend(BackendConfig())
+    i = be.add_pose(t, T_world_body_guess)            # knots in time order (40 Hz scans)
+    be.add_plane(7, normal_world, offset)             # n . x + offset = 0, world frame
+    b = be.add_observations(i - 1, 7, points_body, alphas, sigmas)   # one block
+    be.update()                                       # iSAM2 step(s) while reading
+    be.batch_optimize()                               # final Levenberg-Marquardt
+    be.poses(); be.planes(); be.T_world_body(times); be.plane_covariance(7)
+
+Variables (gtsam keys): ``X(i)`` body pose ``T_world_body`` at knot i, ``P(j)`` plane with id j
+(``OrientedPlane3``), ``E(s)`` ``T_body_scanner`` of scanner s (only if added, for calibration),
+``V(i)``/``B(i)`` world velocity and IMU bias per knot (only with an IMU).
+
+Factors added automatically: a datum prior on the first knot (the whole pose by default, or
+position and heading when floor/ceiling priors define the vertical: ``datum="position_yaw"``),
+a weak prior on the first interval's motion, a constant-velocity prior on every three
+consecutive knots (:mod:`slam.motion`), and with an IMU the ImuFactor/bias random walk of each
+interval given by :meth:`Backend.add_imu` plus priors on the first velocity and bias.
+
+An observation block is the set of points seen on one plane during one knot interval
+``[t_i, t_i+1]`` (``alphas`` the beam times' fractions of that interval; all zero or None gives a
+single-pose factor on ``X(i)``), with per-point point-to-plane sigmas, all in one batched
+factor (:mod:`slam.factors`) with per-point robust kernels. Points are in the body frame at their
+beam times, or in the scanner frame when ``scanner=s`` is given and ``E(s)`` was added.
+
+Incremental estimation: ``update()`` hands new factors and variables to gtsam.ISAM2 and runs one
+iSAM2 step (more with ``iterations``). A variable enters iSAM2 with its first factor, so add a
+plane with enough observations to fix it (two non-parallel lines) before calling ``update()``.
+Removing observation blocks uses iSAM2's factor removal; merging planes or a batch
+optimisation rebuilds iSAM2 from the current estimate at the next ``update()``.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, E, P, V, X
+from numpy.typing import ArrayLike, NDArray
+
+from slam.factors import (
+    RobustKernel,
+    point_plane_factor,
+    point_plane_terms,
+    robust_weights,
+    scanner_point_plane_factor,
+)
+from slam.interpolation import interpolate_trajectory, knot_fractions, se3_exp, se3_log
+from slam.motion import (
+    ImuConfig,
+    MotionPriorConfig,
+    bias_random_walk_factor,
+    constant_velocity_factor,
+    datum_prior,
+    horizontal_plane_prior,
+    initial_velocity_factor,
+    preintegrate,
+)
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """Back-end settings (validated on construction; a bad value is a ValueError naming it).
+
+    kernel: per-point robust kernel of the observation blocks.
+    motion: constant-velocity prior densities; ``use_motion_prior`` switches it off.
+    initial_velocity_sigmas: (rad/s, m/s) of the weak prior on the first interval's motion.
+    datum: ``"pose"`` fixes the first knot; ``"position_yaw"`` fixes its position and rotation
+        about the body z axis only (with horizontal-plane priors giving the vertical).
+    datum_sigma: sigma (rad and m) of the datum prior.
+    horizontal_sigma: sigma [rad] of the floor/ceiling horizontality priors.
+    relinearize_threshold, relinearize_skip: iSAM2 relinearisation settings.
+    lm_max_iterations, lm_relative_tolerance: final Levenberg-Marquardt (per stage).
+    robust_schedule: kernel-threshold multipliers of the stages that precede the nominal one in
+        :meth:`Backend.batch_optimize` (graduated robustness: a redescending kernel at 3 sigma
+        from an initial guess that is centimetres off would treat every point as an outlier).
+    imu: IMU noise and mounting; None without an IMU.
+    """
+
+    kernel: RobustKernel = field(default_factory=RobustKernel)
+    motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
+    use_motion_prior: bool = True
+    initial_velocity_sigmas: tuple[float, float] = (3.0, 3.0)
+    datum: Literal["pose", "position_yaw"] = "pose"
+    datum_sigma: float = 1e-6
+    horizontal_sigma: float = 1e-3
+    relinearize_threshold: float = 1e-3
+    relinearize_skip: int = 1
+    lm_max_iterations: int = 50
+    lm_relative_tolerance: float = 1e-10
+    robust_schedule: tuple[float, ...] = (30.0, 10.0, 3.0)
+    imu: ImuConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.datum not in ("pose", "position_yaw"):
+            raise ValueError(f"datum: expected 'pose' or 'position_yaw', got {self.datum!r}")
+        for name in ("datum_sigma", "horizontal_sigma", "relinearize_threshold",
+                     "lm_relative_tolerance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name}: must be > 0, got {v}")
+        if min(self.initial_velocity_sigmas) <= 0.0:
+            raise ValueError(f"initial_velocity_sigmas: must be > 0, got {self.initial_velocity_sigmas}")
+        if any(not (s >= 1.0) for s in self.robust_schedule):
+            raise ValueError(f"robust_schedule: multipliers must be >= 1, got {self.robust_schedule}")
+        if self.relinearize_skip < 1 or self.lm_max_iterations < 1:
+            raise ValueError("relinearize_skip and lm_max_iterations: must be >= 1")
+
+
+@dataclass(frozen=True)
+class ObservationBlock:
+    """Points of one plane seen during knot interval ``knot`` (body frame, or scanner frame when
+    ``scanner`` is set), their interval fractions (None: single pose) and sigmas [m]."""
+
+    knot: int
+    plane_id: int
+    points: FloatArray
+    alphas: FloatArray | None
+    sigmas: FloatArray
+    scanner: int | None = None
+
+
+@dataclass(frozen=True)
+class OptimizeSummary:
+    """Outcome of :meth:`Backend.batch_optimize`: errors (0.5 sum of squares incl. robust
+    losses), iterations and wall time [s]."""
+
+    initial_error: float
+    final_error: float
+    iterations: int
+    seconds: float
+
+
+@dataclass
+class _Record:
+    factor: gtsam.NonlinearFactor
+    keys: tuple[int, ...]
+    isam_index: int | None = None
+
+
+class Backend:
+    """Factor graph of knots, planes (and optionally extrinsics, velocities, biases); see module doc."""
+
+    def __init__(self, config: BackendConfig | None = None) -> None:
+        self.config = config or BackendConfig()
+        self._times: list[float] = []
+        self._values = gtsam.Values()
+        self._records: dict[int, _Record] = {}
+        self._next_id = 0
+        self._blocks: dict[int, ObservationBlock] = {}
+        self._plane_blocks: dict[int, set[int]] = {}
+        self._plane_priors: dict[int, int] = {}
+        self._scanners: set[int] = set()
+        self._imu_intervals: set[int] = set()
+        self._isam: gtsam.ISAM2 | None = None
+        self._isam_keys: set[int] = set()
+        self._pending: list[int] = []
+        self._pending_removals: list[int] = []
+        self._marginals: gtsam.Marginals | None = None
+        self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
+
+    # ----------------------------------------------------------------- variables
+    def add_pose(self, time: float, T_world_body: ArrayLike,
+                 velocity_world: ArrayLike | None = None) -> int:
+        """Add the next knot at ``time`` [s] (strictly after the last) with an initial guess
+        (4, 4); returns its index. With an IMU, ``velocity_world`` (3,) [m/s] is its velocity
+        guess (default: from the previous knots, or zero)."""
+        T = _as_pose(T_world_body, "T_world_body")
+        t = float(time)
+        if not np.isfinite(t) or (self._times and t <= self._times[-1]):
+            last = self._times[-1] if self._times else None
+            raise ValueError(f"time: knots must be finite and increasing (last {last}, got {t})")
+        i = len(self._times)
+        self._times.append(t)
+        self._values.insert(X(i), T)
+        cfg = self.config
+        if i == 0:
+            s = cfg.datum_sigma
+            if cfg.datum == "pose":
+                self._add_factor(datum_prior(X(0), T, s, s))
+            else:
+                sig = np.array([1e3, 1e3, s, s, s, s])
+                self._add_factor(gtsam.PriorFactorPose3(X(0), T, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        elif i == 1:
+            dt = t - self._times[0]
+            self._add_factor(initial_velocity_factor(
+                X(0), X(1), self._values.atPose3(X(0)).between(T), dt, *cfg.initial_velocity_sigmas))
+        if i >= 2 and cfg.use_motion_prior:
+            dt1, dt2 = self._times[i - 1] - self._times[i - 2], t - self._times[i - 1]
+            self._add_factor(constant_velocity_factor(X(i - 2), X(i - 1), X(i), dt1, dt2, cfg.motion))
+        if cfg.imu is not None:
+            if velocity_world is None:
+                v = np.zeros(3)
+                if i >= 1:
+                    v = (T.translation() - self._values.atPose3(X(i - 1)).translation()) / (
+                        t - self._times[i - 1])
+            else:
+                v = np.asarray(velocity_world, dtype=float).reshape(3)
+            self._values.insert(V(i), v)
+            self._values.insert(B(i), gtsam.imuBias.ConstantBias())
+            if i == 0:
+                self._add_factor(gtsam.PriorFactorVector(
+                    V(0), v, gtsam.noiseModel.Isotropic.Sigma(3, cfg.imu.velocity_prior_sigma)))
+                sa, sg = cfg.imu.bias_prior_sigmas
+                self._add_factor(gtsam.PriorFactorConstantBias(
+                    B(0), gtsam.imuBias.ConstantBias(),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa] * 3 + [sg] * 3))))
+            else:
+                self._add_factor(bias_random_walk_factor(B(i - 1), B(i), t - self._times[i - 1],
+                                                         cfg.imu))
+        return i
+
+    def add_plane(self, plane_id: int, normal_world: ArrayLike, offset: float,
+                  horizontal: bool = False) -> None:
+        """Add plane ``plane_id`` (int >= 0): ``normal_world . x + offset = 0`` (the normal is
+        normalised). ``horizontal`` adds a prior keeping it a floor/ceiling."""
+        j = _plane_id(plane_id)
+        if self._values.exists(P(j)):
+            raise ValueError(f"plane_id: plane {j} already exists")
+        n = np.asarray(normal_world, dtype=float).reshape(-1)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+            raise ValueError(f"normal_world: expected a finite non-zero 3-vector, got {n}")
+        if not np.isfinite(offset):
+            raise ValueError(f"offset: must be finite, got {offset}")
+        self._values.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(n), float(offset)))
+        self._plane_blocks[j] = set()
+        if horizontal:
+            self._plane_priors[j] = self._add_factor(
+                horizontal_plane_prior(P(j), n, self.config.horizontal_sigma))
+
+    def add_extrinsic(self, scanner: int, T_body_scanner: ArrayLike, sigma_rot: float,
+                      sigma_trans: float) -> None:
+        """Make scanner ``scanner``'s extrinsic a variable ``E(scanner)`` with a prior around
+        ``T_body_scanner`` (4, 4) [rad, m]; blocks added with ``scanner=`` then depend on it."""
+        s = int(scanner)
+        if s in self._scanners:
+            raise ValueError(f"scanner: extrinsic {s} already exists")
+        T = _as_pose(T_body_scanner, "T_body_scanner")
+        self._scanners.add(s)
+        self._values.insert(E(s), T)
+        sig = np.array([sigma_rot] * 3 + [sigma_trans] * 3, dtype=float)
+        self._add_factor(gtsam.PriorFactorPose3(E(s), T, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+
+    def add_imu(self, knot: int, accel_imu: ArrayLike, gyro_imu: ArrayLike, dt: ArrayLike) -> None:
+        """IMU samples of interval [knot, knot+1] (IMU frame; see :func:`slam.motion.preintegrate`)
+        as one ImuFactor. Needs ``BackendConfig.imu``."""
+        if self.config.imu is None:
+            raise ValueError("add_imu: the back end was configured without an IMU (config.imu)")
+        i = self._check_knot(knot, need_next=True)
+        if i in self._imu_intervals:
+            raise ValueError(f"knot: interval {i} already has IMU data")
+        bias = self._values.atConstantBias(B(i))
+        pim = preintegrate(self.config.imu.params(), bias, accel_imu, gyro_imu, dt)
+        self._imu_intervals.add(i)
+        self._add_factor(gtsam.ImuFactor(X(i), V(i), X(i + 1), V(i + 1), B(i), pim))
+
+    # ----------------------------------------------------------------- observations
+    def add_observations(self, knot: int, plane_id: int, points: ArrayLike,
+                         alphas: ArrayLike | None, sigmas: ArrayLike,
+                         scanner: int | None = None) -> int:
+        """Add a block: points (N, 3) [m] seen on plane ``plane_id`` during interval
+        [knot, knot+1] at fractions ``alphas`` (N,) (None or all 0: at the knot itself), with
+        point-to-plane sigmas (N,) or scalar [m]. Body frame at each beam time, or the scanner
+        frame when ``scanner`` is given. Returns the block id."""
+        block = self._make_block(knot, plane_id, points, alphas, sigmas, scanner)
+        bid = self._add_factor(self._block_factor(block))
+        self._blocks[bid] = block
+        self._plane_blocks[block.plane_id].add(bid)
+        return bid
+
+    def replace_observations(self, block_id: int, points: ArrayLike, alphas: ArrayLike | None,
+                             sigmas: ArrayLike) -> int:
+        """Replace a block's points (same knot, plane and scanner); returns the new block id."""
+        old = self._get_block(block_id)
+        new = self._make_block(old.knot, old.plane_id, points, alphas, sigmas, old.scanner)
+        self.remove_observations(block_id)
+        bid = self._add_factor(self._block_factor(new))
+        self._blocks[bid] = new
+        self._plane_blocks[new.plane_id].add(bid)
+        return bid
+
+    def remove_observations(self, block_id: int) -> None:
+        """Remove an observation block."""
+        blk = self._get_block(block_id)
+        self._remove_factor(block_id)
+        del self._blocks[block_id]
+        self._plane_blocks[blk.plane_id].discard(block_id)
+
+    def blocks_of_plane(self, plane_id: int) -> list[int]:
+        """Ids of the observation blocks on a plane."""
+        return sorted(self._plane_blocks[self._check_plane(plane_id)])
+
+    def block(self, block_id: int) -> ObservationBlock:
+        """The data of an observation block."""
+        return self._get_block(block_id)
+
+    def block_residuals(self, block_id: int) -> tuple[FloatArray, FloatArray]:
+        """Whitened signed point-to-plane residuals (N,) at the current estimate and the robust
+        (IRLS) weights (N,) in [0, 1] the kernel gives them (small = treated as outlier)."""
+        blk = self._get_block(block_id)
+        v = self._values
+        pts = blk.points
+        if blk.scanner is not None:
+            Es = v.atPose3(E(blk.scanner)).matrix()
+            pts = pts @ Es[:3, :3].T + Es[:3, 3]
+        T_b = v.atPose3(X(blk.knot + 1)) if blk.alphas is not None else None
+        terms = point_plane_terms(v.atPose3(X(blk.knot)), T_b, v.atOrientedPlane3(P(blk.plane_id)),
+                                  pts, blk.alphas, jacobians=False)
+        e = terms.residuals / blk.sigmas
+        return e, robust_weights(e, self.config.kernel)
+
+    # ----------------------------------------------------------------- planes
+    def merge_planes(self, keep_id: int, drop_id: int) -> int:
+        """Merge plane ``drop_id`` into ``keep_id``: its blocks are re-keyed onto ``keep_id`` (same
+        block ids), its horizontality prior moves over if ``keep_id`` has none, and the variable
+        is removed. ``keep_id`` keeps its current estimate. Returns the number of moved blocks."""
+        keep, drop = self._check_plane(keep_id), self._check_plane(drop_id)
+        if keep == drop:
+            raise ValueError(f"merge_planes: cannot merge plane {keep} with itself")
+        moved = sorted(self._plane_blocks[drop])
+        for bid in moved:
+            old = self._blocks[bid]
+            new = ObservationBlock(old.knot, keep, old.points, old.alphas, old.sigmas, old.scanner)
+            factor = self._block_factor(new)
+            self._records[bid] = _Record(factor, tuple(int(k) for k in factor.keys()))
+            self._blocks[bid] = new
+            self._plane_blocks[keep].add(bid)
+        if drop in self._plane_priors:
+            fid = self._plane_priors.pop(drop)
+            del self._records[fid]
+            if keep not in self._plane_priors:
+                n = self._values.atOrientedPlane3(P(keep)).normal().point3()
+                if abs(n[2]) >= 0.5:
+                    self._plane_priors[keep] = self._add_factor(
+                        horizontal_plane_prior(P(keep), n, self.config.horizontal_sigma))
+        del self._plane_blocks[drop]
+        self._values.erase(P(drop))
+        self._invalidate_isam()
+        return len(moved)
+
+    def remove_plane(self, plane_id: int) -> None:
+        """Remove a plane with all its observation blocks and priors."""
+        j = self._check_plane(plane_id)
+        for bid in sorted(self._plane_blocks[j]):
+            self.remove_observations(bid)
+        if j in self._plane_priors:
+            self._remove_factor(self._plane_priors.pop(j))
+        del self._plane_blocks[j]
+        self._values.erase(P(j))
+        self._invalidate_isam()
+
+    # ----------------------------------------------------------------- solving
+    def update(self, iterations: int = 1) -> None:
+        """Incremental iSAM2 step(s) with everything added or removed since the last call."""
+        if self._isam is None:
+            self._rebuild_isam()
+        assert self._isam is not None
+        graph = gtsam.NonlinearFactorGraph()
+        new_values = gtsam.Values()
+        ids: list[int] = []
+        for fid in self._pending:
+            rec = self._records.get(fid)
+            if rec is None:
+                continue
+            graph.add(rec.factor)
+            ids.append(fid)
+            for k in rec.keys:
+                if k not in self._isam_keys and not new_values.exists(k):
+                    _copy_value(new_values, self._values, k)
+        removals = list(self._pending_removals)
+        try:
+            result = self._isam.update(graph, new_values, removals)
+            for _ in range(max(iterations, 1) - 1):
+                self._isam.update()
+        except RuntimeError as err:
+            raise ValueError(f"iSAM2 update failed ({_name_keys(str(err))}); is every new "
+                             "variable constrained by its factors?") from None
+        for fid, idx in zip(ids, result.getNewFactorsIndices(), strict=True):
+            self._records[fid].isam_index = int(idx)
+        self._isam_keys.update(int(k) for k in new_values.keys())
+        self._pending, self._pending_removals = [], []
+        self._values.update(self._isam.calculateEstimate())
+        self._marginals = None
+        self._isam_fresh = True
+
+    def batch_optimize(self, max_iterations: int | None = None,
+                       graduated: bool = True) -> OptimizeSummary:
+        """Levenberg-Marquardt over every factor from the current estimate; with ``graduated``
+        (and a robust kernel) first with the kernel threshold scaled by each
+        ``config.robust_schedule`` multiplier, then nominal. iSAM2 is rebuilt from the result at
+        the next :meth:`update`."""
+        graph = self._graph()
+        values = self._used_values(graph)
+        e0 = graph.error(values)
+        kernel = self.config.kernel
+        scales = list(self.config.robust_schedule) if graduated and kernel.name != "none" else []
+        t0 = _time.perf_counter()
+        iterations = 0
+        for scale in [*scales, 1.0]:
+            g = graph
+            if scale != 1.0:
+                k = RobustKernel(kernel.name, kernel.threshold * scale)
+                g = self._graph(kernel=k)
+            values, it = self._levenberg_marquardt(g, values, max_iterations)
+            iterations += it
+        self._values.update(values)
+        self._invalidate_isam()
+        return OptimizeSummary(float(e0), float(graph.error(values)), iterations,
+                               _time.perf_counter() - t0)
+
+    def _levenberg_marquardt(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                             max_iterations: int | None) -> tuple[gtsam.Values, int]:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations or self.config.lm_max_iterations)
+        params.setRelativeErrorTol(self.config.lm_relative_tolerance)
+        params.setAbsoluteErrorTol(0.0)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        try:
+            result = opt.optimize()
+        except RuntimeError as err:
+            raise ValueError(f"batch optimisation failed ({_name_keys(str(err))}); is every "
+                             "variable constrained by its factors?") from None
+        return result, int(opt.iterations())
+
+    def error(self) -> float:
+        """Total graph error (0.5 sum of whitened squares, robust losses) at the current estimate."""
+        graph = self._graph()
+        return float(graph.error(self._used_values(graph)))
+
+    # ----------------------------------------------------------------- estimates
+    @property
+    def num_knots(self) -> int:
+        return len(self._times)
+
+    def knot_times(self) -> FloatArray:
+        """Knot times (K,) [s]."""
+        return np.asarray(self._times, dtype=float)
+
+    def poses(self) -> FloatArray:
+        """Current ``T_world_body`` of every knot, (K, 4, 4)."""
+        return np.array([self._values.atPose3(X(i)).matrix() for i in range(len(self._times))])
+
+    def pose(self, knot: int) -> FloatArray:
+        """Current ``T_world_body`` (4, 4) of one knot."""
+        return np.asarray(self._values.atPose3(X(self._check_knot(knot))).matrix())
+
+    def plane_ids(self) -> list[int]:
+        return sorted(self._plane_blocks)
+
+    def planes(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Plane ids (P,), unit normals (P, 3) and offsets (P,) in the world frame (n.x + d = 0)."""
+        ids = self.plane_ids()
+        pl = [self._values.atOrientedPlane3(P(j)) for j in ids]
+        normals = np.array([p.normal().point3() for p in pl]).reshape(-1, 3)
+        return (np.asarray(ids, dtype=np.int64), normals,
+                np.array([p.distance() for p in pl], dtype=float))
+
+    def plane(self, plane_id: int) -> tuple[FloatArray, float]:
+        """Unit normal (3,) and offset of one plane (world frame)."""
+        p = self._values.atOrientedPlane3(P(self._check_plane(plane_id)))
+        return np.asarray(p.normal().point3()), float(p.distance())
+
+    def extrinsic(self, scanner: int) -> FloatArray:
+        """Current ``T_body_scanner`` (4, 4) of a scanner added with :meth:`add_extrinsic`."""
+        if int(scanner) not in self._scanners:
+            raise ValueError(f"scanner: no extrinsic variable for scanner {scanner}")
+        return np.asarray(self._values.atPose3(E(int(scanner))).matrix())
+
+    def velocities(self) -> FloatArray:
+        """World-frame velocities (K, 3) [m/s] of the knots (IMU configurations only)."""
+        if self.config.imu is None:
+            raise ValueError("velocities: the back end was configured without an IMU")
+        return np.array([self._values.atVector(V(i)) for i in range(len(self._times))])
+
+    def biases(self) -> FloatArray:
+        """IMU biases (K, 6): accelerometer (m/s^2) then gyroscope (rad/s) per knot."""
+        if self.config.imu is None:
+            raise ValueError("biases: the back end was configured without an IMU")
+        return np.array([self._values.atConstantBias(B(i)).vector() for i in range(len(self._times))])
+
+    def knot_fractions(self, times: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
+        """Knot interval index and fraction alpha of each time (see :mod:`slam.interpolation`)."""
+        return knot_fractions(self._times, times)
+
+    def T_world_body(self, times: ArrayLike) -> FloatArray:
+        """Interpolated ``T_world_body`` (M, 4, 4) at times (M,) within the knots, exactly as the
+        factors place points."""
+        return interpolate_trajectory(self._times, self.poses(), np.atleast_1d(times))
+
+    def predict_pose(self, time: float) -> FloatArray:
+        """Constant-velocity extrapolation (4, 4) of the trajectory to ``time`` >= the last knot
+        (initial guess of the next knot, deskewing of the newest scan)."""
+        K = len(self._times)
+        if K == 0:
+            raise ValueError("predict_pose: no knots yet")
+        T_last = self.pose(K - 1)
+        if K == 1:
+            return T_last
+        T_prev = self.pose(K - 2)
+        xi = se3_log(np.linalg.inv(T_prev) @ T_last)
+        a = (float(time) - self._times[-1]) / (self._times[-1] - self._times[-2])
+        return np.asarray(T_last @ se3_exp(a * xi))
+
+    # ----------------------------------------------------------------- covariances
+    def pose_covariance(self, knot: int) -> FloatArray:
+        """Marginal covariance (6, 6) of a knot's pose in gtsam's tangent order (rotation [rad],
+        then translation [m], both in the body frame)."""
+        return self._covariance(X(self._check_knot(knot)))
+
+    def plane_covariance(self, plane_id: int) -> FloatArray:
+        """Marginal covariance (3, 3) of a plane in its retract coordinates: normal direction in
+        the ``Unit3.basis()`` tangent (2, rad) and offset (m)."""
+        return self._covariance(P(self._check_plane(plane_id)))
+
+    def _covariance(self, key: int) -> FloatArray:
+        if self._isam_fresh and not self._pending and not self._pending_removals:
+            assert self._isam is not None
+            return np.asarray(self._isam.marginalCovariance(key))
+        if self._marginals is None:
+            graph = self._graph()
+            self._marginals = gtsam.Marginals(graph, self._used_values(graph))
+        return np.asarray(self._marginals.marginalCovariance(key))
+
+    # ----------------------------------------------------------------- statistics
+    def residual_statistics(self) -> dict[str, float]:
+        """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5)."""
+        es = [self.block_residuals(b)[0] for b in self._blocks]
+        e = np.concatenate(es) if es else np.zeros(0)
+        w = robust_weights(e, self.config.kernel)
+        return {
+            "blocks": float(len(self._blocks)),
+            "points": float(e.size),
+            "rms_whitened": float(np.sqrt(np.mean(e**2))) if e.size else 0.0,
+            "outlier_fraction": float(np.mean(w < 0.5)) if e.size else 0.0,
+        }
+
+    # ----------------------------------------------------------------- internals
+    def _add_factor(self, factor: gtsam.NonlinearFactor) -> int:
+        fid = self._next_id
+        self._next_id += 1
+        self._records[fid] = _Record(factor, tuple(int(k) for k in factor.keys()))
+        self._pending.append(fid)
+        self._marginals = None
+        self._isam_fresh = False
+        return fid
+
+    def _remove_factor(self, fid: int) -> None:
+        rec = self._records.pop(fid)
+        if rec.isam_index is not None:
+            self._pending_removals.append(rec.isam_index)
+        self._marginals = None
+        self._isam_fresh = False
+
+    def _invalidate_isam(self) -> None:
+        self._isam = None
+        self._isam_keys = set()
+        self._marginals = None
+        self._isam_fresh = False
+
+    def _rebuild_isam(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = self.config.relinearize_skip
+        self._isam = gtsam.ISAM2(params)
+        self._isam_keys = set()
+        for rec in self._records.values():
+            rec.isam_index = None
+        self._pending = sorted(self._records)
+        self._pending_removals = []
+
+    def _graph(self, kernel: RobustKernel | None = None) -> gtsam.NonlinearFactorGraph:
+        """All live factors; observation blocks rebuilt with ``kernel`` if given."""
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in sorted(self._records):
+            if kernel is not None and fid in self._blocks:
+                graph.add(self._block_factor(self._blocks[fid], kernel))
+            else:
+                graph.add(self._records[fid].factor)
+        return graph
+
+    def _used_values(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
+        out = gtsam.Values()
+        for k in graph.keyVector():
+            _copy_value(out, self._values, int(k))
+        return out
+
+    def _block_factor(self, blk: ObservationBlock,
+                      kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
+        kernel = kernel or self.config.kernel
+        kb = X(blk.knot + 1) if blk.alphas is not None else None
+        if blk.scanner is None:
+            return point_plane_factor(X(blk.knot), kb, P(blk.plane_id), blk.points, blk.alphas,
+                                      blk.sigmas, kernel)
+        return scanner_point_plane_factor(X(blk.knot), kb, P(blk.plane_id), E(blk.scanner),
+                                          blk.points, blk.alphas, blk.sigmas, kernel)
+
+    def _make_block(self, knot: int, plane_id: int, points: ArrayLike, alphas: ArrayLike | None,
+                    sigmas: ArrayLike, scanner: int | None) -> ObservationBlock:
+        j = self._check_plane(plane_id)
+        al = None if alphas is None else np.asarray(alphas, dtype=float).reshape(-1)
+        if al is not None and not np.any(al != 0.0):
+            al = None
+        i = self._check_knot(knot, need_next=al is not None)
+        if scanner is not None and int(scanner) not in self._scanners:
+            raise ValueError(f"scanner: no extrinsic variable for scanner {scanner} (add_extrinsic)")
+        pts = np.ascontiguousarray(points, dtype=float)
+        s = np.asarray(sigmas, dtype=float)
+        if pts.ndim == 2 and s.ndim == 0:
+            s = np.full(pts.shape[0], float(s))
+        blk = ObservationBlock(i, j, pts, al, s, None if scanner is None else int(scanner))
+        self._block_factor(blk)  # validates shapes and values with clear messages
+        return blk
+
+    def _get_block(self, block_id: int) -> ObservationBlock:
+        if block_id not in self._blocks:
+            raise ValueError(f"block_id: no observation block {block_id}")
+        return self._blocks[block_id]
+
+    def _check_knot(self, knot: int, need_next: bool = False) -> int:
+        i = int(knot)
+        last = len(self._times) - (2 if need_next else 1)
+        if i < 0 or i > last:
+            what = "interval start" if need_next else "knot"
+            raise ValueError(f"knot: {what} {i} outside [0, {last}]")
+        return i
+
+    def _check_plane(self, plane_id: int) -> int:
+        j = int(plane_id)
+        if j not in self._plane_blocks:
+            raise ValueError(f"plane_id: no plane {j}")
+        return j
+
+
+def _plane_id(plane_id: int) -> int:
+    j = int(plane_id)
+    if j < 0 or j >= 2**56:
+        raise ValueError(f"plane_id: must be an integer in [0, 2^56), got {plane_id}")
+    return j
+
+
+def _as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:
+    M = np.asarray(T, dtype=float)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ValueError(f"{name}: expected a finite (4, 4) matrix, got shape {M.shape}")
+    R = M[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
+        raise ValueError(f"{name}: rotation block is not a rotation matrix")
+    return gtsam.Pose3(gtsam.Rot3(R), M[:3, 3])
+
+
+def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int) -> None:
+    if dst.exists(key):
+        return
+    sym = gtsam.Symbol(key)
+    c = chr(sym.chr()).lower()
+    if c in "xe":
+        dst.insert(key, src.atPose3(key))
+    elif c == "p":
+        dst.insert(key, src.atOrientedPlane3(key))
+    elif c == "v":
+        dst.insert(key, src.atVector(key))
+    elif c == "b":
+        dst.insert(key, src.atConstantBias(key))
+    else:
+        raise ValueError(f"unknown variable {sym.string()}")
+
+
+def _name_keys(message: str) -> str:
+    """Replace raw integer keys in a gtsam message by their symbols (x12, p3)."""
+    import re
+
+    def sym(m: re.Match[str]) -> str:
+        k = int(m.group(0))
+        if k < 2**56:
+            return m.group(0)
+        return str(gtsam.Symbol(k).string())
+
+    return re.sub(r"\d{17,}", sym, message.strip().splitlines()[0] if message.strip() else message)
