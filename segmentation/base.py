@@ -113,7 +113,12 @@ def _coerce(name: str, value: Any, tp: Any) -> Any:
                 raise ValueError
             if isinstance(value, bool):
                 raise ValueError
-            return int(float(value)) if isinstance(value, str) else int(value)
+            if isinstance(value, str):
+                v = float(value)
+                if not v.is_integer():
+                    raise ValueError
+                return int(v)
+            return int(value)
         if tp is float:
             if isinstance(value, bool):
                 raise ValueError
