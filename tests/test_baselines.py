@@ -236,13 +236,21 @@ def test_noise_model_scales_thresholds() -> None:
 @pytest.mark.parametrize("method", BASELINES)
 def test_parameter_errors_are_clear(method: str) -> None:
     line = _line(figure1(noise_sigma=0.0))
-    with pytest.raises(ValueError, match="unknown parameter bogus.*valid:"):
+    with pytest.raises(ValueError, match=r"unknown parameter bogus.*valid:"):
         sg.segment(line, method=method, bogus=1)
-    with pytest.raises(ValueError, match="threshold" if method not in ("hough",) else "rho_res"):
-        if method == "hough":
-            sg.segment(line, method=method, rho_res=-1.0)
-        else:
-            sg.segment(line, method=method, threshold=0.0)
+    with pytest.raises(ValueError, match="threshold"):
+        sg.segment(line, method=method, threshold=0.0)
+    with pytest.raises(ValueError, match="min_len"):
+        sg.segment(line, method=method, min_len="many")
+
+
+def test_method_specific_parameter_errors() -> None:
+    line = _line(figure1(noise_sigma=0.0))
+    for method, bad in [("hough", {"rho_res": -1.0}), ("hough", {"theta_res": 2.0}), ("hough", {"min_votes": 1}),
+                        ("ransac", {"n_iter": 0}), ("ransac", {"seed": -1}), ("split_and_merge", {"merge_alpha": 1.5}),
+                        ("sef", {"direction": "sideways"})]:
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            sg.segment(line, method=method, **bad)
 
 
 def test_sef_directions_coincide() -> None:
