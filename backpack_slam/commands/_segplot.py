@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
-from numpy.typing import NDArray
 from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
 from segmentation import Scanline, Segmentation
 from slam.export import atomic_path

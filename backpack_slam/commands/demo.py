@@ -54,10 +54,15 @@ def run(args: argparse.Namespace) -> int:
 
 def run_demo(out: Path, log: Path | None, scan_index: int, seed: int, stream: IO[str]) -> list[Path]:
     """Segment figure 1 and a real scan with every method of ``METHODS``; return the files written."""
-    import segmentation
     from matplotlib.figure import Figure
 
-    from backpack_slam.commands._segplot import draw_labels, draw_segmentation, new_figure, save_figure
+    import segmentation
+    from backpack_slam.commands._segplot import (
+        draw_labels,
+        draw_segmentation,
+        new_figure,
+        save_figure,
+    )
     from backpack_slam.commands.segment import json_safe, scan_info, select_scans
     from segmentation import Scanline, metrics
     from simulation.scanline import figure1
@@ -74,7 +79,7 @@ def run_demo(out: Path, log: Path | None, scan_index: int, seed: int, stream: IO
     fig = Figure(figsize=(4.5 * (1 + len(METHODS)), 11.0), layout="constrained")
     grid = fig.subplots(3, 1 + len(METHODS), height_ratios=[2.0, 1.0, 1.0])
     draw_labels(grid[0, 0], line, syn.gt_labels, "figure 1: ground truth (sigma 3 mm)")
-    panels = [(grid[0, 0], grid[1, 0], grid[2, 0], syn.gt_labels, None)]
+    panels: list[tuple[Any, Any, Any, Any, Any]] = [(grid[0, 0], grid[1, 0], grid[2, 0], syn.gt_labels, None)]
     record["figure1"] = {"noise_sigma": 0.003, "seed": seed, "gt_names": names, "results": {}}
     for col, m in enumerate(METHODS, start=1):
         seg = segmentation.segment(line, method=m)
