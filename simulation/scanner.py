@@ -36,7 +36,6 @@ from typing import Any, Protocol
 
 import numba
 import numpy as np
-from numba import prange
 from numpy.typing import NDArray
 from pydantic import Field
 
@@ -92,7 +91,7 @@ def scanner_directions(scanner: ScannerConfig) -> FloatArray:
     return np.column_stack((np.cos(a), np.sin(a), np.zeros_like(a)))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _beam_rays(
     stamps: Any,
     time_increment: float,
@@ -115,9 +114,9 @@ def _beam_rays(
     for b in range(n_beams):
         for i in range(3):
             d_body[b, i] = R_bs[i, 0] * dirs_scanner[b, 0] + R_bs[i, 1] * dirs_scanner[b, 1] + R_bs[i, 2] * dirs_scanner[b, 2]
-    for s in prange(n_scans):
-        E = np.empty((3, 3))
-        R = np.empty((3, 3))
+    E = np.empty((3, 3))
+    R = np.empty((3, 3))
+    for s in range(n_scans):
         for b in range(n_beams):
             t = stamps[s] + b * time_increment
             u = (t - t0) / dt

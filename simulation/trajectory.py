@@ -166,8 +166,8 @@ class Trajectory:
                 f"positions {self.positions.shape}, quaternions {self.quaternions.shape}"
             )
         steps = np.diff(self.times)
-        if not np.allclose(steps, steps[0], rtol=1e-6, atol=1e-9) or steps[0] <= 0:
-            raise ValueError("Trajectory.times must be strictly increasing and uniformly spaced")
+        if steps[0] <= 0 or not np.allclose(steps, steps[0], rtol=1e-6, atol=1e-6):
+            raise ValueError("Trajectory.times must be strictly increasing and uniformly spaced (to 1 us)")
 
     @property
     def dt(self) -> float:
@@ -228,6 +228,9 @@ def atomic_write_text(path: str | Path, write: Any) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             write(f)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -360,11 +363,10 @@ def _accel_limit(v_lim: Any, step: Any, accel: float) -> Any:
 
 
 def _smooth_noise(rng: np.random.Generator, n: int, sigma_samples: float) -> FloatArray:
-    """Zero-mean, unit-std, Gaussian-correlated noise of length n."""
-    x = gaussian_filter1d(rng.standard_normal(n + 8 * int(sigma_samples)), sigma_samples, mode="wrap")
-    x = x[: n]
-    sd = float(np.std(x))
-    return x / sd if sd > 0 else x
+    """Zero-mean, unit-variance, Gaussian-correlated noise of length n (correlation
+    ``sigma_samples``), scaled by the filter's theoretical gain, not the sample std."""
+    x = gaussian_filter1d(rng.standard_normal(n + 8 * int(sigma_samples) + 1), sigma_samples, mode="wrap")
+    return x[:n] * math.sqrt(2.0 * math.sqrt(math.pi) * sigma_samples)
 
 
 def walk_trajectory(walk: Any, duration: float, seed: int, gait: GaitConfig | None = None, floor_z: float = 0.0) -> Trajectory:
