@@ -64,3 +64,31 @@ def validate(model: type[M], data: Any, source: str) -> M:
 def load(model: type[M], path: str | Path) -> M:
     """Read a YAML file and validate it against ``model``."""
     return validate(model, read_yaml(path), str(path))
+
+
+CONFIGS_ENV = "BACKPACK_SLAM_CONFIGS"
+
+
+def configs_dir() -> Path:
+    """The configs folder: ``$BACKPACK_SLAM_CONFIGS`` or ``configs/`` at the repository root."""
+    import os
+
+    env = os.environ.get(CONFIGS_ENV)
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1] / "configs"
+
+
+def resolve_config(kind: str, name_or_path: str | Path) -> Path:
+    """A name (``configs/<kind>/<name>.yaml``) or a YAML path -> the file; ConfigError if missing."""
+    s = str(name_or_path)
+    p = Path(s)
+    if p.suffix in (".yaml", ".yml") or "/" in s:
+        if not p.is_file():
+            raise ConfigError(f"{p}: no such {kind} file")
+        return p
+    candidate = configs_dir() / kind / f"{s}.yaml"
+    if not candidate.is_file():
+        known = ", ".join(sorted(q.stem for q in (configs_dir() / kind).glob("*.yaml"))) or "none"
+        raise ConfigError(f"{kind} '{s}': no {candidate} (known: {known})")
+    return candidate

@@ -151,3 +151,10 @@ def matrix_to_rpy(R: NDArray[np.float64]) -> tuple[float, float, float]:
     roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
     yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
     return roll, pitch, yaw
+
+
+def resolve_rig(name_or_path: str | Path) -> Rig:
+    """A rig name (``configs/rig/<name>.yaml``) or a YAML path -> the validated Rig."""
+    from backpack_slam.config import resolve_config
+
+    return load_rig(resolve_config("rig", name_or_path))

@@ -1,0 +1,255 @@
+"""``run_slam``: a bag in, the run folder out (the I/O edge around ``slam.pipeline``).
+
+Outputs in ``out_dir`` (written into a temporary sibling folder that replaces
+``out_dir`` only when complete, so an interrupted run leaves no half-written
+output):
+
+- ``trajectory.tum``: ``T_world_body`` at every knot (evo-compatible TUM);
+- ``planes.json``: id, normal, d (``n . x + d = 0``), extent polygon, number
+  of segments, 3x3 covariance (normal tangent, d), kind;
+- ``segments.npz``: one row per segment with its plane (-1 = unassociated);
+- ``cloud.ply``: every valid point placed by the final trajectory and the
+  rig's extrinsics (world frame), with scanner index, time and plane id;
+- ``map.rrd``: the rerun recording; ``summary.json``: config, counts,
+  timings, residual statistics.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from backpack_slam.rig import Rig
+from slam.config import SlamConfig
+from slam.export import (
+    CloudRecord,
+    PlaneRecord,
+    make_segment_table,
+    write_cloud_ply,
+    write_planes_json,
+    write_segments_npz,
+    write_summary_json,
+    write_trajectory_tum,
+)
+from slam.interpolation import interpolate_trajectory
+from slam.io.bag import read_scans
+from slam.pipeline import SlamResult, SlamRunner
+from slam.rerun_map import MapOptions, SegmentLines, write_map_rrd
+
+FloatArray = NDArray[np.float64]
+
+
+def bag_time_range(path: str | Path) -> tuple[float, float]:
+    """(start, end) log time of a bag in seconds."""
+    from rosbags.highlevel import AnyReader
+
+    from slam.io.bag import _bag_path
+
+    with AnyReader([_bag_path(path)]) as r:
+        return r.start_time * 1e-9, r.end_time * 1e-9
+
+
+def run_slam(
+    bag: str | Path,
+    rig: Rig,
+    cfg: SlamConfig,
+    out_dir: str | Path,
+    progress: bool = True,
+    voxel: float | None = None,
+) -> dict[str, Any]:
+    """Run SLAM on ``bag`` with ``rig`` and ``cfg``; write the run folder; return the summary."""
+    t_wall = time.perf_counter()
+    out = Path(out_dir)
+    scans = read_scans(bag, rig=rig)  # checks the bag and its topics before anything is written
+    t_start, t_end = bag_time_range(bag)
+    runner = SlamRunner(rig, cfg)
+    bar = tqdm(total=round(t_end - t_start, 2), unit="s", desc="slam", disable=not progress, leave=False)
+    last = t_start
+    for line in scans:
+        runner.add_scan(line)
+        if line.stamp - last >= 0.5:
+            bar.update(round(line.stamp - last, 2))
+            last = line.stamp
+    bar.close()
+    runner.finish()
+    res = runner.result(batch=cfg.backend.final_batch)
+
+    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir(parents=True)
+    try:
+        t0 = time.perf_counter()
+        summary = _write_outputs(tmp, bag, rig, cfg, res, runner, progress, voxel)
+        res.timings["export"] = time.perf_counter() - t0
+        summary["timings"] = {k: round(v, 3) for k, v in res.timings.items()}
+        summary["timings"]["wall"] = round(time.perf_counter() - t_wall, 3)
+        summary["data_duration"] = t_end - t_start
+        summary["realtime_factor"] = (t_end - t_start) / max(summary["timings"]["wall"], 1e-9)
+        write_summary_json(tmp / "summary.json", summary)
+        _replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return summary
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)
+
+
+def _plane_records(res: SlamResult, runner: SlamRunner, with_cov: bool) -> list[PlaneRecord]:
+    recs = []
+    for pid, n, d in zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True):
+        p = res.plane_map.planes[int(pid)]
+        cov = None
+        if with_cov:
+            try:
+                cov = runner.backend.plane_covariance(int(pid))
+            except (ValueError, RuntimeError):
+                cov = None
+        recs.append(
+            PlaneRecord(
+                id=int(pid),
+                normal=np.asarray(n),
+                d=float(d),
+                polygon=res.plane_map.polygon(int(pid)),
+                kind=runner.kind_name(int(pid)),
+                n_segments=int(p.n_segments),
+                covariance=cov,
+            )
+        )
+    return recs
+
+
+def _cloud(
+    bag: str | Path, rig: Rig, res: SlamResult, progress: bool
+) -> tuple[FloatArray, NDArray[np.int32], FloatArray, NDArray[np.int32], SegmentLines]:
+    """Second pass over the bag: every valid point in the world with the final trajectory,
+    and the associated segments' end points for display."""
+    names = res.scanner_names
+    index = {n: i for i, n in enumerate(names)}
+    T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
+    rows = res.segment_rows
+    # plane id per (scanner, scan index): beam ranges of its segments
+    key = rows["scanner"].astype(np.int64) * (1 << 40) + rows["scan_index"].astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    kt, T = res.knot_times, res.T_world_body
+    pts_all, sc_all, tm_all, pid_all = [], [], [], []
+    seg_stamp: list[float] = []
+    seg_ends: list[FloatArray] = []
+    seg_pid: list[int] = []
+    counters = [0] * len(names)
+    for line in tqdm(read_scans(bag, rig=rig), desc="cloud", disable=not progress, leave=False):
+        s = index[line.scanner_id]
+        si = counters[s]
+        counters[s] += 1
+        if line.n_valid == 0:
+            continue
+        times = line.times[line.valid_index]
+        inside = (times >= kt[0]) & (times <= kt[-1])
+        if not inside.any():
+            continue
+        p2 = line.points_xy[inside]
+        p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
+        p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
+        Tw = interpolate_trajectory(kt, T, times[inside])
+        pw = np.einsum("mij,mj->mi", Tw[:, :3, :3], p_b) + Tw[:, :3, 3]
+        beams = line.valid_index[inside]
+        plane = np.full(beams.shape[0], -1, dtype=np.int32)
+        k = s * (1 << 40) + si
+        lo, hi = np.searchsorted(key_sorted, [k, k + 1])
+        for r in order[lo:hi]:
+            if rows["plane_id"][r] >= 0:
+                m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
+                if m.size:
+                    plane[m] = rows["plane_id"][r]
+                    seg_stamp.append(line.stamp)
+                    seg_ends.append(pw[[m[0], m[-1]]])
+                    seg_pid.append(int(rows["plane_id"][r]))
+        pts_all.append(pw)
+        sc_all.append(np.full(pw.shape[0], s, dtype=np.int32))
+        tm_all.append(times[inside])
+        pid_all.append(plane)
+    lines = SegmentLines(
+        np.asarray(seg_stamp, dtype=np.float64),
+        np.asarray(seg_ends, dtype=np.float64).reshape(-1, 2, 3),
+        np.asarray(seg_pid, dtype=np.int32),
+    )
+    if not pts_all:
+        return np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), lines
+    return np.concatenate(pts_all), np.concatenate(sc_all), np.concatenate(tm_all), np.concatenate(pid_all), lines
+
+
+def _write_outputs(
+    out: Path,
+    bag: str | Path,
+    rig: Rig,
+    cfg: SlamConfig,
+    res: SlamResult,
+    runner: SlamRunner,
+    progress: bool,
+    voxel: float | None,
+) -> dict[str, Any]:
+    write_trajectory_tum(out / "trajectory.tum", res.knot_times, res.T_world_body)
+    planes = _plane_records(res, runner, with_cov=True)
+    write_planes_json(out / "planes.json", planes)
+    rows = res.segment_rows
+    table = make_segment_table(
+        res.scanner_names, rows["scanner"], rows["scan_index"], rows["stamp"], rows["first_beam"], rows["last_beam"], rows["plane_id"]
+    )
+    write_segments_npz(out / "segments.npz", table)
+    n_cloud = 0
+    cloud = None
+    lines = None
+    if cfg.output.cloud or cfg.output.rerun:
+        pts, sc, tm, pid, lines = _cloud(bag, rig, res, progress)
+        v = voxel if voxel is not None else (cfg.output.voxel or None)
+        if cfg.output.cloud:
+            n_cloud = write_cloud_ply(out / "cloud.ply", pts, sc, tm, pid, voxel=v)
+        if cfg.output.rerun:
+            cloud = CloudRecord(pts, sc, tm, pid)
+    if cfg.output.rerun:
+        write_map_rrd(
+            out / "map.rrd",
+            times=res.knot_times,
+            T_world_body=res.T_world_body,
+            planes=planes,
+            cloud=cloud,
+            scanner_names=res.scanner_names,
+            segments=lines,
+            options=MapOptions(),
+        )
+    st = res.stats
+    return {
+        "bag": str(bag),
+        "rig": rig.name,
+        "config": cfg.model_dump(),
+        "counts": {
+            "scans": st["scans"],
+            "knots": st["knots"],
+            "segments": st["segments"],
+            "segments_associated": int((rows["plane_id"] >= 0).sum()),
+            "planes": st["planes"],
+            "planes_created": st["planes_created"],
+            "planes_merged": st["planes_merged"],
+            "observation_blocks": st["observation_blocks"],
+            "isam2_updates": st["updates"],
+            "cloud_points": n_cloud,
+        },
+        "batch": st.get("batch"),
+        "residuals": st.get("residuals"),
+    }
