@@ -48,6 +48,7 @@ from slam.export import (
     read_trajectory_tum,
     write_json,
 )
+from slam.frontend.planemap import plane_basis
 from slam.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
@@ -447,15 +448,6 @@ def association_errors(
 # ---------------------------------------------------------------------------------- planes
 
 
-def plane_basis(normal: FloatArray) -> FloatArray:
-    """Two unit vectors (2,3) spanning the plane orthogonal to ``normal``."""
-    n = normal / np.linalg.norm(normal)
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(n, a)
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(n, u)])
-
-
 def inside_polygon_2d(
     points: FloatArray, polygon: FloatArray, margin: float = 0.0
 ) -> NDArray[np.bool_]:
@@ -516,7 +508,7 @@ def match_planes_geometric(
             if abs(off) > max_offset:
                 continue
             if t.polygon.shape[0] >= 3:
-                B = plane_basis(t.normal)
+                B = np.stack(plane_basis(t.normal))
                 if not inside_polygon_2d((c @ B.T)[None], t.polygon @ B.T, margin)[0]:
                     continue
             if best is None or abs(off) < best[0]:

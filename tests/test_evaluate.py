@@ -370,3 +370,15 @@ def test_evaluate_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
         _cli(["evaluate", str(run), "--gt", str(tmp_path / "other.bag")])
     with pytest.raises(EvaluationError, match="missing"):
         _cli(["evaluate", str(tmp_path / "missing"), "--gt", str(tmp_path / "walk.gt")])
+
+
+def test_inside_polygon_with_margin() -> None:
+    from slam.evaluate import inside_polygon_2d
+
+    # an L shape (concave)
+    poly = np.array([[0, 0], [4, 0], [4, 1], [1, 1], [1, 3], [0, 3.0]])
+    pts = np.array([[0.5, 2.5], [2.0, 0.5], [2.0, 2.0], [4.1, 0.5], [2.0, 1.05]])
+    np.testing.assert_array_equal(inside_polygon_2d(pts, poly), [True, True, False, False, False])
+    np.testing.assert_array_equal(
+        inside_polygon_2d(pts, poly, margin=0.2), [True, True, False, True, True]
+    )
