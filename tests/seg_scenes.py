@@ -28,7 +28,7 @@ def raycast(faces: list[tuple[tuple[float, float], tuple[float, float]]], angles
         e = np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
         # solve t d = a + u e  for t >= 0, u in [0, 1]
         den = d[:, 0] * (-e[1]) - d[:, 1] * (-e[0])
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             t = (a_[0] * (-e[1]) - a_[1] * (-e[0])) / den
             u = (d[:, 0] * a_[1] - d[:, 1] * a_[0]) / den
         hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1) & (t < best)

@@ -126,7 +126,7 @@ def test_range_dependent_noise_scales_thresholds() -> None:
 
 
 def test_result_lines_are_consistent() -> None:
-    line, face = office_scanline(seed=0, noise=0.0)
+    line, _ = office_scanline(seed=0, noise=0.0)
     res = segmentation.segment(line, "ror")
     for s in res.segments:
         pts = line.points_xy[np.searchsorted(line.valid_index, s.first_beam):
