@@ -23,10 +23,13 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from numpy.typing import NDArray
 
 from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
-from segmentation.methods._consensus import refine_line, take_runs
+from segmentation.methods._consensus import BoolArray, refine_line, take_runs
 from segmentation.registry import register
+
+Votes = NDArray[np.int32]
 
 
 @dataclass(frozen=True)
@@ -48,10 +51,39 @@ class HoughParams(CommonParams):
 
 
 @nb.njit(cache=True)
-def _vote(acc: IntArray, ct: FloatArray, st: FloatArray, x: float, y: float, r_max: float,
-          rho_res: float, w: int) -> None:
+def _vote(acc: Votes, ct: FloatArray, st: FloatArray, x: float, y: float, r_max: float,
+          inv_res: float, w: int) -> None:
     for k in range(ct.shape[0]):
-        acc[k, int((x * ct[k] + y * st[k] + r_max) / rho_res)] += w
+        acc[k, int((x * ct[k] + y * st[k] + r_max) * inv_res)] += w
+
+
+@nb.njit(cache=True)
+def _peak(acc: Votes, suppressed: BoolArray, row_bound: IntArray) -> tuple[int, int, int]:
+    """Highest unsuppressed cell (ties: lowest theta, then lowest rho) as (votes, theta bin, rho bin).
+
+    ``row_bound[k]`` is an upper bound of row k's highest count (votes only
+    ever decrease); rows are rescanned in decreasing bound order until no
+    bound can beat the best found, so few rows are read per peak.
+    """
+    order = np.argsort(-row_bound, kind="mergesort")
+    best = -1
+    kb = 0
+    bb = 0
+    for k in order:
+        if row_bound[k] < best or (row_bound[k] == best and k > kb):
+            break
+        row_best = -1
+        row_arg = 0
+        for b in range(acc.shape[1]):
+            if acc[k, b] > row_best and not suppressed[k, b]:
+                row_best = acc[k, b]
+                row_arg = b
+        row_bound[k] = row_best
+        if row_best > best or (row_best == best and k < kb):
+            best = row_best
+            kb = k
+            bb = row_arg
+    return best, kb, bb
 
 
 @nb.njit(cache=True)
@@ -68,28 +100,22 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
         r_max = max(r_max, np.hypot(points[i, 0], points[i, 1]))
     r_max += rho_res
     n_r = int(2.0 * r_max / rho_res) + 2
-    acc = np.zeros((n_t, n_r), dtype=np.int64)
+    inv_res = 1.0 / rho_res
+    acc = np.zeros((n_t, n_r), dtype=np.int32)
     suppressed = np.zeros((n_t, n_r), dtype=np.bool_)
     for i in range(m):
-        _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, rho_res, 1)
+        _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, inv_res, 1)
+    row_bound = np.full(n_t, m, dtype=np.int64)
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
     inl = np.zeros(m, dtype=np.bool_)
     seg = 0
     while True:
-        best = -1
-        kb = 0
-        bb = 0
-        for k in range(n_t):
-            for b in range(n_r):
-                if acc[k, b] > best and not suppressed[k, b]:
-                    best = acc[k, b]
-                    kb = k
-                    bb = b
+        best, kb, bb = _peak(acc, suppressed, row_bound)
         if best < min_votes:
             break
         for i in range(m):
-            inl[i] = alive[i] and int((points[i, 0] * ct[kb] + points[i, 1] * st[kb] + r_max) / rho_res) == bb
+            inl[i] = alive[i] and int((points[i, 0] * ct[kb] + points[i, 1] * st[kb] + r_max) * inv_res) == bb
         refine_line(points, thr, alive, inl, 2)
         seg0 = seg
         seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
@@ -98,7 +124,7 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
             continue
         for i in range(m):
             if labels[i] >= seg0:
-                _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, rho_res, -1)
+                _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, inv_res, -1)
     return labels
 
 
