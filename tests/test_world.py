@@ -89,7 +89,10 @@ def test_walk_clearance_error_names_the_waypoint(tmp_path: Path) -> None:
         load_world(write(tmp_path, spec))
     spec["walk"]["waypoints"] = [[1.0, 1.0], [5.0, 1.0], [5.0, 3.0]]
     spec["pillars"] = [{"center": [3.0, 1.2], "size": [0.4, 0.4]}]  # on the leg 0 -> 1
-    with pytest.raises(ConfigError, match=r"leg from waypoint 0 to 1"):
+    with pytest.raises(ConfigError, match=r"leg from waypoint 0 to 1 leaves free space"):
+        load_world(write(tmp_path, spec))
+    spec["pillars"] = [{"center": [3.0, 1.5], "size": [0.4, 0.4]}]  # 0.3 m beside the leg
+    with pytest.raises(ConfigError, match=r"leg from waypoint 0 to 1 passes 0\.30 m"):
         load_world(write(tmp_path, spec))
     spec["pillars"] = []
     spec["walk"]["waypoints"] = [[1.0, 1.0], [8.0, 1.0], [5.0, 3.0]]  # outside the building
@@ -153,7 +156,7 @@ def test_box_room_planes(tmp_path: Path) -> None:
     assert_planes_consistent(w)
     kinds = sorted(p.kind for p in w.planes)
     assert kinds == ["ceiling", "floor", "wall", "wall", "wall", "wall"]
-    np.testing.assert_allclose(w.bounds, [[0, 0, 0], [6, 4, 2.5]])
+    np.testing.assert_allclose(w.bounds, np.array([[0.0, 0.0, 0.0], [6.0, 4.0, 2.5]]))
 
 
 def test_a_wall_split_around_a_door_is_one_plane(tmp_path: Path) -> None:
@@ -171,7 +174,7 @@ def test_a_wall_split_around_a_door_is_one_plane(tmp_path: Path) -> None:
     assert sum(p.kind == "board_edge" for p in w.planes) == 4
     assert sum(p.kind == "floor" for p in w.planes) == 1
     # the wall keeps its outline; its triangles leave a hole where the door is
-    np.testing.assert_allclose(np.ptp(north[0].polygon, axis=0), [6.0, 0.0, 2.5])
+    np.testing.assert_allclose(np.ptp(north[0].polygon, axis=0), np.array([6.0, 0.0, 2.5]))
     cent = w.vertices[w.triangles[w.tri_plane == north[0].id]].mean(axis=1)
     assert not np.any((np.abs(cent[:, 0] - 3.0) < 0.45) & (cent[:, 2] < 2.0))
 

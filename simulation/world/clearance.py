@@ -133,8 +133,59 @@ def walk_samples(walk: Walk) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     return np.concatenate(pts), np.concatenate(legs)
 
 
+def segment_segment_distance(
+    legs: NDArray[np.float64], segs: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Distance (L,) from each segment in ``legs`` (L, 2, 2) to the nearest one in ``segs``."""
+    out = np.full(len(legs), np.inf)
+    if len(segs) == 0:
+        return out
+    for i, (p, q) in enumerate(legs):
+        a, b = segs[:, 0], segs[:, 1]
+        d = np.minimum(
+            point_segment_distance(np.stack([p, q]), segs).min(),
+            np.min(_endpoint_distances(a, b, p, q)),
+        )
+        if d > 0 and np.any(_crosses(a, b, p, q)):
+            d = 0.0
+        out[i] = d
+    return out
+
+
+def _endpoint_distances(
+    a: NDArray[np.float64], b: NDArray[np.float64], p: NDArray[np.float64], q: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Distances of every segment endpoint in a, b (S, 2) to the segment p-q."""
+    pq = q - p
+    len2 = max(float(pq @ pq), 1e-300)
+    pts = np.concatenate([a, b])
+    t = np.clip((pts - p) @ pq / len2, 0.0, 1.0)
+    return np.linalg.norm(pts - (p + t[:, None] * pq), axis=1)
+
+
+def _crosses(
+    a: NDArray[np.float64], b: NDArray[np.float64], p: NDArray[np.float64], q: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """Whether segment p-q properly crosses each segment a-b (S, 2)."""
+
+    def orient(
+        u: NDArray[np.float64], v: NDArray[np.float64], w: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        return (v[..., 0] - u[..., 0]) * (w[..., 1] - u[..., 1]) - (v[..., 1] - u[..., 1]) * (
+            w[..., 0] - u[..., 0]
+        )
+
+    d1, d2 = orient(a, b, p), orient(a, b, q)
+    d3, d4 = orient(p, q, a), orient(p, q, b)
+    return (d1 * d2 < 0) & (d3 * d4 < 0)
+
+
 def check_walk(walk: Walk, obstacles: PlanObstacles, source: str) -> None:
-    """ConfigError naming the first waypoint or leg closer than ``walk.clearance`` to an obstacle."""
+    """ConfigError naming the first waypoint or leg closer than ``walk.clearance`` to an obstacle.
+
+    Waypoints are checked for being in free space; legs by their exact distance to every
+    wall and object outline (a leg that crosses one has distance 0).
+    """
     need = walk.clearance
     wp = np.asarray(walk.waypoints, dtype=np.float64)
     c = obstacles.clearance(wp)
@@ -147,17 +198,22 @@ def check_walk(walk: Walk, obstacles: PlanObstacles, source: str) -> None:
             f"{source}: key 'walk.waypoints.{i}': waypoint ({x:.2f}, {y:.2f}) {what} "
             f"(needs >= {need} m clearance)"
         )
-    pts, legs = walk_samples(walk)
-    c = obstacles.clearance(pts)
-    bad = np.flatnonzero(c < need)
-    if len(bad):
-        k = int(bad[0])
-        leg = int(legs[k])
+    ends = np.concatenate([wp, wp[:1]]) if walk.closed else wp
+    legs = np.stack([ends[:-1], ends[1:]], axis=1)
+    dist = segment_segment_distance(legs, obstacles.segments)
+    for leg in np.flatnonzero(dist < need):
+        p, q = legs[leg]
+        n = max(1, int(np.ceil(np.linalg.norm(q - p) / PATH_STEP)))
+        pts = p + np.linspace(0.0, 1.0, 4 * n + 1)[:, None] * (q - p)
+        cl = obstacles.clearance(pts)
+        k = int(np.argmin(cl))
         nxt = (leg + 1) % len(wp)
         what = (
-            "leaves free space" if np.isinf(c[k]) else f"passes {c[k]:.2f} m from a wall or object"
+            "leaves free space"
+            if np.isinf(cl[k])
+            else f"passes {dist[leg]:.2f} m from a wall or object"
         )
         raise ConfigError(
-            f"{source}: key 'walk.waypoints': the leg from waypoint {leg} to {nxt} {what} at "
+            f"{source}: key 'walk.waypoints': the leg from waypoint {leg} to {nxt} {what} near "
             f"({pts[k, 0]:.2f}, {pts[k, 1]:.2f}) (needs >= {need} m clearance)"
         )
