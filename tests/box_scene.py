@@ -43,7 +43,7 @@ SCANNERS = [  # T_body_scanner: horizontal reference, two tilted at the back
 def walking_knots(duration: float = 2.0, rate: float = 40.0,
                   speed: float = 1.2) -> tuple[FloatArray, FloatArray]:
     """Knot times (K,) and true ``T_world_body`` (K, 4, 4) of a walk with bounce, sway and a turn."""
-    t = np.arange(int(round(duration * rate)) + 1) / rate
+    t = np.arange(round(duration * rate) + 1) / rate
     x = -2.5 + speed * t
     y = -1.0 + 0.4 * np.sin(0.9 * t)
     z = 0.02 * np.sin(2 * np.pi * 2.0 * t)

@@ -1,0 +1,222 @@
+"""Jacobians of the back-end factors against central differences on the manifold (via retract)."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import E, P, X
+
+from slam.factors import (
+    RobustKernel,
+    point_plane_factor,
+    point_plane_terms,
+    robust_loss,
+    robust_residual,
+    robust_weights,
+    scanner_point_plane_factor,
+)
+from slam.interpolation import (
+    adjoint,
+    exp_coefficients,
+    interpolate_poses,
+    interpolate_trajectory,
+    knot_fractions,
+    se3_exp,
+    se3_inverse,
+    se3_log,
+    se3_right_jacobian,
+)
+from slam.motion import (
+    MotionPriorConfig,
+    constant_velocity_factor,
+    horizontal_plane_prior,
+)
+
+KERNELS = [RobustKernel("none"), RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7)]
+
+
+def _random_pose(rng: np.random.Generator, rot: float = 1.0) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * rot), rng.normal(size=3))
+
+
+def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> gtsam.Values:
+    out = gtsam.Values(values)
+    sym = chr(gtsam.Symbol(key).chr())
+    if sym == "p":
+        out.update(key, values.atOrientedPlane3(key).retract(delta))
+    else:
+        out.update(key, values.atPose3(key).retract(delta))
+    return out
+
+
+def _check_jacobians(factor: gtsam.NoiseModelFactor, values: gtsam.Values, tol: float = 1e-6) -> None:
+    """Whitened analytic Jacobians (from linearize) vs central differences of the whitened error."""
+    A, _ = factor.linearize(values).jacobian()
+    col = 0
+    for key in factor.keys():
+        dim = 3 if chr(gtsam.Symbol(key).chr()) == "p" else 6
+        h = 1e-6
+        num = np.empty((A.shape[0], dim))
+        for j in range(dim):
+            d = np.zeros(dim)
+            d[j] = h
+            ep = factor.whitenedError(_retract(values, key, d))
+            em = factor.whitenedError(_retract(values, key, -d))
+            num[:, j] = (ep - em) / (2 * h)
+        ana = A[:, col:col + dim]
+        scale = max(1.0, np.abs(num).max())
+        assert np.abs(ana - num).max() < tol * scale, (gtsam.Symbol(key).string(), np.abs(ana - num).max())
+        col += dim
+    assert col == A.shape[1]
+
+
+def _block_values(rng: np.random.Generator, motion: float) -> gtsam.Values:
+    Ta = _random_pose(rng)
+    v = gtsam.Values()
+    v.insert(X(0), Ta)
+    v.insert(X(1), Ta.compose(gtsam.Pose3.Expmap(rng.normal(size=6) * motion)))
+    v.insert(P(0), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), rng.normal()))
+    v.insert(E(0), _random_pose(rng, 0.5))
+    return v
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: k.name)
+@pytest.mark.parametrize("motion", [1e-7, 0.02, 0.4])
+def test_point_plane_factor_jacobians(kernel: RobustKernel, motion: float) -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(3):
+        v = _block_values(rng, motion)
+        n = 25
+        pts = rng.normal(size=(n, 3)) * 3.0
+        al = rng.uniform(0.0, 1.0, n)
+        al[:2] = [0.0, 1.0]
+        sig = rng.uniform(0.5, 2.0, n)
+        _check_jacobians(point_plane_factor(X(0), X(1), P(0), pts, al, sig, kernel), v)
+        _check_jacobians(point_plane_factor(X(0), None, P(0), pts, None, sig, kernel), v)
+        _check_jacobians(scanner_point_plane_factor(X(0), X(1), P(0), E(0), pts, al, sig, kernel), v)
+        _check_jacobians(scanner_point_plane_factor(X(0), None, P(0), E(0), pts, None, sig, kernel), v)
+
+
+def test_point_plane_residual_is_signed_distance_of_interpolated_point() -> None:
+    rng = np.random.default_rng(2)
+    v = _block_values(rng, 0.3)
+    Ta, Tb, pl = v.atPose3(X(0)), v.atPose3(X(1)), v.atOrientedPlane3(P(0))
+    pts = rng.normal(size=(10, 3))
+    al = rng.uniform(0, 1, 10)
+    T = interpolate_poses(Ta.matrix(), Tb.matrix(), al)
+    w = np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3]
+    expected = w @ pl.normal().point3() + pl.distance()
+    got = point_plane_terms(Ta, Tb, pl, pts, al, jacobians=False).residuals
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    # alpha = 1 is exactly the second knot
+    got1 = point_plane_terms(Ta, Tb, pl, pts, np.ones(10), jacobians=False).residuals
+    np.testing.assert_allclose(got1, point_plane_terms(Tb, None, pl, pts, None, False).residuals,
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: k.name)
+def test_robust_error_is_sum_of_losses(kernel: RobustKernel) -> None:
+    rng = np.random.default_rng(5)
+    v = _block_values(rng, 0.05)
+    pts = rng.normal(size=(40, 3)) * 2
+    al = rng.uniform(0, 1, 40)
+    sig = np.full(40, 0.5)
+    f = point_plane_factor(X(0), X(1), P(0), pts, al, sig, kernel)
+    e = point_plane_terms(v.atPose3(X(0)), v.atPose3(X(1)), v.atOrientedPlane3(P(0)), pts, al,
+                          False).residuals / sig
+    assert f.error(v) == pytest.approx(robust_loss(e, kernel).sum(), rel=1e-12)
+    # the residual's derivative s = psi(e) / r gives the IRLS gradient: r s = w e
+    r, s = robust_residual(e, kernel)
+    np.testing.assert_allclose(r * s, robust_weights(e, kernel) * e, rtol=1e-10, atol=1e-14)
+    big = np.array([0.0, 1e-9, 100.0])
+    assert np.all(np.isfinite(robust_residual(big, kernel)[1]))
+
+
+def test_robust_weights_downweight_large_residuals() -> None:
+    e = np.array([0.0, 1.0, 3.0, 30.0])
+    wc = robust_weights(e, RobustKernel("cauchy", 3.0))
+    wh = robust_weights(e, RobustKernel("huber", 3.0))
+    assert wc[0] == 1.0 and wc[-1] < 0.02 and np.all(np.diff(wc) < 0)
+    np.testing.assert_allclose(wh, [1.0, 1.0, 1.0, 0.1])
+
+
+def test_block_input_errors_are_clear() -> None:
+    with pytest.raises(ValueError, match="points_body"):
+        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 2)), np.zeros(3), 0.01)
+    with pytest.raises(ValueError, match="alphas"):
+        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 3)), np.full(3, 1.5), 0.01)
+    with pytest.raises(ValueError, match="alphas"):
+        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), np.full(3, 0.5), 0.01)
+    with pytest.raises(ValueError, match="sigmas"):
+        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), None, np.array([0.1, 0.0, 0.1]))
+    with pytest.raises(ValueError, match="robust kernel"):
+        RobustKernel("tukey")
+
+
+@pytest.mark.parametrize("motion", [1e-8, 0.05, 0.5])
+def test_constant_velocity_factor_jacobians(motion: float) -> None:
+    rng = np.random.default_rng(7)
+    T0 = _random_pose(rng)
+    T1 = T0.compose(gtsam.Pose3.Expmap(rng.normal(size=6) * motion))
+    T2 = T1.compose(gtsam.Pose3.Expmap(rng.normal(size=6) * motion))
+    v = gtsam.Values()
+    for i, T in enumerate([T0, T1, T2]):
+        v.insert(X(i), T)
+    _check_jacobians(constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig()), v)
+
+
+def test_constant_velocity_factor_is_zero_for_constant_twist() -> None:
+    xi = np.array([0.1, -0.2, 0.5, 1.2, 0.1, -0.05])
+    T0 = se3_exp(np.array([0.3, 0.1, -0.2, 1.0, 2.0, 0.5]))
+    v = gtsam.Values()
+    for i, t in enumerate([0.0, 0.025, 0.055]):
+        v.insert(X(i), gtsam.Pose3(T0 @ se3_exp(t * xi)))
+    f = constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig())
+    assert np.abs(f.unwhitenedError(v)).max() < 1e-12
+
+
+def test_horizontal_plane_prior_keeps_sign() -> None:
+    v = gtsam.Values()
+    v.insert(P(0), gtsam.OrientedPlane3(0.0, 0.02, -1.0, 2.0))
+    f = horizontal_plane_prior(P(0), [0.0, 0.02, -1.0], 0.01)
+    assert np.abs(f.unwhitenedError(v)).max() < 0.03  # small, not antipodal
+    with pytest.raises(ValueError, match="normal_world"):
+        horizontal_plane_prior(P(0), [1.0, 0.0, 0.0], 0.01)
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e-3, 0.3, 0.49, 0.51, 1.5])
+def test_se3_tools_match_gtsam(scale: float) -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        xi = rng.normal(size=6)
+        xi[:3] *= scale / np.linalg.norm(xi[:3])
+        T = gtsam.Pose3.Expmap(xi)
+        np.testing.assert_allclose(se3_exp(xi), T.matrix(), atol=1e-14)
+        np.testing.assert_allclose(se3_log(T.matrix()), xi, atol=1e-12)
+        np.testing.assert_allclose(se3_right_jacobian(xi), gtsam.Pose3.ExpmapDerivative(xi),
+                                   atol=1e-13)
+        np.testing.assert_allclose(adjoint(T.matrix()), T.AdjointMap(), atol=1e-14)
+        np.testing.assert_allclose(se3_inverse(T.matrix()), T.inverse().matrix(), atol=1e-14)
+
+
+def test_exp_coefficients_continuous_at_series_switch() -> None:
+    a = np.array(exp_coefficients(np.array([0.5 - 1e-12])))
+    b = np.array(exp_coefficients(np.array([0.5 + 1e-12])))
+    np.testing.assert_allclose(a, b, rtol=1e-11)
+    np.testing.assert_allclose(np.array(exp_coefficients(0.0)).ravel(),
+                               [1.0, 0.5, 1 / 6, 1 / 24, 1 / 120])
+
+
+def test_interpolate_trajectory_hits_knots_and_validates_times() -> None:
+    rng = np.random.default_rng(4)
+    kt = np.array([0.0, 0.025, 0.05, 0.075])
+    poses = np.array([_random_pose(rng).matrix() for _ in kt])
+    np.testing.assert_allclose(interpolate_trajectory(kt, poses, kt), poses, atol=1e-12)
+    idx, al = knot_fractions(kt, [0.0, 0.0125, 0.075])
+    np.testing.assert_array_equal(idx, [0, 0, 2])
+    np.testing.assert_allclose(al, [0.0, 0.5, 1.0])
+    with pytest.raises(ValueError, match="times"):
+        knot_fractions(kt, [0.08])
+    with pytest.raises(ValueError, match="knot_times"):
+        knot_fractions([0.0, 0.0], [0.0])
