@@ -206,7 +206,8 @@ def check_walk(walk: Walk, obstacles: PlanObstacles, source: str) -> None:
         n = max(1, int(np.ceil(np.linalg.norm(q - p) / PATH_STEP)))
         pts = p + np.linspace(0.0, 1.0, 4 * n + 1)[:, None] * (q - p)
         cl = obstacles.clearance(pts)
-        k = int(np.argmin(cl))
+        blocked = np.flatnonzero(np.isinf(cl))
+        k = int(blocked[0]) if len(blocked) else int(np.argmin(cl))
         nxt = (leg + 1) % len(wp)
         what = (
             "leaves free space"
