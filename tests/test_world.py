@@ -88,7 +88,7 @@ def test_walk_clearance_error_names_the_waypoint(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"'walk\.waypoints\.1'.*0\.30 m"):
         load_world(write(tmp_path, spec))
     spec["walk"]["waypoints"] = [[1.0, 1.0], [5.0, 1.0], [5.0, 3.0]]
-    spec["pillars"] = [{"center": [3.0, 1.2], "size": [0.4, 0.4]}]  # on the leg 0 -> 1
+    spec["pillars"] = [{"center": [3.0, 1.1], "size": [0.4, 0.4]}]  # on the leg 0 -> 1
     with pytest.raises(ConfigError, match=r"leg from waypoint 0 to 1 leaves free space"):
         load_world(write(tmp_path, spec))
     spec["pillars"] = [{"center": [3.0, 1.5], "size": [0.4, 0.4]}]  # 0.3 m beside the leg
