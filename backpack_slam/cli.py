@@ -22,7 +22,7 @@ from typing import Any, NoReturn
 PROG = "backpack-slam"
 
 # one entry per module in backpack_slam/commands/
-COMMANDS: list[str] = ["segment", "demo", "evaluate", "view", "run"]
+COMMANDS: list[str] = ["segment", "demo", "evaluate", "view", "run", "simulate"]
 
 
 class UsageError(ValueError):

@@ -42,7 +42,7 @@ from pydantic import Field
 from tqdm import tqdm
 
 from backpack_slam.config import StrictModel, load
-from backpack_slam.rig import Rig, load_rig
+from backpack_slam.rig import Rig, resolve_rig
 from simulation.bag import BagWriter, seconds_to_ns
 from simulation.imu import ImuConfig, simulate_imu
 from simulation.scanner import ScannerNoiseConfig, apply_measurement, beam_rays
@@ -74,24 +74,6 @@ class SimulationConfig(StrictModel):
 def load_simulation_config(path: str | Path) -> SimulationConfig:
     """A SimulationConfig from YAML (errors name the file and the key)."""
     return load(SimulationConfig, path)
-
-
-def resolve_rig(name_or_path: str | Path) -> Rig:
-    """A rig name (``configs/rig/<name>.yaml``) or a YAML path -> the validated Rig."""
-    from backpack_slam.config import ConfigError
-    from simulation.world.load import configs_dir
-
-    s = str(name_or_path)
-    p = Path(s)
-    if p.suffix in (".yaml", ".yml") or os.sep in s:
-        if not p.is_file():
-            raise ConfigError(f"{p}: no such rig file")
-        return load_rig(p)
-    candidate = configs_dir() / "rig" / f"{s}.yaml"
-    if not candidate.is_file():
-        known = ", ".join(sorted(q.stem for q in (configs_dir() / "rig").glob("*.yaml"))) or "none"
-        raise ConfigError(f"rig '{s}': no {candidate} (known rigs: {known})")
-    return load_rig(candidate)
 
 
 def bag_path_for(out: str | Path, fmt: Format) -> Path:
@@ -185,6 +167,8 @@ def simulate(
         raycaster = Raycaster(world)
     out_path = bag_path_for(out, cfg.format)
     gt_path = gt_dir_for(out_path)
+    if not out_path.parent.is_dir():
+        raise ValueError(f"{out_path}: the folder {out_path.parent} does not exist")
     if out_path.resolve() == gt_path.resolve():
         raise ValueError(f"{out_path}: the output name must not end in .gt")
     seconds = dict.fromkeys(STAGES, 0.0)
@@ -210,7 +194,7 @@ def simulate(
     base_ns = round(base * 1e9)
     tag = uuid.uuid4().hex[:8]
     gt_tmp = gt_path.parent / f".{gt_path.name}.{tag}.tmp"
-    gt_tmp.mkdir(parents=True)
+    gt_tmp.mkdir()
     writer = BagWriter(out_path, cfg.format, rig_obj, imu=cfg.imu, imu_noise=(cfg.imu_noise.gyro_noise * math.sqrt(1 / traj.dt), cfg.imu_noise.accel_noise * math.sqrt(1 / traj.dt)))
     streams: dict[str, _NpyStream] = {}
     n_rays = 0
