@@ -492,9 +492,9 @@ def match_planes_geometric(
     """Match each estimated plane (ground-truth frame) to the nearest compatible true plane.
 
     Compatible: normals within ``max_angle_deg`` (sign-free), the estimated patch centre within
-    ``max_offset`` of the true plane and, projected onto it, inside the true polygon grown by
-    ``margin``. Among compatible planes the smallest |offset| wins, so that a board 1-2 cm
-    proud of its wall matches the board.
+    ``max_offset`` of the true plane and at least half of the patch's vertices and centre,
+    projected onto it, inside the true polygon grown by ``margin``. Among compatible planes the smallest |offset| wins, so that a board 1-2 cm
+    proud of its wall matches the board; on a tie, the one whose normal has the same sign.
     """
     out: dict[int, int] = {}
     cos_max = np.cos(np.radians(max_angle_deg))
@@ -508,11 +508,18 @@ def match_planes_geometric(
             if abs(off) > max_offset:
                 continue
             if t.polygon.shape[0] >= 3:
+                # the patch's vertices and centre, projected onto the true plane: at least half
+                # must fall in the grown true polygon (a concave wall with a door cut out may
+                # hold the centre in its hole)
                 B = np.stack(plane_basis(t.normal))
-                if not inside_polygon_2d((c @ B.T)[None], t.polygon @ B.T, margin)[0]:
+                pts = np.vstack([e.polygon, c]) if e.polygon.shape[0] >= 3 else c[None]
+                if np.mean(inside_polygon_2d(pts @ B.T, t.polygon @ B.T, margin)) < 0.5:
                     continue
-            if best is None or abs(off) < best[0]:
-                best = (abs(off), t.id)
+            # between equally near planes (a cupboard's back against a wall) prefer the one
+            # facing the same way
+            score = abs(off) + (1e-4 if float(e.normal @ t.normal) < 0 else 0.0)
+            if best is None or score < best[0]:
+                best = (score, t.id)
         if best is not None:
             out[int(e.id)] = best[1]
     return out

@@ -382,3 +382,15 @@ def test_inside_polygon_with_margin() -> None:
     np.testing.assert_array_equal(
         inside_polygon_2d(pts, poly, margin=0.2), [True, True, False, True, True]
     )
+
+
+def test_geometric_match_prefers_same_facing_plane_on_tie() -> None:
+    wall = PlaneRecord(1, np.array([1.0, 0, 0]), 0.0, _wall(0.0, 2.0, 8.0), kind="wall")
+    back = PlaneRecord(2, np.array([-1.0, 0, 0]), 0.0, _wall(0.0, 5.0, 6.0, 2.0), kind="furniture")
+    patch = _wall(0.0, 5.2, 5.8, 1.5)
+    assert match_planes_geometric(
+        [PlaneRecord(0, np.array([-1.0, 0, 0]), 0.0, patch)], [wall, back]
+    ) == {0: 2}
+    assert match_planes_geometric(
+        [PlaneRecord(0, np.array([1.0, 0, 0]), 0.0, patch)], [wall, back]
+    ) == {0: 1}
