@@ -60,12 +60,12 @@ def plot_error_over_distance(traj: TrajectoryEval, path: Path) -> Path:
     """Position error (mm) of the three ATE variants against distance walked (m)."""
     fig = Figure(figsize=(8, 4))
     ax = fig.add_subplot()
-    for err, label in (
-        (traj.err_unaligned, "unaligned"),
-        (traj.err_start, "start-aligned (datum)"),
-        (traj.err_se3, "SE(3)-aligned"),
+    for err, label, style in (
+        (traj.err_start, "start-aligned (datum)", "-"),
+        (traj.err_se3, "SE(3)-aligned", "-"),
+        (traj.err_unaligned, "unaligned", "--"),  # dashed: often equal to start-aligned
     ):
-        ax.plot(traj.distance, 1000.0 * err, lw=1, label=label)
+        ax.plot(traj.distance, 1000.0 * err, lw=1, ls=style, label=label)
     ax.set_xlabel("distance walked (m)")
     ax.set_ylabel("position error (mm)")
     ax.set_title(

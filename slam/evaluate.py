@@ -493,8 +493,9 @@ def match_planes_geometric(
 
     Compatible: normals within ``max_angle_deg`` (sign-free), the estimated patch centre within
     ``max_offset`` of the true plane and at least half of the patch's vertices and centre,
-    projected onto it, inside the true polygon grown by ``margin``. Among compatible planes the smallest |offset| wins, so that a board 1-2 cm
-    proud of its wall matches the board; on a tie, the one whose normal has the same sign.
+    projected onto it, inside the true polygon grown by ``margin``. Among compatible planes
+    the smallest |offset| wins, so that a board 1-2 cm proud of its wall matches the board;
+    on a tie, the one whose normal has the same sign.
     """
     out: dict[int, int] = {}
     cos_max = np.cos(np.radians(max_angle_deg))
