@@ -175,3 +175,5 @@ def test_seeded_and_config(tmp_path) -> None:
     with pytest.raises(ValueError, match="nope"):
         resolve_rig("nope")
     assert SimulationConfig().format == "ros1"
+    shipped = load_simulation_config(Path(__file__).resolve().parents[1] / "configs" / "simulation" / "default.yaml")
+    assert shipped.world == "office" and shipped.duration == 600.0 and shipped.noise.range_sigma == 0.003
