@@ -70,6 +70,7 @@ def ready(name: str) -> World:
         ),
         (lambda s: s["walk"].update(stops=[{"waypoint": 9, "duration": 1.0}]), "walk"),
         (lambda s: s.update(ceiling_z=1.0), "ceiling_z"),
+        (lambda s: s["walk"]["waypoints"].append([1.0, 1.0]), "walk"),
     ],
 )
 def test_schema_errors_name_file_and_key(tmp_path: Path, mutate: Any, key: str) -> None:

@@ -13,6 +13,7 @@ along that wall (y for west/east, x for south/north).
 
 from __future__ import annotations
 
+from itertools import pairwise
 from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
@@ -147,6 +148,16 @@ class Walk(StrictModel):
 
     @model_validator(mode="after")
     def _stops(self) -> Walk:
+        wp = self.waypoints
+        pairs = list(pairwise(wp))
+        if self.closed:
+            pairs.append((wp[-1], wp[0]))
+        for i, (a, b) in enumerate(pairs):
+            if a == b:
+                raise ValueError(
+                    f"waypoints.{(i + 1) % len(wp)}: same point as the one before it {a} "
+                    "(closed walks return to the start by themselves)"
+                )
         for i, s in enumerate(self.stops):
             if s.waypoint >= len(self.waypoints):
                 raise ValueError(
