@@ -381,6 +381,7 @@ class Backend:
             for _ in range(max(iterations, 1) - 1):
                 self._isam.update()
         except RuntimeError as err:
+            self._invalidate_isam()  # its state is undefined after a failed update
             raise ValueError(f"iSAM2 update failed ({_name_keys(str(err))}); is every new "
                              "variable constrained by its factors?") from None
         for fid, idx in zip(ids, result.getNewFactorsIndices(), strict=True):
@@ -674,13 +675,10 @@ def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int) -> None:
 
 
 def _name_keys(message: str) -> str:
-    """Replace raw integer keys in a gtsam message by their symbols (x12, p3)."""
+    """First line of a gtsam error plus the variable it names (x12, p3), on one line."""
     import re
 
-    def sym(m: re.Match[str]) -> str:
-        k = int(m.group(0))
-        if k < 2**56:
-            return m.group(0)
-        return str(gtsam.Symbol(k).string())
-
-    return re.sub(r"\d{17,}", sym, message.strip().splitlines()[0] if message.strip() else message)
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    first = lines[0] if lines else "gtsam error"
+    m = re.search(r"Symbol: (\w+)", message)
+    return f"{first} {m.group(1)}" if m else first

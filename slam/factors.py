@@ -27,17 +27,19 @@ per-point exponentials and Jacobians are scalar functions of ``alpha_k`` times s
 matrices.
 
 Robustness (per point, wrong associations): a robust noise model on the block would weight
-the whole block by its total error, so the kernel is applied inside the factor, point by point.
-Each point contributes ``r_k = sign(e_k) sqrt(2 rho(e_k))`` with Jacobian
-``(psi(e_k) / r_k) de_k/dx`` (``rho`` Huber or Cauchy, threshold in sigmas, ``psi = rho'``),
-recomputed from the current residuals at every linearisation. So the factor's error is exactly
-``sum_k rho(e_k)`` (Levenberg-Marquardt accepts and rejects steps on the true robust cost), the
-gradient is exactly the IRLS gradient ``sum_k w_k e_k de_k/dx`` with ``w_k = psi(e_k)/e_k``, and
-the fixed point is the robust M-estimate. Plain IRLS (``sqrt(w_k) e_k`` with weights recomputed
-at every call) would make the reported error ``sum w_k e_k^2``, a different cost than the one
-the steps minimise. :func:`robust_weights` gives the IRLS weights ``w_k`` for diagnostics.
-Cauchy (threshold 3 sigma) is the default in the back end: it is redescending, so a wall point
-associated with the wrong wall stops pulling; Huber keeps a constant pull and is convex.
+the whole block by its total error, so the kernel is applied inside the factor, point by point,
+with gtsam's own robust-model semantics (IRLS): at every linearisation the weights
+``w_k = psi(e_k) / e_k`` (Huber or Cauchy, threshold in sigmas) are recomputed from the current
+residuals and the factor linearises as ``sqrt(w_k) (e_k + de_k/dx dx)``, so each Gauss-Newton /
+iSAM2 step is a weighted least-squares step; when gtsam only evaluates the error (no
+Jacobians requested: Levenberg-Marquardt's step acceptance) the factor returns
+``sign(e_k) sqrt(2 rho(e_k))``, so its error is exactly the robust cost ``sum_k rho(e_k)``.
+(Returning ``sqrt(2 rho)`` at linearisation too, with its exact derivative, gives steps that
+overshoot by far for points in the outlier regime, which iSAM2 does not damp; returning
+``sqrt(w) e`` as the error too makes LM judge steps on ``sum w e^2``, another cost.)
+Cauchy (threshold 3 sigma) is the default in the back end: it is redescending, so a point
+associated with the wrong surface stops pulling; Huber keeps a constant pull and is convex.
+:func:`robust_weights` gives the weights for diagnostics.
 """
 
 from __future__ import annotations
@@ -92,23 +94,11 @@ def robust_weights(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
     return 1.0 / (1.0 + (e / k) ** 2)
 
 
-def robust_residual(e: FloatArray, kernel: RobustKernel) -> tuple[FloatArray, FloatArray]:
-    """``(r, s)``: ``r = sign(e) sqrt(2 rho(e))`` and ``s = dr/de = psi(e) / r`` (> 0)."""
+def robust_residual(e: FloatArray, kernel: RobustKernel) -> FloatArray:
+    """``sign(e) sqrt(2 rho(e))``: the residual whose half square is the robust loss."""
     if kernel.name == "none":
-        return e, np.ones_like(e)
-    k = kernel.threshold
-    if kernel.name == "huber":
-        a = np.abs(e)
-        out = a > k
-        r = np.where(out, np.sign(e) * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)), e)
-        s = np.where(out, k / np.sqrt(np.maximum(2.0 * k * a - k * k, 1e-300)), 1.0)
-        return r, s
-    x = (e / k) ** 2
-    lg = np.log1p(x)
-    r = np.sign(e) * k * np.sqrt(lg)
-    tiny = x < 1e-12
-    s = np.where(tiny, 1.0, np.sqrt(np.where(tiny, 1.0, x / np.where(tiny, 1.0, lg))) / (1.0 + x))
-    return r, s
+        return e
+    return np.sign(e) * np.sqrt(2.0 * robust_loss(e, kernel))
 
 
 @dataclass
@@ -298,23 +288,25 @@ def _block_factor(
         T_b = v.atPose3(key_b) if key_b is not None else None
         t = point_plane_terms(v.atPose3(key_a), T_b, v.atOrientedPlane3(plane_key), p_b, alphas,
                               H is not None)
-        r, scale = robust_residual(t.residuals * inv_s, kernel)
-        if H is not None:
-            assert t.H_a is not None and t.H_plane is not None and t.normal_beam is not None
-            f = (scale * inv_s)[:, None]
-            H[0] = t.H_a * f
-            j = 1
-            if t.H_b is not None:
-                H[1] = t.H_b * f
-                j = 2
-            H[j] = t.H_plane * f
-            if extrinsic_key is not None:
-                m_s = t.normal_beam @ R_bs  # plane normal in the scanner frame at each beam time
-                He = np.empty((points.shape[0], 6))
-                He[:, :3] = np.cross(points, m_s)
-                He[:, 3:] = m_s
-                H[j + 1] = He * f
-        return r
+        e = t.residuals * inv_s
+        if H is None:  # error evaluation only: the robust cost
+            return robust_residual(e, kernel)
+        sw = np.sqrt(robust_weights(e, kernel))
+        assert t.H_a is not None and t.H_plane is not None and t.normal_beam is not None
+        f = (sw * inv_s)[:, None]
+        H[0] = t.H_a * f
+        j = 1
+        if t.H_b is not None:
+            H[1] = t.H_b * f
+            j = 2
+        H[j] = t.H_plane * f
+        if extrinsic_key is not None:
+            m_s = t.normal_beam @ R_bs  # plane normal in the scanner frame at each beam time
+            He = np.empty((points.shape[0], 6))
+            He[:, :3] = np.cross(points, m_s)
+            He[:, 3:] = m_s
+            H[j + 1] = He * f
+        return sw * e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(points.shape[0]), keys, error)
 

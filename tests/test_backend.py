@@ -1,0 +1,273 @@
+"""Back end on a synthetic box room: recovery, consistency, robustness, merge, IMU, extrinsics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from box_scene import SCANNERS, Scene, make_scene, perturb_pose, walking_knots
+
+from slam.backend import Backend, BackendConfig
+from slam.factors import RobustKernel
+from slam.interpolation import interpolate_trajectory, se3_exp, se3_inverse, se3_log
+from slam.motion import ImuConfig
+
+DEG = np.pi / 180.0
+
+
+@pytest.fixture(scope="module")
+def clean_scene() -> Scene:
+    return make_scene(duration=2.0, beams=61, sigma_range=0.0, seed=1)
+
+
+def _pose_errors(true: np.ndarray, est: np.ndarray) -> np.ndarray:
+    return np.array([se3_log(se3_inverse(a) @ b) for a, b in zip(true, est, strict=True)])
+
+
+def _plane_errors(be: Backend, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ids, n, d = be.planes()
+    ang = np.degrees(np.arccos(np.clip(np.sum(n * planes[ids, :3], axis=1), -1.0, 1.0)))
+    return ang, np.abs(d - planes[ids, 3])
+
+
+def _build(scene: Scene, config: BackendConfig, seed: int, sigma_t: float = 0.03,
+           sigma_r: float = 1.0 * DEG, plane_ids: dict[int, int] | None = None) -> Backend:
+    rng = np.random.default_rng(seed)
+    be = Backend(config)
+    for i, (t, T) in enumerate(zip(scene.knot_times, scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, sigma_t, sigma_r))
+    for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+        n = n0 + rng.normal(0.0, 0.015, 3)
+        be.add_plane(j, n, d0 + rng.normal(0.0, 0.03))
+    for b in scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    return be
+
+
+def test_noise_free_box_room_recovers_truth(clean_scene: Scene) -> None:
+    be = _build(clean_scene, BackendConfig(), seed=2)
+    e0 = _pose_errors(clean_scene.knot_poses, be.poses())
+    assert np.abs(e0[:, 3:]).max() > 0.04  # really perturbed
+    summary = be.batch_optimize()
+    assert summary.final_error < 1e-3 * summary.initial_error
+    err = _pose_errors(clean_scene.knot_poses, be.poses())
+    assert np.linalg.norm(err[:, 3:], axis=1).max() < 1e-3
+    assert np.linalg.norm(err[:, :3], axis=1).max() < 0.01 * DEG
+    ang, off = _plane_errors(be, clean_scene.planes)
+    assert ang.max() < 0.01 and off.max() < 1e-3
+    # interpolation at beam times agrees with the truth's
+    t = np.linspace(clean_scene.knot_times[0], clean_scene.knot_times[-1], 37)
+    T_true = interpolate_trajectory(clean_scene.knot_times, clean_scene.knot_poses, t)
+    assert np.abs(be.T_world_body(t)[:, :3, 3] - T_true[:, :3, 3]).max() < 1e-3
+
+
+def test_incremental_isam2_while_reading_then_batch() -> None:
+    scene = make_scene(duration=1.0, beams=61, sigma_range=0.003, seed=3)
+    rng = np.random.default_rng(4)
+    be = Backend(BackendConfig())
+    for j, (n, d) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+        nn = n + rng.normal(0.0, 0.01, 3)
+        be.add_plane(j, nn, d + rng.normal(0.0, 0.02))
+    by_knot: dict[int, list[dict]] = {}
+    for b in scene.blocks:
+        by_knot.setdefault(b["knot"], []).append(b)
+    for i, t in enumerate(scene.knot_times):
+        guess = scene.knot_poses[0] if i == 0 else be.predict_pose(t)
+        be.add_pose(t, guess)
+        for b in by_knot.get(i - 1, []):
+            be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+        if i >= 8:  # planes need support from a few scans before they are determined
+            be.update()
+    err = _pose_errors(scene.knot_poses, be.poses())
+    assert np.linalg.norm(err[:, 3:], axis=1).max() < 0.01
+    cov = be.pose_covariance(be.num_knots - 1)  # from iSAM2
+    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
+    be.batch_optimize()
+    err = _pose_errors(scene.knot_poses, be.poses())
+    assert np.linalg.norm(err[:, 3:], axis=1).max() < 0.003
+    be.update()  # rebuilds iSAM2 from the batch result
+    err2 = _pose_errors(scene.knot_poses, be.poses())
+    assert np.linalg.norm(err2[:, 3:], axis=1).max() < 0.003
+
+
+def test_noisy_errors_consistent_with_covariances() -> None:
+    scene = make_scene(duration=2.0, beams=61, sigma_range=0.003, seed=5)
+    be = _build(scene, BackendConfig(), seed=6)
+    be.batch_optimize()
+    ang, off = _plane_errors(be, scene.planes)
+    assert ang.max() < 0.05 and off.max() < 2e-3
+    import gtsam
+    nees = 0.0
+    for j in range(6):
+        n_est, d_est = be.plane(j)
+        est = gtsam.OrientedPlane3(gtsam.Unit3(n_est), d_est)
+        true = gtsam.OrientedPlane3(gtsam.Unit3(scene.planes[j, :3]), scene.planes[j, 3])
+        e = est.localCoordinates(true)
+        nees += float(e @ np.linalg.solve(be.plane_covariance(j), e))
+    # 18 dof: the 0.1% and 99.9% chi-square quantiles are 5.0 and 42.3
+    assert 5.0 < nees < 42.3
+    err = _pose_errors(scene.knot_poses, be.poses())
+    k = be.num_knots // 2
+    e = err[k]
+    assert float(e @ np.linalg.solve(be.pose_covariance(k), e)) < 22.5  # chi2(6) 99.9%
+    stats = be.residual_statistics()
+    assert 0.8 < stats["rms_whitened"] < 1.2
+
+
+def test_robust_kernel_downweights_wrong_associations() -> None:
+    scene = make_scene(duration=1.5, beams=61, sigma_range=0.003, outlier_fraction=0.05, seed=7)
+    errs = {}
+    for name in ("cauchy", "none"):
+        be = _build(scene, BackendConfig(kernel=RobustKernel(name, 3.0)), seed=8)
+        be.batch_optimize()
+        errs[name] = np.linalg.norm(_pose_errors(scene.knot_poses, be.poses())[:, 3:], axis=1).max()
+        if name == "cauchy":
+            w_out, w_in = [], []
+            for bid, b in zip(sorted(be._blocks), scene.blocks, strict=True):
+                _, w = be.block_residuals(bid)
+                w_out.append(w[b["outlier"]])
+                w_in.append(w[~b["outlier"]])
+            assert np.median(np.concatenate(w_out)) < 0.05
+            assert np.median(np.concatenate(w_in)) > 0.9
+    assert errs["cauchy"] < 5e-3
+    assert errs["cauchy"] < 0.3 * errs["none"]
+
+
+def test_merge_planes_rekeys_blocks(clean_scene: Scene) -> None:
+    be = _build(clean_scene, BackendConfig(), seed=9)
+    # a duplicate of wall 3 observed by the odd knots' blocks
+    be.add_plane(10, clean_scene.planes[3, :3] + [0.0, 0.02, 0.0], clean_scene.planes[3, 3] + 0.05)
+    for bid in be.blocks_of_plane(3):
+        blk = be.block(bid)
+        if blk.knot % 2:
+            be.remove_observations(bid)
+            be.add_observations(blk.knot, 10, blk.points, blk.alphas, blk.sigmas)
+    n_blocks = len(be.blocks_of_plane(3)) + len(be.blocks_of_plane(10))
+    be.update()
+    moved = be.merge_planes(3, 10)
+    assert moved > 0 and len(be.blocks_of_plane(3)) == n_blocks
+    assert 10 not in be.plane_ids()
+    with pytest.raises(ValueError, match="plane_id"):
+        be.plane(10)
+    be.batch_optimize()
+    ang, off = _plane_errors(be, clean_scene.planes)
+    assert ang.max() < 0.01 and off.max() < 1e-3
+    be.update()  # iSAM2 rebuilt without the merged variable
+    assert be.plane_covariance(3).shape == (3, 3)
+
+
+def test_scanner_frame_blocks_with_extrinsic_variables(clean_scene: Scene) -> None:
+    rng = np.random.default_rng(10)
+    be = Backend(BackendConfig())
+    for i, (t, T) in enumerate(zip(clean_scene.knot_times, clean_scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
+    for j, p in enumerate(clean_scene.planes):
+        be.add_plane(j, p[:3], p[3] + 0.01)
+    be.add_extrinsic(0, SCANNERS[0], 1e-6, 1e-6)  # the reference scanner defines the body
+    for s in (1, 2):
+        be.add_extrinsic(s, perturb_pose(SCANNERS[s], rng, 0.01, 0.5 * DEG), 0.1, 0.1)
+    for b in clean_scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_scanner"], b["alphas"], b["sigmas"],
+                            scanner=b["scanner"])
+    be.batch_optimize()
+    for s in (1, 2):
+        e = se3_log(se3_inverse(SCANNERS[s]) @ be.extrinsic(s))
+        assert np.linalg.norm(e[3:]) < 2e-3 and np.linalg.norm(e[:3]) < 0.05 * DEG
+
+
+def _imu_from_constant_twist(T0: np.ndarray, xi: np.ndarray, t: np.ndarray, g: float = 9.81
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """IMU samples (body = IMU frame) on T(t) = T0 Exp(t xi), consistent with gtsam's
+    integration (sample held over [t_k, t_k+1], rotated by R(t_k)): gyro = omega (exact),
+    specific force = R(t_k)^T (mean world acceleration over the sample + g up), which makes
+    the integrated velocity exact."""
+    omega, v_body = xi[:3], xi[3:]
+    T = np.array([T0 @ se3_exp(tt * xi) for tt in t])
+    v_world = np.einsum("nij,j->ni", T[:, :3, :3], v_body)
+    acc = np.diff(v_world, axis=0) / np.diff(t)[:, None] + np.array([0.0, 0.0, g])
+    f = np.einsum("nji,nj->ni", T[:-1, :3, :3], acc)
+    return f, np.tile(omega, (t.size - 1, 1))
+
+
+def test_imu_factors_with_synthetic_imu() -> None:
+    xi = np.array([0.05, -0.03, 0.4, 1.0, 0.05, 0.02])
+    T0 = se3_exp(np.array([0.02, -0.01, 0.3, -2.0, -1.0, 0.0]))
+    kt = np.arange(41) / 40.0
+    poses = np.array([T0 @ se3_exp(t * xi) for t in kt])
+    cfg = BackendConfig(imu=ImuConfig(velocity_prior_sigma=1e-3))  # known initial velocity
+    rng = np.random.default_rng(12)
+    be = Backend(cfg)
+    for i, (t, T) in enumerate(zip(kt, poses, strict=True)):
+        v_world = T[:3, :3] @ xi[3:]
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.02, 0.5 * DEG),
+                    velocity_world=v_world if i == 0 else None)
+    for i in range(kt.size - 1):
+        ts = np.linspace(kt[i], kt[i + 1], 11)  # 400 Hz
+        acc, gyr = _imu_from_constant_twist(T0, xi, ts)
+        be.add_imu(i, acc, gyr, np.diff(ts))
+    # the synthetic IMU is consistent with the trajectory: IMU factors vanish at the truth
+    import gtsam
+    from gtsam.symbol_shorthand import B, V, X
+    truth = gtsam.Values()
+    for i, T in enumerate(poses):
+        truth.insert(X(i), gtsam.Pose3(T))
+        truth.insert(V(i), T[:3, :3] @ xi[3:])
+        truth.insert(B(i), gtsam.imuBias.ConstantBias())
+    imu_err = [r.factor.error(truth) for r in be._records.values()
+               if isinstance(r.factor, gtsam.ImuFactor)]
+    assert len(imu_err) == kt.size - 1 and max(imu_err) < 1e-4
+    # dead reckoning from the known start (IMU + motion prior, no planes) recovers the trajectory
+    be.batch_optimize()
+    err = _pose_errors(poses, be.poses())
+    assert np.linalg.norm(err[:, 3:], axis=1).max() < 1e-3
+    np.testing.assert_allclose(be.velocities()[-1], poses[-1][:3, :3] @ xi[3:], atol=1e-3)
+    assert np.abs(be.biases()).max() < 1e-3
+
+
+def test_horizontal_priors_and_position_yaw_datum(clean_scene: Scene) -> None:
+    cfg = BackendConfig(datum="position_yaw")
+    rng = np.random.default_rng(13)
+    be = Backend(cfg)
+    for i, (t, T) in enumerate(zip(clean_scene.knot_times, clean_scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
+    for j, p in enumerate(clean_scene.planes):
+        be.add_plane(j, p[:3] + rng.normal(0, 0.01, 3), p[3], horizontal=j < 2)
+    for b in clean_scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    be.batch_optimize()
+    ang, _ = _plane_errors(be, clean_scene.planes)
+    assert ang.max() < 0.01
+
+
+def test_underconstrained_update_names_the_variable(clean_scene: Scene) -> None:
+    be = Backend()
+    be.add_pose(0.0, clean_scene.knot_poses[0])
+    be.add_pose(0.025, clean_scene.knot_poses[1])
+    be.add_plane(4, clean_scene.planes[4, :3], clean_scene.planes[4, 3])
+    b = next(b for b in clean_scene.blocks if b["knot"] == 0 and b["plane"] == 4)
+    be.add_observations(0, 4, b["points_body"][:1], None, 0.003)  # one point: 1 of 3 dof
+    with pytest.raises(ValueError, match="p4"):
+        be.update()
+
+
+def test_backend_input_errors() -> None:
+    be = Backend()
+    _, poses = walking_knots(0.1)
+    be.add_pose(0.0, poses[0])
+    with pytest.raises(ValueError, match="time"):
+        be.add_pose(0.0, poses[1])
+    with pytest.raises(ValueError, match="T_world_body"):
+        be.add_pose(0.1, np.eye(3))
+    be.add_plane(0, [0, 0, 1], 1.0)
+    with pytest.raises(ValueError, match="already exists"):
+        be.add_plane(0, [0, 0, 1], 1.0)
+    with pytest.raises(ValueError, match="knot"):
+        be.add_observations(0, 0, np.zeros((2, 3)), [0.1, 0.2], 0.01)  # no knot 1 yet
+    with pytest.raises(ValueError, match="plane_id"):
+        be.add_observations(0, 5, np.zeros((2, 3)), None, 0.01)
+    with pytest.raises(ValueError, match="times"):
+        be.add_pose(0.025, poses[1])
+        be.T_world_body([1.0])
+    with pytest.raises(ValueError, match="IMU"):
+        be.add_imu(0, np.zeros((1, 3)), np.zeros((1, 3)), [0.01])
+    with pytest.raises(ValueError, match="datum"):
+        BackendConfig(datum="start")  # type: ignore[arg-type]
