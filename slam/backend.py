@@ -16,7 +16,7 @@ Variables (gtsam keys): ``X(i)`` body pose ``T_world_body`` at knot i, ``P(j)`` 
 
 Factors added automatically: a datum prior on the first knot (the whole pose by default, or
 position and heading when floor/ceiling priors define the vertical: ``datum="position_yaw"``),
-a weak prior on the first interval's motion, a constant-velocity prior on every three
+a weak prior on the first interval's motion (without an IMU), a constant-velocity prior on every three
 consecutive knots (:mod:`slam.motion`), and with an IMU the ImuFactor/bias random walk of each
 interval given by :meth:`Backend.add_imu` plus priors on the first velocity and bias.
 
@@ -189,7 +189,7 @@ class Backend:
             else:
                 sig = np.array([1e3, 1e3, s, s, s, s])
                 self._add_factor(gtsam.PriorFactorPose3(X(0), T, gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        elif i == 1:
+        elif i == 1 and cfg.imu is None:  # with an IMU, its factor determines knot 1
             dt = t - self._times[0]
             self._add_factor(initial_velocity_factor(
                 X(0), X(1), self._values.atPose3(X(0)).between(T), dt, *cfg.initial_velocity_sigmas))
@@ -402,7 +402,8 @@ class Backend:
         values = self._used_values(graph)
         e0 = graph.error(values)
         kernel = self.config.kernel
-        scales = list(self.config.robust_schedule) if graduated and kernel.name != "none" else []
+        robust = graduated and kernel.name != "none" and bool(self._blocks)
+        scales = list(self.config.robust_schedule) if robust else []
         t0 = _time.perf_counter()
         iterations = 0
         for scale in [*scales, 1.0]:
