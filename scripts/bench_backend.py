@@ -21,11 +21,11 @@ import numpy as np
 from gtsam.symbol_shorthand import P, X
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from box_scene import make_scene, walking_knots  # noqa: E402
+from box_scene import make_scene, walking_knots
 
-from slam.backend import Backend, BackendConfig  # noqa: E402
-from slam.factors import point_plane_factor  # noqa: E402
-from slam.motion import MotionPriorConfig, constant_velocity_terms  # noqa: E402
+from slam.backend import Backend, BackendConfig
+from slam.factors import point_plane_factor
+from slam.motion import MotionPriorConfig, constant_velocity_terms
 
 
 def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, repeat: int) -> float:
