@@ -309,19 +309,3 @@ def _block_factor(
         return sw * e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(points.shape[0]), keys, error)
-
-
-def whitened_residuals(
-    values: gtsam.Values,
-    pose_key_a: int,
-    pose_key_b: int | None,
-    plane_key: int,
-    points_body: FloatArray,
-    alphas: FloatArray | None,
-    sigmas: FloatArray,
-) -> FloatArray:
-    """Whitened point-to-plane residuals e_k (N,) of a body-frame block at ``values`` (no kernel)."""
-    T_b = values.atPose3(pose_key_b) if pose_key_b is not None else None
-    t = point_plane_terms(values.atPose3(pose_key_a), T_b, values.atOrientedPlane3(plane_key),
-                          points_body, alphas, jacobians=False)
-    return t.residuals / sigmas
