@@ -76,6 +76,8 @@ class BackendConfig:
     datum: ``"pose"`` fixes the first knot; ``"position_yaw"`` fixes its position and rotation
         about the body z axis only (with horizontal-plane priors giving the vertical).
     datum_sigma: sigma (rad and m) of the datum prior.
+    datum_tilt_sigma: sigma (rad) on the first knot's roll and pitch with ``position_yaw``: loose, so
+        the horizontal-plane priors level the map, yet finite so the system stays well conditioned.
     horizontal_sigma: sigma [rad] of the floor/ceiling horizontality priors.
     relinearize_threshold, relinearize_skip: iSAM2 relinearisation settings.
     lm_max_iterations, lm_relative_tolerance: final Levenberg-Marquardt (per stage).
@@ -91,6 +93,7 @@ class BackendConfig:
     initial_velocity_sigmas: tuple[float, float] = (3.0, 3.0)
     datum: Literal["pose", "position_yaw"] = "pose"
     datum_sigma: float = 1e-6
+    datum_tilt_sigma: float = 0.1
     horizontal_sigma: float = 1e-3
     relinearize_threshold: float = 1e-3
     relinearize_skip: int = 1
@@ -187,7 +190,7 @@ class Backend:
             if cfg.datum == "pose":
                 self._add_factor(datum_prior(X(0), T, s, s))
             else:
-                sig = np.array([1e3, 1e3, s, s, s, s])
+                sig = np.array([cfg.datum_tilt_sigma, cfg.datum_tilt_sigma, s, s, s, s])
                 self._add_factor(gtsam.PriorFactorPose3(X(0), T, gtsam.noiseModel.Diagonal.Sigmas(sig)))
         elif i == 1 and cfg.imu is None:  # with an IMU, its factor determines knot 1
             dt = t - self._times[0]

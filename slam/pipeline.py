@@ -46,11 +46,15 @@ from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool
 from slam.frontend.planemap import KIND_CEILING, KIND_FLOOR, KIND_NAMES, PlaneMap, classify
-from slam.frontend.tracking import predict_constant_velocity, refine_knot
+from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.interpolation import interpolate_poses
 from slam.motion import MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
+
+TRACK_WINDOW = 6  # knot intervals refined together by tracking
+FIRST_PRIOR_SIGMAS = np.array([np.radians(0.2)] * 3 + [0.01] * 3)  # oldest knot of the window
+CV_SIGMAS = np.array([0.006] * 3 + [0.002] * 3)  # change of the body twist per knot interval (rad, m)
 
 
 @dataclass
@@ -133,6 +137,7 @@ class SlamRunner:
         self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
         self._n_knots = 0
         self._pending: list[_Pending] = []
+        self._recent: list[_Pending] = []  # ready scans within the tracking window
         self._done: list[_Pending] = []  # associated scans still within reach of the pool
         self._rows: list[tuple[NDArray[Any], ...]] = []  # compacted segment rows of older scans
         self._scan_counter = [0] * len(self.scanner_names)
@@ -174,6 +179,10 @@ class SlamRunner:
         x = (times - self.t0) / self.dt
         idx = np.clip(np.floor(x).astype(np.int64), 0, max(self._n_knots - 2, 0))
         return idx, np.clip(x - idx, 0.0, 1.0)
+
+    def _pose_at(self, t: float) -> FloatArray:
+        idx, alpha = self._fractions(np.array([t]))
+        return interpolate_poses(self._T[idx[0]], self._T[idx[0] + 1], alpha[0])
 
     def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """Points (m, 3) body frame at their times -> world frame with the current knots."""
@@ -270,44 +279,50 @@ class SlamRunner:
         return ids
 
     def _track(self, ready: list[_Pending], k_new: int, T_pred: FloatArray) -> FloatArray:
+        """Refine the window of the last ``TRACK_WINDOW`` knots, the new one included, against the
+        map (planes fixed): loose association, windowed Gauss-Newton, twice. Returns the new knot."""
         fe = self.cfg.frontend
-        if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not ready:
+        self._recent.extend(ready)
+        k0 = max(0, k_new - TRACK_WINDOW)
+        t_lo = self._knot_time(k0)
+        self._recent = [p for p in self._recent if p.t_end >= t_lo]
+        if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
             return T_pred
-        T = T_pred
         for _ in range(2):
-            pts, al, nrm, off, sig = [], [], [], [], []
-            for p in ready:
+            pts, kis, al, nrm, off, sig = [], [], [], [], [], []
+            for p in self._recent:
                 ids = self._associate_scan(p, self.loose)
                 sel = np.flatnonzero(ids >= 0)
                 if sel.size == 0:
                     continue
                 vt = p.segs.virtual_times[sel].ravel()
                 idx, alpha = self._fractions(vt)
-                inside = idx == k_new - 1
+                inside = idx >= k0
                 if not inside.any():
                     continue
                 n, d = self.pmap.arrays(np.repeat(ids[sel], 2)[inside])
                 pts.append(p.segs.virtual_body[sel].reshape(-1, 3)[inside])
+                kis.append(idx[inside] - k0)
                 al.append(alpha[inside])
                 nrm.append(n)
                 off.append(d)
                 sig.append(np.repeat(p.segs.virtual_sigma[sel], 2)[inside])
             if not pts:
-                return T
-            prior = np.array([np.radians(2.0)] * 3 + [0.05] * 3)
-            T = refine_knot(
-                self._T[k_new - 1],
-                T,
-                np.concatenate(pts),
+                break
+            window = refine_window(
+                self._T[k0 : k_new + 1],
+                np.concatenate(kis),
                 np.concatenate(al),
+                np.concatenate(pts),
                 np.concatenate(nrm),
                 np.concatenate(off),
-                np.maximum(np.concatenate(sig), 0.002),
-                prior,
+                np.maximum(np.concatenate(sig), 0.001),
+                FIRST_PRIOR_SIGMAS,
+                CV_SIGMAS,
                 iterations=fe.tracking_iterations,
             )
-            self._T[k_new] = T
-        return T
+            self._T[k0 : k_new + 1] = window
+        return self._T[k_new].copy()
 
     def _associate_and_observe(self, ready: list[_Pending]) -> None:
         fe = self.cfg.frontend
@@ -332,6 +347,8 @@ class SlamRunner:
                 samples = self._place(segs.points_of(j)[::step], segs.times_of(j)[::step])
                 v_world, e_world = self._world_summaries_one(segs, int(j))
                 d = e_world[1] - e_world[0]
+                T_mid = self._pose_at(float(segs.virtual_times[j].mean()))
+                scan_normal = T_mid[:3, :3] @ self._T_body_scanner[segs.scanner][:3, 2]
                 self.pool.add(
                     PooledSegment(
                         ref=(p.serial, int(j)),
@@ -341,6 +358,7 @@ class SlamRunner:
                         direction=d / max(float(np.linalg.norm(d)), 1e-9),
                         endpoints=e_world,
                         samples=samples,
+                        scan_normal=scan_normal,
                     )
                 )
             self._done.append(p)

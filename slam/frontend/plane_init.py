@@ -32,6 +32,7 @@ class PooledSegment:
     direction: FloatArray
     endpoints: FloatArray  # (2, 3)
     samples: FloatArray  # (m, 3) points, world frame
+    scan_normal: FloatArray  # (3,) normal of the scanner's scan plane, world frame
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class PlaneInitParams:
     min_angle_between: float = np.radians(10.0)  # non-parallel seed pair
     min_parallel_separation: float = 0.05  # m, parallel seed pair
     neighbourhood: float = 3.0  # m, members within this of the seed
+    min_scan_plane_angle: float = np.radians(15.0)  # a plane this close to a member's scan plane is that scan plane
     window: float = 1.0  # s, pooled segments older than this are dropped
 
 
@@ -126,7 +128,15 @@ class SegmentPool:
             # coplanarity of b with the plane through a: b's centroid and direction
             dist_b = np.abs(np.einsum("ij,ij->i", normals, C - ca))
             ang_b = np.abs(np.einsum("ij,ij->i", normals, U))
-            cand = np.flatnonzero(usable & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle)))
+            # every segment lies in its scanner's scan plane: segments of one scanner at nearly
+            # one pose are "coplanar" in that plane, which is no surface
+            SN = np.array([s.scan_normal for s in items])
+            not_scan = (np.abs(np.einsum("ij,ij->i", normals, SN)) < np.cos(p.min_scan_plane_angle)) & (
+                np.abs(normals @ items[a].scan_normal) < np.cos(p.min_scan_plane_angle)
+            )
+            cand = np.flatnonzero(
+                usable & not_scan & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle))
+            )
             for b in cand[np.argsort(dist_b[cand])]:
                 plane = self._grow(a, int(b), normals[b], near)
                 if plane is not None:
@@ -146,12 +156,16 @@ class SegmentPool:
                 continue
             if np.max(np.abs(s.samples @ n + d)) > p.coplanar_distance:
                 continue
+            if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle):
+                continue
             members.append(s)
         if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
             return None
         pts = np.vstack([s.samples for s in members])
         n2, d2, spreads = fit_plane(pts)
         if spreads[1] < p.min_spread:
+            return None
+        if any(abs(float(s.scan_normal @ n2)) > np.cos(p.min_scan_plane_angle) for s in members):
             return None
         res = pts @ n2 + d2
         if np.max(np.abs(res)) > p.coplanar_distance * 1.5:

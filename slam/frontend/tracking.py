@@ -20,9 +20,18 @@ from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 FloatArray = NDArray[np.float64]
 
 
+def orthonormalize(T: FloatArray) -> FloatArray:
+    """The pose with its rotation block projected back onto SO(3) (round-off of chained products)."""
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = u @ vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
 def predict_constant_velocity(T_prev: FloatArray, T_last: FloatArray) -> FloatArray:
     """Next knot pose assuming the last knot interval's body twist repeats."""
-    return T_last @ (se3_inverse(T_prev) @ T_last)
+    return orthonormalize(T_last @ (se3_inverse(T_prev) @ T_last))
 
 
 def refine_knot(
@@ -65,4 +74,79 @@ def refine_knot(
         T = T @ se3_exp(delta)
         if np.linalg.norm(delta) < 1e-7:
             break
-    return T
+    return orthonormalize(T)
+
+
+def refine_window(
+    T_knots: FloatArray,
+    knot_index: NDArray[np.int64],
+    alphas: FloatArray,
+    points_body: FloatArray,
+    normals: FloatArray,
+    offsets: FloatArray,
+    sigmas: FloatArray,
+    first_prior_sigmas: FloatArray,
+    cv_sigmas: FloatArray,
+    iterations: int = 3,
+    huber_k: float = 2.0,
+    stay_sigmas: FloatArray | None = None,
+) -> FloatArray:
+    """Jointly refine a window of knots (W, 4, 4) against fixed planes (world frame).
+
+    Point ``m`` (body frame at its time) lies between knots ``knot_index[m]``
+    and ``knot_index[m] + 1`` of the window at fraction ``alphas[m]``, on the
+    plane ``normals[m] . x + offsets[m] = 0``. The first knot is held near its
+    given pose by ``first_prior_sigmas`` (6,), consecutive knot intervals by a
+    constant-velocity prior with ``cv_sigmas`` (6,) on the change of the body
+    twist, and every knot weakly by ``stay_sigmas`` (6,) to its given pose, so
+    that directions the planes do not observe stay at the prediction instead
+    of drifting with the null space. Right perturbations; the Jacobians use the first-order split
+    ``(1 - alpha, alpha)`` of an interpolated pose's perturbation, exact
+    enough for the few-centimetre corrections tracking makes.
+    """
+    W = T_knots.shape[0]
+    T = T_knots.copy()
+    T_first = T[0].copy()
+    w_first = 1.0 / first_prior_sigmas**2
+    w_cv = 1.0 / cv_sigmas**2
+    T_given = T.copy()
+    w_stay = 1.0 / (stay_sigmas if stay_sigmas is not None else np.array([np.radians(1.0)] * 3 + [0.03] * 3)) ** 2
+    n = 6 * W
+    for _ in range(iterations):
+        Tk = interpolate_poses(T[knot_index], T[knot_index + 1], alphas)
+        R = Tk[:, :3, :3]
+        pw = np.einsum("mij,mj->mi", R, points_body) + Tk[:, :3, 3]
+        r = (np.einsum("mi,mi->m", normals, pw) + offsets) / sigmas
+        Rtn = np.einsum("mji,mj->mi", R, normals)
+        g = np.concatenate((np.cross(points_body, Rtn), Rtn), axis=1) / sigmas[:, None]
+        a = np.abs(r)
+        w = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
+        J = np.zeros((r.shape[0], n))
+        rows = np.arange(r.shape[0])[:, None]
+        cols = 6 * knot_index[:, None] + np.arange(6)[None, :]
+        J[rows, cols] = g * (1.0 - alphas)[:, None]
+        J[rows, cols + 6] = g * alphas[:, None]
+        A = (J * w[:, None]).T @ J
+        b = (J * w[:, None]).T @ r
+        for k in range(1, W):
+            A[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += np.diag(w_stay)
+            b[6 * k : 6 * k + 6] += w_stay * se3_log(se3_inverse(T_given[k]) @ T[k])
+        e0 = se3_log(se3_inverse(T_first) @ T[0])
+        A[:6, :6] += np.diag(w_first)
+        b[:6] += w_first * e0
+        for k in range(1, W - 1):
+            e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
+            idx = (k - 1, k, k + 1)
+            coefs = (1.0, -2.0, 1.0)
+            for i, ci in zip(idx, coefs, strict=True):
+                b[6 * i : 6 * i + 6] += ci * w_cv * e
+                for j, cj in zip(idx, coefs, strict=True):
+                    A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(w_cv)
+        try:
+            delta = -np.linalg.solve(A + 1e-9 * np.eye(n), b)
+        except np.linalg.LinAlgError:
+            break
+        T = T @ se3_exp(delta.reshape(W, 6))
+        if np.abs(delta).max() < 1e-7:
+            break
+    return np.array([orthonormalize(t) for t in T])
