@@ -101,15 +101,52 @@ def test_sef_recovers_faces_separated_by_range_jumps_and_splits_there() -> None:
     line = _line(s)
     res = sg.segment(line, method="sef")
     assert not _missed(res, _faces(s))
-    # the jump (15 cm) is below max_gap: it is SEF's range criterion that splits
-    assert sg.segment(line, method="sef", threshold=0.2).n_segments == 1
-    assert sg.segment(line, method="sef", max_gap=0.5).n_segments == 3
+    # the jump (15 cm) is below max_gap: it is SEF's range criterion that splits (classic SEF, no corner test)
+    assert sg.segment(line, method="sef", threshold=0.2, corner_threshold=0.0).n_segments == 1
+    assert sg.segment(line, method="sef", corner_threshold=0.0).n_segments == 3
+    assert sg.segment(line, method="sef", max_gap=0.5, corner_threshold=0.0).n_segments == 3
+    # with the jump test out of play, a 15 cm step is also a kink of the range profile
+    assert not _missed(sg.segment(line, method="sef", threshold=0.2), _faces(s))
 
 
-def test_sef_does_not_split_a_corner_by_definition() -> None:
-    """SEF has no linearity test (module docstring): a corner, whose ranges are continuous, stays one segment."""
+def test_classic_sef_leaves_a_corner_whole() -> None:
+    """The literature's SEF (corner_threshold=0) has no linearity test: a corner, whose ranges are
+    continuous, stays one segment."""
     s = _scan(*L_CORNER)
-    assert sg.segment(_line(s), method="sef").n_segments == 1
+    assert sg.segment(_line(s), method="sef", corner_threshold=0.0).n_segments == 1
+
+
+def test_sef_corner_criterion_splits_a_corner_at_the_vertex() -> None:
+    s = _scan(*L_CORNER)
+    line = _line(s)
+    for span in (1, 2, 3):
+        res = sg.segment(line, method="sef", corner_span=span)
+        assert res.n_segments == 2, span
+        assert not _missed(res, _faces(s)), span
+        # exactly the vertex point is left out between the two walls
+        assert res.first_beam[1] - res.last_beam[0] == 2
+    # a corner threshold above the kink leaves it whole; the kink here is about 2 * 4 m * 0.25 deg
+    assert sg.segment(line, method="sef", corner_threshold=0.2).n_segments == 1
+
+
+def test_sef_corner_threshold_default_follows_the_noise() -> None:
+    from segmentation.methods.sef import CORNER_SIGMAS
+
+    assert sg.get("sef").params.corner == pytest.approx(3.0 * np.sqrt(6.0) * 0.003)
+    assert sg.get("sef", point_sigma=0.01).params.corner == pytest.approx(CORNER_SIGMAS * 0.01)
+    assert sg.get("sef", corner_threshold=0.05).params.corner == 0.05
+    # on a straight wall with 3 mm range noise, false corners are rare at 3 sigma (0.27 % of the points
+    # exceed it) and frequent at 1 sigma
+    x = np.linspace(-3.0, 3.0, 1000)
+    false_3, false_1 = [], []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        pts = np.column_stack((x, np.full_like(x, 2.0)))
+        pts *= (1.0 + 0.003 * rng.standard_normal(x.size) / np.hypot(pts[:, 0], pts[:, 1]))[:, None]
+        false_3.append(sg.segment(pts, method="sef").n_segments - 1)
+        false_1.append(sg.segment(pts, method="sef", corner_threshold=np.sqrt(6.0) * 0.003).n_segments - 1)
+    assert np.mean(false_3) <= 4.0
+    assert np.mean(false_1) > 15.0
 
 
 @pytest.mark.parametrize("method", BASELINES)
@@ -134,8 +171,7 @@ def test_noisy_figure1_gives_sensible_segment_counts(method: str) -> None:
         res = sg.segment(line, method=method)
         _assert_no_jump_inside(res, line, 0.2)
         assert np.all(res.n_points >= 10)
-        # SEF: the closed room has no range jump over its threshold, so the whole scan is one segment
-        low = 1 if method == "sef" else n_gt - 3
+        low = n_gt - 3
         assert low <= res.n_segments <= 2 * n_gt, f"{method} seed {seed}: {res.n_segments} segments, {n_gt} faces"
 
 
@@ -228,9 +264,14 @@ def test_noise_model_scales_thresholds() -> None:
         plain = sg.segment(line, method=method)
         scaled = sg.segment(line, method=method, noise_slope=0.003)
         assert scaled.n_segments <= plain.n_segments, method
-    # SEF: a 15 cm jump at ~4 m passes a 10 cm threshold scaled by (1 + 4 * 0.3)
+    # SEF at ~4 m: sigma(r) / point_sigma = (3 mm + k * 4 m) / 3 mm scales both thresholds; with k = 0.00075
+    # (x2) the 15 cm step passes the jump test (20 cm) but not the corner test (44 mm): it is a kink;
+    # with k = 0.006 (x9) it passes both (90 cm, 20 cm)
     panel = _line(_scan(*PANEL))
-    assert sg.segment(panel, method="sef", noise_slope=0.9).n_segments == 1
+    assert sg.segment(panel, method="sef").n_segments == 3
+    assert sg.segment(panel, method="sef", noise_slope=0.00075, corner_threshold=0.0).n_segments == 1
+    assert sg.segment(panel, method="sef", noise_slope=0.00075).n_segments == 3
+    assert sg.segment(panel, method="sef", noise_slope=0.006).n_segments == 1
 
 
 @pytest.mark.parametrize("method", BASELINES)
@@ -248,7 +289,8 @@ def test_method_specific_parameter_errors() -> None:
     line = _line(figure1(noise_sigma=0.0))
     for method, bad in [("hough", {"rho_res": -1.0}), ("hough", {"theta_res": 2.0}), ("hough", {"min_votes": 1}),
                         ("ransac", {"n_iter": 0}), ("ransac", {"seed": -1}), ("split_and_merge", {"merge_alpha": 1.5}),
-                        ("sef", {"direction": "sideways"})]:
+                        ("sef", {"direction": "sideways"}), ("sef", {"corner_threshold": -0.01}),
+                        ("sef", {"corner_span": 0})]:
         with pytest.raises(ValueError, match=next(iter(bad))):
             sg.segment(line, method=method, **bad)
 
