@@ -1,0 +1,261 @@
+"""The sweep's report: ``DIR/report.md`` and PNG plots from ``DIR/results.parquet``.
+
+Every metric is summarised per segmenter variant (family + swept parameters) and condition
+(world, noise, calibration error) over the seeds: mean and a 95 % confidence interval of the
+mean from Student's t distribution (``t_{0.975, n-1} s / sqrt(n)``; no interval with one
+seed). Only successful cells enter the statistics; failed cells are listed with their errors.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from backpack_slam.sweep.results import read_results, results_path
+from slam.export import atomic_path
+
+CONDITION = ["world", "noise", "calib_rotation_deg", "calib_translation_m"]
+
+
+@dataclass(frozen=True)
+class Metric:
+    column: str
+    title: str
+    unit: str
+    scale: float = 1.0  # displayed value = stored value * scale
+
+
+DRIFT = [
+    Metric("ate_rmse_m", "ATE RMSE (SE(3)-aligned)", "cm", 100.0),
+    Metric("drift_rpe_pct", "drift, RPE over 10 m", "% (m/100 m)"),
+    Metric("drift_endpoint_pct", "drift, end point", "% (m/100 m)"),
+    Metric("drift_rot_deg_per_100m", "rotation drift", "deg/100 m"),
+]
+MAP = [
+    Metric("cloud_median_m", "cloud-to-mesh median", "mm", 1000.0),
+    Metric("cloud_p95_m", "cloud-to-mesh p95", "mm", 1000.0),
+    Metric("plane_angle_median_deg", "plane angle error, median", "deg"),
+    Metric("assoc_fraction_correct", "segments correctly associated", "fraction"),
+]
+SEGMENTATION = [
+    Metric("seg_overlap1", "overlap1", ""),
+    Metric("seg_overlap2", "overlap2", ""),
+    Metric("seg_segments_per_gt", "segments per GT segment (1 ideal)", ""),
+    Metric("seg_median_angle_deg", "median angle", "deg"),
+    Metric("seg_boundary_precision", "boundary precision", ""),
+    Metric("seg_boundary_recall", "boundary recall", ""),
+]
+TIME = [
+    Metric("seg_ms_per_scan", "segmentation time per scanline", "ms"),
+    Metric("t_slam_segmentation_s", "segmentation time in SLAM", "s"),
+    Metric("t_slam_s", "SLAM wall time", "s"),
+]
+
+
+def mean_ci(values: Sequence[float] | np.ndarray, level: float = 0.95) -> tuple[float, float, int]:
+    """(mean, half-width of the ``level`` t-interval of the mean, n) of the finite values;
+    the half-width is NaN for n < 2 and 0 when every value is equal."""
+    x = np.asarray(values, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    n = int(x.size)
+    if n == 0:
+        return math.nan, math.nan, 0
+    m = float(x.mean())
+    if n < 2:
+        return m, math.nan, n
+    half = float(stats.t.ppf(0.5 + level / 2, n - 1) * x.std(ddof=1) / math.sqrt(n))
+    return m, half, n
+
+
+def summarise(ok: pd.DataFrame, metrics: Sequence[Metric]) -> pd.DataFrame:
+    """One row per (condition, segmenter, variant): mean, CI half-width and n per metric."""
+    keys = [*CONDITION, "segmenter", "variant"]
+    rows = []
+    for key, g in ok.groupby(keys, sort=True, dropna=False):
+        row = dict(zip(keys, key, strict=True))
+        row["seeds"] = int(g["seed"].nunique())
+        for m in metrics:
+            if m.column in g:
+                mean, half, n = mean_ci(g[m.column].to_numpy(dtype=np.float64) * m.scale)
+            else:
+                mean, half, n = math.nan, math.nan, 0
+            row[m.column] = mean
+            row[m.column + "_ci"] = half
+            row[m.column + "_n"] = n
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def fmt(mean: float, half: float) -> str:
+    if not math.isfinite(mean):
+        return "n/a"
+    digits = 3 if abs(mean) < 10 else 1
+    s = f"{mean:.{digits}f}"
+    return s + (f" ± {half:.{digits}f}" if math.isfinite(half) else "")
+
+
+def condition_label(row: pd.Series | dict) -> str:
+    cal = ""
+    if row["calib_rotation_deg"] or row["calib_translation_m"]:
+        cal = f", calibration error {row['calib_rotation_deg']:g} deg / {1000 * row['calib_translation_m']:g} mm"
+    return f"{row['world']}, noise {1000 * row['noise']:g} mm{cal}"
+
+
+def markdown_table(summary: pd.DataFrame, metrics: Sequence[Metric]) -> list[str]:
+    head = ["segmenter", "n", *[f"{m.title} ({m.unit})" if m.unit else m.title for m in metrics]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for _, r in summary.iterrows():
+        cells = [str(r["variant"]), str(r["seeds"])]
+        cells += [fmt(r[m.column], r[m.column + "_ci"]) for m in metrics]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _swept_value(swept_json: str) -> tuple[str, float] | None:
+    """(name, value) when exactly one numeric parameter is swept, else None."""
+    d = json.loads(swept_json) if swept_json else {}
+    if len(d) != 1:
+        return None
+    (k, v), = d.items()
+    return (k, float(v)) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+
+def plot_metrics(ok: pd.DataFrame, summary: pd.DataFrame, metrics: Sequence[Metric], path: Path, title: str) -> None:
+    """One panel per metric: each family's mean ± CI against its swept parameter (a line)
+    or as a single point (fixed parameters); one marker style per condition."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    swept = ok.drop_duplicates("variant").set_index("variant")["swept"].to_dict()
+    families = list(dict.fromkeys(summary["segmenter"]))
+    conds = list(dict.fromkeys(condition_label(r) for _, r in summary.iterrows()))
+    markers = "osD^v<>p*h"
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 4.2), squeeze=False)
+    for ax, m in zip(axes[0], metrics, strict=True):
+        for ci, cond in enumerate(conds):
+            sub = summary[[condition_label(r) == cond for _, r in summary.iterrows()]]
+            for fi, fam in enumerate(families):
+                fs = sub[sub["segmenter"] == fam]
+                if fs.empty:
+                    continue
+                xs, names = [], set()
+                for v in fs["variant"]:
+                    sv = _swept_value(swept.get(v, "{}"))
+                    xs.append(sv[1] if sv else math.nan)
+                    if sv:
+                        names.add(sv[0])
+                y = fs[m.column].to_numpy(dtype=float)
+                e = fs[m.column + "_ci"].to_numpy(dtype=float)
+                e = np.where(np.isfinite(e), e, 0.0)
+                color = f"C{fi % 10}"
+                label = fam if ci == 0 else None
+                if np.isfinite(xs).all() and len(xs) > 1:
+                    # a family sweeping one parameter: normalised x so families share an axis
+                    x = np.asarray(xs)
+                    xn = (x - x.min()) / max(np.ptp(x), 1e-12)
+                    order = np.argsort(xn)
+                    ax.errorbar(xn[order], y[order], yerr=e[order], color=color, marker=markers[ci % 10], capsize=3, label=label)
+                else:
+                    ax.errorbar(np.full(len(y), 0.5), y, yerr=e, color=color, marker=markers[ci % 10], capsize=3, linestyle="none", label=label)
+        ax.set_title(m.title, fontsize=10)
+        ax.set_ylabel(m.unit)
+        ax.set_xlabel("swept parameter, min -> max")
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5) or 1, fontsize=8)
+    fig.suptitle(title + (f"  (markers: {'; '.join(f'{markers[i % 10]} {c}' for i, c in enumerate(conds))})" if len(conds) > 1 else f"  ({conds[0]})" if conds else ""), fontsize=9)
+    fig.tight_layout(rect=(0, 0.1, 1, 0.95))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def write_report(out_dir: str | Path) -> Path:
+    """Write ``report.md`` and its PNGs into ``out_dir`` from its ``results.parquet``."""
+    out = Path(out_dir)
+    table = read_results(results_path(out))
+    if table.empty:
+        raise ValueError(f"{results_path(out)}: no results (run 'backpack-slam sweep' first)")
+    for col in ("status", "variant", "segmenter", "seed", *CONDITION):
+        if col not in table:
+            raise ValueError(f"{results_path(out)}: column '{col}' missing")
+    ok = table[table["status"] == "ok"]
+    failed = table[table["status"] != "ok"]
+    lines = [
+        f"# Segmentation vs drift: {out.name}",
+        "",
+        f"{len(table)} cells: {len(ok)} succeeded, {len(failed)} failed. "
+        f"Worlds: {', '.join(sorted(table['world'].astype(str).unique()))}; seeds per cell: "
+        f"{table['seed'].nunique()}. Values are means over seeds ± the half-width of the 95 % "
+        "confidence interval of the mean (Student's t; none with one seed).",
+        "",
+    ]
+    groups = [
+        ("Drift", DRIFT, "drift.png"),
+        ("Map error", MAP, "map_error.png"),
+        ("Segmentation against the per-beam ground truth", SEGMENTATION, "segmentation.png"),
+        ("Time", TIME, "time.png"),
+    ]
+    if not ok.empty:
+        best = _ranking(ok)
+        if best:
+            lines += ["## Finding", "", *best, ""]
+        for title, metrics, png in groups:
+            summary = summarise(ok, metrics)
+            plot_metrics(ok, summary, metrics, out / png, title)
+            lines += [f"## {title}", "", f"![{title}]({png})", ""]
+            for cond, sub in summary.groupby([*CONDITION], sort=True, dropna=False):
+                lines += [f"### {condition_label(dict(zip(CONDITION, cond, strict=True)))}", ""]
+                lines += markdown_table(sub, metrics)
+                lines.append("")
+    lines += ["## Failed cells", ""]
+    if failed.empty:
+        lines.append("None.")
+    else:
+        lines += ["| variant | world | noise (mm) | seed | stage | error |", "|---|---|---|---|---|---|"]
+        for _, r in failed.iterrows():
+            err = str(r.get("error", "")).replace("|", "\\|")
+            lines.append(f"| {r['variant']} | {r['world']} | {1000 * r['noise']:g} | {r['seed']} | {r.get('stage', '')} | {err} |")
+    lines.append("")
+    path = out / "report.md"
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines))
+    return path
+
+
+def _ranking(ok: pd.DataFrame) -> list[str]:
+    """Per condition, the variants ordered by mean ATE (and whether the best one's interval
+    overlaps the runner-up's), as plain sentences."""
+    out = []
+    summary = summarise(ok, [DRIFT[0], MAP[0]])
+    for cond, sub in summary.groupby([*CONDITION], sort=True, dropna=False):
+        sub = sub[np.isfinite(sub["ate_rmse_m"])].sort_values("ate_rmse_m")
+        if sub.empty:
+            continue
+        label = condition_label(dict(zip(CONDITION, cond, strict=True)))
+        b = sub.iloc[0]
+        text = f"- {label}: lowest mean ATE {fmt(b['ate_rmse_m'], b['ate_rmse_m_ci'])} cm with **{b['variant']}**"
+        if len(sub) > 1:
+            r = sub.iloc[1]
+            overlap = (
+                not math.isfinite(b["ate_rmse_m_ci"])
+                or not math.isfinite(r["ate_rmse_m_ci"])
+                or b["ate_rmse_m"] + b["ate_rmse_m_ci"] >= r["ate_rmse_m"] - r["ate_rmse_m_ci"]
+            )
+            text += (
+                f"; runner-up {r['variant']} {fmt(r['ate_rmse_m'], r['ate_rmse_m_ci'])} cm"
+                + (" (confidence intervals overlap: not a significant difference)" if overlap else " (intervals disjoint)")
+            )
+        w = sub.iloc[-1]
+        text += f"; worst {w['variant']} {fmt(w['ate_rmse_m'], w['ate_rmse_m_ci'])} cm."
+        out.append(text)
+    return out
