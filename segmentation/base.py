@@ -240,6 +240,13 @@ class Segmenter(ABC):
         if direction == "backward":
             return finalize_runs(reverse_labels(raw_bwd), pts, p.max_gap, p.min_len)  # type: ignore[no-any-return]
         raw_fwd = self._raw_labels(pts, scale)
+        return self._combine(raw_fwd, raw_bwd, pts, scale)
+
+    def _combine(self, raw_fwd: IntArray, raw_bwd: IntArray, pts: FloatArray,
+                 scale: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+        """Final labels of a combined run from the raw forward labels and the raw labels of the
+        backward pass in its own (reversed) order: the paper's section 2.2 rule."""
+        p = self.params
         return combine_directions(raw_fwd, raw_bwd, pts, p.max_gap, p.min_len)  # type: ignore[no-any-return]
 
     def _is_const_noise(self, scale: FloatArray) -> bool:

@@ -102,6 +102,7 @@ import numba as nb
 import numpy as np
 
 from segmentation.base import FloatArray, IntArray, Segmenter, SequentialParams, _check
+from segmentation.labels import combine_runs, finalize_runs, reverse_labels
 from segmentation.methods._incremental import gaps_ok, line_from_sums
 from segmentation.registry import register
 
@@ -126,6 +127,7 @@ class RoRParams(SequentialParams):
     direction: Literal["forward", "backward", "combined"] = "combined"
     statistic: Statistic = "abs"
     stride: int = 1
+    parent_check: bool = True
 
     def validate(self) -> None:
         super().validate()
@@ -293,6 +295,108 @@ def ror_labels(
     return labels
 
 
+@nb.njit(cache=True)
+def _piece_vs_rest(points: FloatArray, p0: int, p1: int, cx: float, cy: float) -> tuple[float, float]:
+    """The piece's centroid (cx, cy) against the TLS line of points ``p0 .. p1`` (the rest).
+
+    Returns (|signed residual of the centroid|, v) where ``v = 1 / n_rest + t^2 / S`` is the
+    variance of the rest line's position at the centroid in units of the point variance: its
+    offset error and its slope error carried over the distance ``t`` along the line from the
+    rest's centroid (``S``: the rest's scatter along its line).
+    """
+    ox = points[p0, 0]
+    oy = points[p0, 1]
+    n = 0.0
+    su = 0.0
+    sv = 0.0
+    suu = 0.0
+    svv = 0.0
+    suv = 0.0
+    for i in range(p0, p1 + 1):
+        u = points[i, 0] - ox
+        v = points[i, 1] - oy
+        n += 1.0
+        su += u
+        sv += v
+        suu += u * u
+        svv += v * v
+        suv += u * v
+    mu, mv, nx, ny = line_from_sums(n, su, sv, suu, svv, suv)
+    du = cx - ox - mu
+    dv = cy - oy - mv
+    sxx = suu - mu * su
+    syy = svv - mv * sv
+    sxy = suv - mu * sv
+    # scatter along the line = trace - scatter across it
+    along = (sxx + syy) - (nx * nx * sxx + 2.0 * nx * ny * sxy + ny * ny * syy)
+    t = -ny * du + nx * dv
+    v = 1.0 / n + (t * t / along if along > 0.0 else np.inf)
+    return abs(nx * du + ny * dv), v
+
+
+@nb.njit(cache=True)
+def combine_checked(
+    raw_fwd: IntArray,
+    raw_bwd_reversed: IntArray,
+    points: FloatArray,
+    scale: FloatArray,
+    sigma: float,
+    point_sigma: float,
+    n_init: int,
+    max_gap: float,
+    min_len: int,
+    check: bool,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Forward and backward runs combined (section 2.2) and, with ``check``, each combined
+    piece tested against the rest of its forward and backward parent segments (module docstring).
+
+    Returns final labels and each segment's first and last point, as ``finalize_runs``.
+    """
+    fwd, f_first, f_last = finalize_runs(raw_fwd, points, max_gap, min_len)
+    bwd, b_first, b_last = finalize_runs(reverse_labels(raw_bwd_reversed), points, max_gap, min_len)
+    comb, first, last = finalize_runs(combine_runs(fwd, bwd), points, max_gap, min_len)
+    if not check or first.shape[0] == 0:
+        return comb, first, last
+    keep = np.ones(first.shape[0], dtype=np.bool_)
+    min_rest = n_init + 1
+    for k in range(first.shape[0]):
+        i0 = first[k]
+        i1 = last[k]
+        f = fwd[i0]
+        b = bwd[i0]
+        n = i1 - i0 + 1
+        cx = 0.0
+        cy = 0.0
+        ssum = 0.0
+        for i in range(i0, i1 + 1):
+            cx += points[i, 0]
+            cy += points[i, 1]
+            ssum += scale[i]
+        cx /= n
+        cy /= n
+        mscale = ssum / n
+        # the paper's threshold 3 sigma / sqrt(n) for the mean of the piece's n residuals, widened by
+        # the error of the rest's line at the piece (point_sigma: the range noise of the line covariances)
+        t_mean = (sigma * mscale) ** 2 / n
+        t_line = (point_sigma * mscale) ** 2
+        # the forward run reached the piece with the line of its parent's points before it,
+        # the backward run with the line of its parent's points after it
+        if i0 - f_first[f] >= min_rest:
+            dev, v = _piece_vs_rest(points, f_first[f], i0 - 1, cx, cy)
+            keep[k] &= dev * dev < 9.0 * (t_mean + t_line * v)
+        if b_last[b] - i1 >= min_rest:
+            dev, v = _piece_vs_rest(points, i1 + 1, b_last[b], cx, cy)
+            keep[k] &= dev * dev < 9.0 * (t_mean + t_line * v)
+    if np.all(keep):
+        return comb, first, last
+    out = np.full(comb.shape[0], -1, dtype=np.int64)
+    for k in range(first.shape[0]):
+        if keep[k]:
+            for i in range(first[k], last[k] + 1):
+                out[i] = k
+    return finalize_runs(out, points, max_gap, min_len)
+
+
 @register("ror")
 class RangeOfResiduals(Segmenter):
     """Range-of-residuals segmentation; see the module docstring for the reading of Algorithm 1."""
@@ -306,3 +410,10 @@ class RangeOfResiduals(Segmenter):
         return ror_labels(
             points_xy, scale, p.n_init, p.sigma, p.percentage, p.stride, p.statistic == "signed", p.max_gap
         )
+
+    def _combine(self, raw_fwd: IntArray, raw_bwd: IntArray, pts: FloatArray,
+                 scale: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+        p = self.params
+        assert isinstance(p, RoRParams)
+        return combine_checked(raw_fwd, raw_bwd, pts, scale, p.sigma, p.point_sigma, p.n_init, p.max_gap, p.min_len,  # type: ignore[no-any-return]
+                               p.parent_check)
