@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -109,7 +110,7 @@ def condition_label(row: pd.Series | dict) -> str:
 
 
 def markdown_table(summary: pd.DataFrame, metrics: Sequence[Metric]) -> list[str]:
-    head = ["segmenter", "n", *[f"{m.title} ({m.unit})" if m.unit else m.title for m in metrics]]
+    head = ["segmenter", "seeds", *[f"{m.title} ({m.unit})" if m.unit else m.title for m in metrics]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for _, r in summary.iterrows():
         cells = [str(r["variant"]), str(r["seeds"])]
@@ -118,64 +119,64 @@ def markdown_table(summary: pd.DataFrame, metrics: Sequence[Metric]) -> list[str
     return lines
 
 
-def _swept_value(swept_json: str) -> tuple[str, float] | None:
-    """(name, value) when exactly one numeric parameter is swept, else None."""
+def _swept_sort_key(swept_json: str) -> tuple[Any, ...]:
+    """Variants of a family ordered by their swept values (numbers numerically)."""
     d = json.loads(swept_json) if swept_json else {}
-    if len(d) != 1:
-        return None
-    (k, v), = d.items()
-    return (k, float(v)) if isinstance(v, int | float) and not isinstance(v, bool) else None
+    return tuple((0, float(v), "") if isinstance(v, int | float) else (1, 0.0, str(v)) for _, v in sorted(d.items()))
+
+
+def variant_order(ok: pd.DataFrame) -> list[str]:
+    """Every variant, grouped by family (in order of appearance), by swept value within one."""
+    first = ok.drop_duplicates("variant")
+    families = list(dict.fromkeys(first["segmenter"]))
+    out: list[str] = []
+    for fam in families:
+        sub = first[first["segmenter"] == fam]
+        out += sorted(sub["variant"], key=lambda v: _swept_sort_key(str(sub[sub["variant"] == v]["swept"].iloc[0])))
+    return out
 
 
 def plot_metrics(ok: pd.DataFrame, summary: pd.DataFrame, metrics: Sequence[Metric], path: Path, title: str) -> None:
-    """One panel per metric: each family's mean ± CI against its swept parameter (a line)
-    or as a single point (fixed parameters); one marker style per condition."""
+    """One panel per metric: mean ± 95 % CI of every variant (x, grouped and coloured by
+    family, ordered by swept value); one marker per condition (world, noise, calibration)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    swept = ok.drop_duplicates("variant").set_index("variant")["swept"].to_dict()
-    families = list(dict.fromkeys(summary["segmenter"]))
-    conds = list(dict.fromkeys(condition_label(r) for _, r in summary.iterrows()))
+    order = variant_order(ok)
+    xpos = {v: i for i, v in enumerate(order)}
+    family = ok.drop_duplicates("variant").set_index("variant")["segmenter"].to_dict()
+    colors = {f: f"C{i % 10}" for i, f in enumerate(dict.fromkeys(family[v] for v in order))}
+    labels = [condition_label(r) for _, r in summary.iterrows()]
+    conds = list(dict.fromkeys(labels))
     markers = "osD^v<>p*h"
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 4.2), squeeze=False)
-    for ax, m in zip(axes[0], metrics, strict=True):
+    width = max(4.5, 0.35 * len(order) + 1.5)
+    fig, axes = plt.subplots(len(metrics), 1, figsize=(width, 2.6 * len(metrics) + 1.2), squeeze=False, sharex=True)
+    for ax, m in zip(axes[:, 0], metrics, strict=True):
+        drawn = False
         for ci, cond in enumerate(conds):
-            sub = summary[[condition_label(r) == cond for _, r in summary.iterrows()]]
-            for fi, fam in enumerate(families):
-                fs = sub[sub["segmenter"] == fam]
-                if fs.empty:
+            sub = summary[[lab == cond for lab in labels]]
+            off = (ci - (len(conds) - 1) / 2) * min(0.6 / max(len(conds), 1), 0.15)
+            for _, r in sub.iterrows():
+                y, e = float(r[m.column]), float(r[m.column + "_ci"])
+                if not math.isfinite(y):
                     continue
-                xs, names = [], set()
-                for v in fs["variant"]:
-                    sv = _swept_value(swept.get(v, "{}"))
-                    xs.append(sv[1] if sv else math.nan)
-                    if sv:
-                        names.add(sv[0])
-                y = fs[m.column].to_numpy(dtype=float)
-                e = fs[m.column + "_ci"].to_numpy(dtype=float)
-                e = np.where(np.isfinite(e), e, 0.0)
-                color = f"C{fi % 10}"
-                label = fam if ci == 0 else None
-                if np.isfinite(xs).all() and len(xs) > 1:
-                    # a family sweeping one parameter: normalised x so families share an axis
-                    x = np.asarray(xs)
-                    xn = (x - x.min()) / max(np.ptp(x), 1e-12)
-                    order = np.argsort(xn)
-                    ax.errorbar(xn[order], y[order], yerr=e[order], color=color, marker=markers[ci % 10], capsize=3, label=label)
-                else:
-                    ax.errorbar(np.full(len(y), 0.5), y, yerr=e, color=color, marker=markers[ci % 10], capsize=3, linestyle="none", label=label)
-        ax.set_title(m.title, fontsize=10)
-        ax.set_ylabel(m.unit)
-        ax.set_xlabel("swept parameter, min -> max")
+                drawn = True
+                ax.errorbar(xpos[r["variant"]] + off, y, yerr=e if math.isfinite(e) else None, marker=markers[ci % 10],
+                            color=colors[family[r["variant"]]], capsize=3, markersize=5)
+        if not drawn:
+            ax.text(0.5, 0.5, "no data", transform=ax.transAxes, ha="center", va="center", color="0.5")
+        ax.set_ylabel(f"{m.title}\n({m.unit})" if m.unit else m.title, fontsize=8)
         ax.grid(alpha=0.3)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5) or 1, fontsize=8)
-    fig.suptitle(title + (f"  (markers: {'; '.join(f'{markers[i % 10]} {c}' for i, c in enumerate(conds))})" if len(conds) > 1 else f"  ({conds[0]})" if conds else ""), fontsize=9)
-    fig.tight_layout(rect=(0, 0.1, 1, 0.95))
+    axes[-1, 0].set_xticks(range(len(order)), order, rotation=60, ha="right", fontsize=8)
+    for lab in axes[-1, 0].get_xticklabels():
+        lab.set_color(colors[family[lab.get_text()]])
+    legend = "; ".join(f"{markers[i % 10]} {c}" for i, c in enumerate(conds))
+    axes[0, 0].set_title(f"{title}: mean ± 95 % CI over seeds\n{legend}", fontsize=9)
+    fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
 
 
@@ -194,7 +195,7 @@ def write_report(out_dir: str | Path) -> Path:
         f"# Segmentation vs drift: {out.name}",
         "",
         f"{len(table)} cells: {len(ok)} succeeded, {len(failed)} failed. "
-        f"Worlds: {', '.join(sorted(table['world'].astype(str).unique()))}; seeds per cell: "
+        f"Worlds: {', '.join(sorted(table['world'].astype(str).unique()))}; seeds: "
         f"{table['seed'].nunique()}. Values are means over seeds ± the half-width of the 95 % "
         "confidence interval of the mean (Student's t; none with one seed).",
         "",
