@@ -79,6 +79,33 @@ the same shape, with the default sigma = 9.5 mm inside both ranges. Forward
 alone loses the door above 11 mm (the paper's "upper edge" problem that the
 combination fixes).
 
+Our addition: ``parent_check`` (default on; only acts with ``direction =
+"combined"``; ``parent_check=False`` is the paper's section 2.2 rule exactly).
+On figure-1-like scenes the combination can keep a transition piece: the
+forward run overshoots the wall into the sloped door frame and door leaf (its
+windows use few door points), the backward run overshoots the door into the
+frame and wall, and the paper's rule turns the overlap of the two overshoots
+into a 15-17 point piece of wall, frame and door that passes ``min_len`` and
+gives a tilted line. The check applies the paper's own threshold rule to each
+combined piece as one window: the forward run reached the piece with the line
+of its forward parent segment's points *before* the piece, the backward run
+with the line of its backward parent's points *after* it; the piece's mean
+signed residual against each of these lines (the residual of its centroid)
+must stay below ``3 sigma / sqrt(n)`` for its ``n`` points, widened in
+quadrature by that line's own error at the piece (offset and slope error of a
+TLS line of the rest's points with the range noise ``point_sigma``:
+``3 sqrt(sigma^2 / n + point_sigma^2 (1 / n_rest + t^2 / S_rest))``, ``t``
+the distance along the line from the rest's centroid, ``S_rest`` its scatter
+along the line). A rest shorter than ``n_init + 1`` points is not tested.
+Signed, not absolute, residuals: the mean absolute residual of ``n`` noisy
+points does not shrink with ``n`` and would reject every long piece. A piece
+that fails either test is dropped (unsegmented), which is how the combination
+treats disagreement everywhere else. Pieces that are whole parents in both
+runs are never tested (no rest); a wall half that one run wrongly merged with
+a door is tested against the door's line and dropped if it does not fit it.
+On the synthetic figure-1 scanline (3 mm noise, defaults) the door is
+separated in 99 of 100 seeds with the check and 68 of 100 without.
+
 Extensions (issue 2): ``direction`` (forward / backward / combined by the
 paper's section 2.2 rule, done by the base class), ``stride`` (test only
 window sizes 1, 1 + s, 1 + 2 s, ... and always the full window K: the
@@ -90,7 +117,9 @@ of the base class: with ``sigma(r) = point_sigma + noise_slope * r`` and
 every scale is 1 and the thresholds are the paper's.
 
 Cost: each window's mean is accumulated from the previous one, so a point
-costs O(K) and a segment of L points O(percentage * L^2 / 2).
+costs O(K) and a segment of L points O(percentage * L^2 / 2). A combined run
+does both passes, the combination and the check in one compiled call; the
+check costs O(points) per piece.
 """
 
 from __future__ import annotations
@@ -101,7 +130,14 @@ from typing import Literal
 import numba as nb
 import numpy as np
 
-from segmentation.base import FloatArray, IntArray, Segmenter, SequentialParams, _check
+from segmentation.base import (
+    FloatArray,
+    IntArray,
+    Segmenter,
+    SequentialParams,
+    _check,
+    reverse_rows,
+)
 from segmentation.labels import combine_runs, finalize_runs, reverse_labels
 from segmentation.methods._incremental import gaps_ok, line_from_sums
 from segmentation.registry import register
@@ -118,6 +154,8 @@ class RoRParams(SequentialParams):
     percentage: fraction of the segment's points tested as windows (K = round(p * len)).
     statistic: ``abs`` (mean of absolute residuals) or ``signed`` (|mean of signed residuals|).
     stride: test window sizes 1, 1 + stride, ... and the full window only.
+    parent_check: with ``direction="combined"``, drop combined pieces that do not fit the lines
+    their runs reached them with (module docstring; our addition); False = the paper's rule.
     """
 
     n_init: int = 3
@@ -352,8 +390,8 @@ def combine_checked(
 
     Returns final labels and each segment's first and last point, as ``finalize_runs``.
     """
-    fwd, f_first, f_last = finalize_runs(raw_fwd, points, max_gap, min_len)
-    bwd, b_first, b_last = finalize_runs(reverse_labels(raw_bwd_reversed), points, max_gap, min_len)
+    fwd, f_first, _ = finalize_runs(raw_fwd, points, max_gap, min_len)
+    bwd, _, b_last = finalize_runs(reverse_labels(raw_bwd_reversed), points, max_gap, min_len)
     comb, first, last = finalize_runs(combine_runs(fwd, bwd), points, max_gap, min_len)
     if not check or first.shape[0] == 0:
         return comb, first, last
@@ -397,6 +435,31 @@ def combine_checked(
     return finalize_runs(out, points, max_gap, min_len)
 
 
+@nb.njit(cache=True)
+def ror_combined(
+    points: FloatArray,
+    scale: FloatArray,
+    n_init: int,
+    sigma: float,
+    percentage: float,
+    stride: int,
+    signed: bool,
+    max_gap: float,
+    point_sigma: float,
+    min_len: int,
+    check: bool,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """The forward pass, the backward pass (the forward pass on the reversed points) and their
+    combination in one compiled call; returns final labels, first and last point per segment."""
+    raw_fwd = ror_labels(points, scale, n_init, sigma, percentage, stride, signed, max_gap)
+    m = points.shape[0]
+    rscale = np.empty(m)
+    for i in range(m):
+        rscale[i] = scale[m - 1 - i]
+    raw_bwd = ror_labels(reverse_rows(points), rscale, n_init, sigma, percentage, stride, signed, max_gap)
+    return combine_checked(raw_fwd, raw_bwd, points, scale, sigma, point_sigma, n_init, max_gap, min_len, check)
+
+
 @register("ror")
 class RangeOfResiduals(Segmenter):
     """Range-of-residuals segmentation; see the module docstring for the reading of Algorithm 1."""
@@ -411,9 +474,11 @@ class RangeOfResiduals(Segmenter):
             points_xy, scale, p.n_init, p.sigma, p.percentage, p.stride, p.statistic == "signed", p.max_gap
         )
 
-    def _combine(self, raw_fwd: IntArray, raw_bwd: IntArray, pts: FloatArray,
-                 scale: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+    def _final_labels(self, pts: FloatArray, scale: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
         p = self.params
         assert isinstance(p, RoRParams)
-        return combine_checked(raw_fwd, raw_bwd, pts, scale, p.sigma, p.point_sigma, p.n_init, p.max_gap, p.min_len,  # type: ignore[no-any-return]
-                               p.parent_check)
+        if p.direction != "combined":
+            return super()._final_labels(pts, scale)
+        # both passes and the combination in one compiled call (no per-call dispatch in between)
+        return ror_combined(pts, scale, p.n_init, p.sigma, p.percentage, p.stride,  # type: ignore[no-any-return]
+                            p.statistic == "signed", p.max_gap, p.point_sigma, p.min_len, p.parent_check)
