@@ -319,3 +319,29 @@ def test_line_tracking_combined_follows_the_forward_backward_rule() -> None:
     rev = sg.segment(line.reversed(), method="line_tracking", direction="forward").labels[::-1]
     np.testing.assert_array_equal(rev >= 0, bwd.labels >= 0)
     assert comb.n_segments >= max(fwd.n_segments, bwd.n_segments) - 2
+
+
+# ---- SEF's corner criterion: properties --------------------------------------------------------
+
+from hypothesis import given  # noqa: E402
+
+from tests.test_segmentation_properties import SETTINGS, check_labels, scanlines  # noqa: E402
+
+
+@SETTINGS
+@given(line=scanlines())
+def test_sef_corner_criterion_only_adds_breaks(line: sg.Scanline) -> None:
+    try:
+        classic = sg.segment(line, method="sef", corner_threshold=0.0)
+    except ValueError:
+        return
+    with_corners = sg.segment(line, method="sef")
+    check_labels(with_corners, line, 10)
+    # every segment with corners lies inside one classic segment (invalid beams are -1 in both)
+    for a, b in zip(with_corners.first_beam, with_corners.last_beam, strict=True):
+        inside = classic.labels[a:b + 1][line.valid[a:b + 1]]
+        assert np.unique(inside).size == 1 and inside[0] >= 0
+    # a corner threshold above any kink gives the classic result; all directions coincide
+    np.testing.assert_array_equal(sg.segment(line, method="sef", corner_threshold=1e3).labels, classic.labels)
+    for d in ("backward", "combined"):
+        np.testing.assert_array_equal(sg.segment(line, method="sef", direction=d).labels, with_corners.labels)

@@ -9,18 +9,33 @@ from segmentation.metrics import compare, separates
 from simulation.scanline import figure1
 
 
-def test_ror_combined_separates_board_and_door_over_20_seeds() -> None:
-    failed: list[tuple[int, str]] = []
-    angles = []
+def _lines() -> list[tuple[object, sg.Scanline]]:
+    out = []
     for seed in range(20):
         s = figure1(noise_sigma=0.003, seed=seed)
-        line = sg.Scanline.from_ranges(s.ranges, s.angles, s.times, range_min=s.range_min, range_max=s.range_max)
+        out.append((s, sg.Scanline.from_ranges(s.ranges, s.angles, s.times,
+                                               range_min=s.range_min, range_max=s.range_max)))
+    return out
+
+
+def test_ror_combined_separates_board_and_door_over_20_seeds() -> None:
+    failed: list[tuple[int, str]] = []
+    paper_failed: list[tuple[int, str]] = []
+    angles = []
+    for seed, (s, line) in enumerate(_lines()):
         res = sg.segment(line, method="ror")
-        assert res.params["direction"] == "combined"
+        assert res.params["direction"] == "combined" and res.params["parent_check"]
+        paper = sg.segment(line, method="ror", parent_check=False)
         for name in ("whiteboard", "door"):
-            if not separates(res, s.gt_labels, s.label_of(name)):
+            target = s.label_of(name)  # type: ignore[attr-defined]
+            if not separates(res, s.gt_labels, target):  # type: ignore[attr-defined]
                 failed.append((seed, name))
-        angles.append(compare(res, s.gt_labels, line, s.gt_normals).median_angle_deg)
+            if not separates(paper, s.gt_labels, target):  # type: ignore[attr-defined]
+                paper_failed.append((seed, name))
+        angles.append(compare(res, s.gt_labels, line, s.gt_normals).median_angle_deg)  # type: ignore[attr-defined]
     assert not failed, f"not separated (seed, object): {failed}"
     # separated objects leave the wall lines untilted
     assert np.median(angles) < 0.1
+    # the paper's combination rule alone keeps wall/frame/door transition pieces on several seeds:
+    # the parent check (segmentation.methods.ror) is what this test exercises
+    assert len(paper_failed) >= 3, paper_failed

@@ -134,3 +134,64 @@ def test_result_lines_are_consistent() -> None:
         assert np.allclose(pts @ s.normal, s.offset, atol=1e-6)
         assert s.n_points >= 15 and s.rms < 1e-6 and s.offset > 0
     assert np.all(np.diff(res.labels[res.labels >= 0]) >= 0)
+
+
+# ---- parent_check (our addition to the combination; module docstring) ---------------------------
+
+from hypothesis import given  # noqa: E402
+
+from tests.test_segmentation_properties import SETTINGS, check_labels, scanlines  # noqa: E402
+
+
+def _bounds(res: segmentation.Segmentation) -> set[tuple[int, int]]:
+    return {(int(a), int(b)) for a, b in zip(res.first_beam, res.last_beam, strict=True)}
+
+
+@SETTINGS
+@given(line=scanlines())
+def test_parent_check_only_drops_combined_segments(line: Scanline) -> None:
+    try:
+        checked = segmentation.segment(line, "ror")
+    except ValueError:
+        return
+    paper = segmentation.segment(line, "ror", parent_check=False)
+    check_labels(checked, line, 15)
+    # every kept segment is a segment of the paper's combination, unchanged
+    assert _bounds(checked) <= _bounds(paper)
+    assert np.all(paper.labels[checked.labels >= 0] >= 0)
+    # single runs do not depend on it
+    for d in ("forward", "backward"):
+        assert np.array_equal(segmentation.segment(line, "ror", direction=d).labels,
+                              segmentation.segment(line, "ror", direction=d, parent_check=False).labels)
+
+
+@SETTINGS
+@given(line=scanlines())
+def test_checked_combination_is_symmetric_under_reversal(line: Scanline) -> None:
+    try:
+        a = segmentation.segment(line, "ror")
+    except ValueError:
+        return
+    b = segmentation.segment(line.reversed(), "ror")
+    n = line.n_beams
+    assert _bounds(a) == {(n - 1 - y, n - 1 - x) for x, y in _bounds(b)}
+
+
+def test_parent_check_drops_the_door_transition_piece() -> None:
+    """Figure-1 seed 1: the paper's rule keeps a 17-point piece of wall, sloped frame and door
+    between the wall and the door; the check drops exactly that piece."""
+    from segmentation.metrics import separates
+    from simulation.scanline import figure1
+
+    s = figure1(noise_sigma=0.003, seed=1)
+    line = Scanline.from_ranges(s.ranges, s.angles, s.times, range_min=s.range_min, range_max=s.range_max)
+    door = s.label_of("door")
+    paper = segmentation.segment(line, "ror", parent_check=False)
+    checked = segmentation.segment(line, "ror")
+    assert not separates(paper, s.gt_labels, door)
+    assert separates(checked, s.gt_labels, door)
+    dropped = _bounds(paper) - _bounds(checked)
+    assert len(dropped) == 1
+    a, b = dropped.pop()
+    faces = set(s.gt_labels[a:b + 1].tolist())
+    assert {door, s.label_of("wall_before_door"), -1} == faces and b - a + 1 < 20
