@@ -225,12 +225,14 @@ def test_process_pool(tmp_path: Path) -> None:
     assert dict(zip(ok["cell_id"], ok["ate_rmse_m"], strict=True)) == pytest.approx(expected)
 
 
-def test_dask_local_cluster(tmp_path: Path) -> None:
+@pytest.mark.parametrize("by_address", [False, True])
+def test_dask_local_cluster(tmp_path: Path, by_address: bool) -> None:
     from distributed import Client, LocalCluster
 
     cells = _cells(tmp_path)[:3]
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, Client(cluster) as client:
-        s = run_sweep(cells, tmp_path / "out", dask=client, cell_fn=failing_cell, progress=False)
+        target = cluster.scheduler_address if by_address else client
+        s = run_sweep(cells, tmp_path / "out", dask=target, cell_fn=failing_cell, progress=False)
     assert s.n_ok + s.n_failed == 3 and s.n_failed == sum(c.method == "iepf" for c in cells)
     t = read_results(results_path(tmp_path / "out"))
     assert sorted(t["cell_id"]) == sorted(c.cell_id for c in cells)
