@@ -6,10 +6,10 @@ import numpy as np
 
 import segmentation as sg
 from segmentation.metrics import compare, separates
-from simulation.scanline import figure1
+from simulation.scanline import SyntheticScan, figure1
 
 
-def _lines() -> list[tuple[object, sg.Scanline]]:
+def _lines() -> list[tuple[SyntheticScan, sg.Scanline]]:
     out = []
     for seed in range(20):
         s = figure1(noise_sigma=0.003, seed=seed)
@@ -27,12 +27,12 @@ def test_ror_combined_separates_board_and_door_over_20_seeds() -> None:
         assert res.params["direction"] == "combined" and res.params["parent_check"]
         paper = sg.segment(line, method="ror", parent_check=False)
         for name in ("whiteboard", "door"):
-            target = s.label_of(name)  # type: ignore[attr-defined]
-            if not separates(res, s.gt_labels, target):  # type: ignore[attr-defined]
+            target = s.label_of(name)
+            if not separates(res, s.gt_labels, target):
                 failed.append((seed, name))
-            if not separates(paper, s.gt_labels, target):  # type: ignore[attr-defined]
+            if not separates(paper, s.gt_labels, target):
                 paper_failed.append((seed, name))
-        angles.append(compare(res, s.gt_labels, line, s.gt_normals).median_angle_deg)  # type: ignore[attr-defined]
+        angles.append(compare(res, s.gt_labels, line, s.gt_normals).median_angle_deg)
     assert not failed, f"not separated (seed, object): {failed}"
     # separated objects leave the wall lines untilted
     assert np.median(angles) < 0.1
