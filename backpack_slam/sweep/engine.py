@@ -43,8 +43,10 @@ def _failed_row(cell: Cell, e: BaseException) -> dict[str, Any]:
 
 
 def _limit_threads() -> None:
-    """Pool initializer: one thread per worker process, the pool being the parallelism."""
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    """One BLAS/OpenMP thread per worker process, the pool being the parallelism. Set in the
+    parent before the pool starts: spawned children inherit the environment, and the
+    variables only act if set before numpy loads (it loads while the child unpickles)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
 
 
@@ -58,7 +60,8 @@ def _inline(fn: CellFn, cells: list[Cell], out: str) -> Iterator[tuple[Cell, dic
 
 def _pool(fn: CellFn, cells: list[Cell], out: str, workers: int) -> Iterator[tuple[Cell, dict[str, Any]]]:
     # spawn: gtsam, open3d and numba's threads do not survive fork() reliably
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_limit_threads) as ex:
+    _limit_threads()
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as ex:
         futures: dict[Future[dict[str, Any]], Cell] = {ex.submit(fn, c, out): c for c in cells}
         try:
             for f in as_completed(futures):
