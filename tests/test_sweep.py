@@ -344,3 +344,33 @@ def test_append_replaces_a_cells_row(tmp_path: Path) -> None:
     t = append_rows(p, [_row("iepf", 0, 0.2)])
     assert len(t) == 1 and t.iloc[0]["status"] == "ok"
     assert isinstance(read_results(p), pd.DataFrame) and len(read_results(p)) == 1
+
+
+# --------------------------------------------------------------------- segmentation scores
+
+
+def test_true_line_normals_in_the_scanner_frame() -> None:
+    from backpack_slam.sweep.segeval import true_line_normals
+
+    T = np.stack([np.eye(4), np.eye(4), np.eye(4)])
+    T[1, :3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # yaw 90 deg: scanner x = world y
+    n = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0]])  # wall x = 2 (twice), floor z = 0
+    d = np.array([-2.0, -2.0, 0.0])
+    out = true_line_normals(n, d, T)
+    np.testing.assert_allclose(out[0], [1, 0], atol=1e-12)
+    np.testing.assert_allclose(out[1], [0, -1], atol=1e-12)  # the wall is at scanner y = -2
+    assert np.isnan(out[2]).all()
+
+
+def test_segmentation_scores_rank_a_good_and_a_bad_segmenter(tmp_path: Path) -> None:
+    from backpack_slam.sweep.segeval import score_segmenter
+
+    cell = _cells(tmp_path, duration=0.5)[0]
+    sim = cached_simulation(tmp_path / "cache", cell.sim_key, cell.simulation)
+    rig = resolve_rig("itc_backpack")
+    good = score_segmenter(sim.bag, sim.gt, rig, "ror", {}, scans_per_scanner=5)
+    # a line-tracking threshold at 1 sigma of the noise cuts walls into pieces
+    bad = score_segmenter(sim.bag, sim.gt, rig, "line_tracking", {"threshold": 0.003}, scans_per_scanner=5)
+    assert good.n_scans == bad.n_scans == 15 and good.n_gt_segments > 15
+    assert good.overlap1 > 0.6 and good.median_angle_deg < 0.5 and good.ms_per_scan > 0
+    assert bad.overlap1 < good.overlap1 - 0.3
