@@ -12,9 +12,15 @@ Ctrl-C exits with 130. Set ``BACKPACK_SLAM_DEBUG=1`` to get the traceback instea
 
 from __future__ import annotations
 
+import os
+
+# numpy's BLAS threads cost far more than they give on the small dense systems of the front
+# end (and the sweep runs cells in parallel processes); must be set before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import argparse
 import importlib
-import os
 import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn

@@ -32,7 +32,7 @@ class SegmenterConfig(StrictModel):
 class TrajectoryConfig(StrictModel):
     """Continuous-time trajectory: knots at ``knot_rate`` Hz, SE(3) interpolation between them."""
 
-    knot_rate: float = Field(40.0, gt=0, le=400)
+    knot_rate: float = Field(20.0, gt=0, le=400)
 
 
 class FrontEndConfig(StrictModel):
@@ -45,7 +45,7 @@ class FrontEndConfig(StrictModel):
     tracking_loosen: float = Field(8.0, ge=1, description="gate factor of the tracking (pre-)association")
     tracking_iterations: int = Field(3, ge=0)
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
-    extent_margin_cells: int = Field(2, ge=0)
+    extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
     min_support: int = Field(3, ge=2)
     min_spread: float = Field(0.04, gt=0)
     coplanar_distance: float = Field(0.012, gt=0)
@@ -67,8 +67,10 @@ class BackEndConfig(StrictModel):
     vertical_prior_deg: float = Field(0.05, gt=0, description="sigma keeping walls vertical")
     vertical_walls: bool = True
     update_every: int = Field(10, ge=1, description="knots between iSAM2 updates")
+    relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
+    relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
     final_batch: bool = True
-    batch_iterations: int = Field(30, ge=1)
+    batch_iterations: int = Field(10, ge=1)
 
 
 class OutputConfig(StrictModel):

@@ -105,11 +105,31 @@ def se3_exp(xi: ArrayLike) -> FloatArray:
     return T
 
 
+def so3_log(R: ArrayLike) -> FloatArray:
+    """Rotation vectors ``Log(R)`` of rotation matrices (..., 3, 3) -> (..., 3).
+
+    Closed form ``theta / (2 sin theta) vee(R - R^T)`` (Taylor series near 0); rotations within
+    0.1 rad of pi, where that form loses precision, go through scipy's quaternion route.
+    """
+    R = np.asarray(R, dtype=float)
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    theta = np.arccos(np.clip(0.5 * (tr - 1.0), -1.0, 1.0))
+    w = np.stack((R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]), axis=-1)
+    small = theta < _SMALL
+    ts = np.where(small, 1.0, theta)
+    f = np.where(small, 0.5 + theta**2 / 12.0, ts / (2.0 * np.sin(ts)))
+    phi = f[..., None] * w
+    near_pi = theta > np.pi - 0.1
+    if np.any(near_pi):
+        phi[near_pi] = Rotation.from_matrix(R[near_pi].reshape(-1, 3, 3)).as_rotvec()
+    return phi
+
+
 def se3_log(T: ArrayLike) -> FloatArray:
     """Twists ``Log(T)`` = (omega, v) of poses (..., 4, 4) -> (..., 6)."""
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
-    phi = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*R.shape[:-2], 3)
+    phi = so3_log(R)
     theta = np.linalg.norm(phi, axis=-1)
     small = theta < _SMALL
     ts = np.where(small, 1.0, theta)

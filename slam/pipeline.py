@@ -47,7 +47,7 @@ from slam.frontend.observations import ScanSegments, scan_segments
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool
 from slam.frontend.planemap import KIND_CEILING, KIND_FLOOR, KIND_NAMES, PlaneMap, classify
 from slam.frontend.tracking import predict_constant_velocity, refine_window
-from slam.interpolation import interpolate_poses
+from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 from slam.motion import MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
@@ -65,6 +65,7 @@ class _Pending:
     segs: ScanSegments
     t_end: float
     plane_ids: NDArray[np.int64]
+    loose_ids: NDArray[np.int64] | None = None
 
 
 @dataclass
@@ -129,6 +130,9 @@ class SlamRunner:
                 kernel=RobustKernel(be.robust, be.robust_k) if be.robust != "none" else RobustKernel("none"),
                 motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
                 datum="position_yaw",
+                relinearize_threshold=be.relinearize_threshold,
+                relinearize_skip=be.relinearize_skip,
+                lm_relative_tolerance=1e-4,
                 horizontal_sigma=np.radians(be.horizontal_prior_deg),
             )
         )
@@ -187,7 +191,10 @@ class SlamRunner:
     def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """Points (m, 3) body frame at their times -> world frame with the current knots."""
         idx, alpha = self._fractions(times)
-        T = interpolate_poses(self._T[idx], self._T[idx + 1], alpha)
+        # one twist per knot interval involved (few), one exponential per point
+        uniq, inv = np.unique(idx, return_inverse=True)
+        xi = se3_log(se3_inverse(self._T[uniq]) @ self._T[uniq + 1])
+        T = self._T[idx] @ se3_exp(alpha[:, None] * xi[inv])
         return np.einsum("mij,mj->mi", T[:, :3, :3], points_body) + T[:, :3, 3]
 
     # ------------------------------------------------------------------ input
@@ -264,12 +271,11 @@ class SlamRunner:
     def _world_summaries(self, p: _Pending) -> tuple[FloatArray, FloatArray]:
         segs = p.segs
         k = segs.n_segments
-        v_world = self._place(segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(k, 2, 3)
-        first = segs.offsets[:-1]
-        last = segs.offsets[1:] - 1
-        ends_idx = np.stack((first, last), axis=1).ravel()
-        e_world = self._place(segs.points_body[ends_idx], segs.times[ends_idx]).reshape(k, 2, 3)
-        return v_world, e_world
+        ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
+        pts = np.concatenate((segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]))
+        tms = np.concatenate((segs.virtual_times.ravel(), segs.times[ends_idx]))
+        w = self._place(pts, tms)
+        return w[: 2 * k].reshape(k, 2, 3), w[2 * k :].reshape(k, 2, 3)
 
     def _associate_scan(self, p: _Pending, gates: Gates) -> NDArray[np.int64]:
         v_world, e_world = self._world_summaries(p)
@@ -288,10 +294,14 @@ class SlamRunner:
         self._recent = [p for p in self._recent if p.t_end >= t_lo]
         if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
             return T_pred
-        for _ in range(2):
+        for p in ready:
+            p.loose_ids = self._associate_scan(p, self.loose)
+        for _ in range(1):
             pts, kis, al, nrm, off, sig = [], [], [], [], [], []
             for p in self._recent:
-                ids = self._associate_scan(p, self.loose)
+                ids = p.loose_ids
+                if ids is None:
+                    continue
                 sel = np.flatnonzero(ids >= 0)
                 if sel.size == 0:
                     continue
@@ -422,6 +432,33 @@ class SlamRunner:
             self._flush_blocks(blocks)
             self.stats["planes_created"] += 1
             self.stats["associated"] += len(plane.members)
+            self._adopt_pooled(pl.id, by_serial)
+
+    def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
+        """Give a new plane the pooled segments that lie on it but were not among its seed group."""
+        fe = self.cfg.frontend
+        pl = self.pmap.planes[pid]
+        taken = []
+        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        for m in self.pool.items:
+            if abs(float(m.direction @ pl.normal)) > np.sin(np.radians(2.0)):
+                continue
+            if np.max(np.abs(m.samples @ pl.normal + pl.d)) > fe.coplanar_distance:
+                continue
+            if not self.pmap.overlaps(pid, m.samples, self.gates.extent_margin_cells):
+                continue
+            rec = by_serial.get(m.ref[0])
+            if rec is None:
+                continue
+            rec.plane_ids[m.ref[1]] = pid
+            self._observe(rec.segs, m.ref[1], pid, blocks)
+            self.pmap.extend(pid, m.samples)
+            pl.n_segments += 1
+            taken.append(m)
+        if taken:
+            self._flush_blocks(blocks)
+            self.pool.remove(taken)
+            self.stats["associated"] += len(taken)
 
     def _update(self) -> None:
         self._since_update = 0
@@ -471,7 +508,7 @@ class SlamRunner:
         t = _time.perf_counter()
         summary = None
         if batch and self._n_knots >= 2:
-            summary = self.backend.batch_optimize(self.cfg.backend.batch_iterations)
+            summary = self.backend.batch_optimize(self.cfg.backend.batch_iterations, graduated=False)
         self._timer.add("batch", t)
         poses = self.backend.poses()
         ids, normals, offsets = self.backend.planes()

@@ -47,6 +47,7 @@ class PlaneInitParams:
     neighbourhood: float = 3.0  # m, members within this of the seed
     min_scan_plane_angle: float = np.radians(15.0)  # a plane this close to a member's scan plane is that scan plane
     window: float = 1.0  # s, pooled segments older than this are dropped
+    max_partners: int = 4  # seed pairs tried per seed segment (nearest in distance first)
 
 
 @dataclass
@@ -137,7 +138,7 @@ class SegmentPool:
             cand = np.flatnonzero(
                 usable & not_scan & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle))
             )
-            for b in cand[np.argsort(dist_b[cand])]:
+            for b in cand[np.argsort(dist_b[cand])][: p.max_partners]:
                 plane = self._grow(a, int(b), normals[b], near)
                 if plane is not None:
                     return plane
@@ -149,16 +150,15 @@ class SegmentPool:
         n, d, _ = fit_plane(np.vstack((items[a].samples, items[b].samples)))
         if n @ normal < 0:
             n, d = -n, -d
+        cand = np.flatnonzero(near)
+        U = np.array([items[i].direction for i in cand])
+        SN = np.array([items[i].scan_normal for i in cand])
+        ok = (np.abs(U @ n) <= np.sin(p.coplanar_angle)) & (np.abs(SN @ n) <= np.cos(p.min_scan_plane_angle))
         members = []
-        for i in np.flatnonzero(near):
+        for i in cand[ok]:
             s = items[i]
-            if abs(s.direction @ n) > np.sin(p.coplanar_angle):
-                continue
-            if np.max(np.abs(s.samples @ n + d)) > p.coplanar_distance:
-                continue
-            if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle):
-                continue
-            members.append(s)
+            if np.max(np.abs(s.samples @ n + d)) <= p.coplanar_distance:
+                members.append(s)
         if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
             return None
         pts = np.vstack([s.samples for s in members])

@@ -113,9 +113,8 @@ class PlaneMap:
         ext = self.planes[pid].cells
         if not ext:
             return False
-        cells = np.unique(self.cells_of(pid, points_world), axis=0)
         r = range(-dilate, dilate + 1)
-        for cu, cv in cells.tolist():
+        for cu, cv in set(map(tuple, self.cells_of(pid, points_world).tolist())):
             for du in r:
                 for dv in r:
                     if (cu + du, cv + dv) in ext:
