@@ -1,0 +1,257 @@
+"""Batch estimation of the scanners' extrinsics (and time offsets) in one factor graph.
+
+Variables (gtsam keys): ``X(i)`` body poses ``T_world_body`` at the SLAM knots, ``P(j)`` the
+world planes, ``E(s)`` ``T_body_scanner`` of every non-reference scanner, and with
+``time_offsets`` a scalar ``D(s)`` per non-reference scanner (its clock correction [s]; see
+:mod:`calibration.factors`). The reference scanner defines the body frame (and clock): its
+points enter with its fixed extrinsic and no ``E``.
+
+Factors: one batched point-on-plane block per (knot interval, plane, scanner) (the points of
+:class:`calibration.observations.PointObservations` placed at their beam times on the SE(3)
+interpolated trajectory, per-point Huber weights), the constant-velocity motion prior of
+:mod:`slam.motion` on every three knots, a datum prior fixing the first knot, a weak prior on each
+plane (its SLAM estimate, ``plane_prior_sigma``: keeps planes seen from one line direction only
+well posed) and on each extrinsic a prior around the initial rig (``sigma_rot`` / ``sigma_trans``,
+default 5 deg / 10 cm) and on each offset a prior around 0 (``sigma_time``).
+
+Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal covariances of
+``E(s)`` (6x6, gtsam tangent order: rotation then translation, right perturbation of
+``T_body_scanner``) and ``D(s)`` come from ``gtsam.Marginals`` at the solution.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import D, E, P, X
+from numpy.typing import NDArray
+
+from calibration.factors import timed_scanner_plane_factor
+from calibration.observations import PointObservations
+from slam.factors import RobustKernel, point_plane_factor, point_plane_terms, scanner_point_plane_factor
+from slam.interpolation import knot_fractions
+from slam.motion import MotionPriorConfig, constant_velocity_factor, datum_prior
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Priors and solver settings of the calibration graph (SI units)."""
+
+    sigma_rot: float = float(np.radians(5.0))
+    sigma_trans: float = 0.10
+    time_offsets: bool = False
+    sigma_time: float = 0.005
+    kernel: RobustKernel = field(default_factory=lambda: RobustKernel("huber", 2.5))
+    motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
+    plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
+    min_plane_points: int = 6
+    max_iterations: int = 50
+    relative_tolerance: float = 1e-9
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_rot", "sigma_trans", "sigma_time", "relative_tolerance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: must be > 0, got {v}")
+        if self.max_iterations < 1 or self.min_plane_points < 1:
+            raise ValueError("max_iterations and min_plane_points: must be >= 1")
+
+
+@dataclass
+class ScannerEstimate:
+    """One scanner's calibration: ``T_body_scanner`` (4, 4) before and after, the 6x6 marginal
+    covariance (None for the reference), the time offset correction [s] and its sigma (None when
+    not estimated), and unwhitened point-to-plane residuals [m] before/after."""
+
+    index: int
+    name: str
+    reference: bool
+    T_initial: FloatArray
+    T_body_scanner: FloatArray
+    covariance: FloatArray | None
+    time_offset: float
+    time_offset_sigma: float | None
+    residuals_before: FloatArray
+    residuals_after: FloatArray
+    n_points: int
+
+
+@dataclass
+class BatchResult:
+    """Outcome of :func:`estimate_extrinsics`."""
+
+    scanners: list[ScannerEstimate]
+    T_world_body: FloatArray
+    plane_ids: NDArray[np.int64]
+    initial_error: float
+    final_error: float
+    iterations: int
+    seconds: float
+    n_blocks: int
+    prior_sigmas: FloatArray  # (6,) rotation [rad] x3, translation [m] x3
+
+
+@dataclass
+class _Block:
+    knot: int
+    plane: int
+    scanner: int
+    points: FloatArray
+    alphas: FloatArray
+    sigmas: FloatArray
+
+
+def _plane_prior(key: int, plane: gtsam.OrientedPlane3, sigmas: tuple[float, float]) -> gtsam.CustomFactor:
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigmas[0], sigmas[0], sigmas[1]]))
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+        e = np.asarray(plane.localCoordinates(v.atOrientedPlane3(key)), dtype=float)
+        if H is not None:
+            H[0] = np.eye(3)  # weak prior: the exact Jacobian differs from I only to second order
+        return e
+
+    return gtsam.CustomFactor(noise, [key], error)
+
+
+def _blocks(kt: FloatArray, obs: PointObservations) -> list[_Block]:
+    idx, alpha = knot_fractions(kt, obs.times)
+    order = np.lexsort((obs.scanner, obs.plane_id, idx))
+    key = np.stack((idx[order], obs.plane_id[order], obs.scanner[order]), axis=1)
+    cut = np.flatnonzero(np.any(np.diff(key, axis=0) != 0, axis=1)) + 1
+    out = []
+    for sel in np.split(order, cut):
+        if sel.size == 0:
+            continue
+        out.append(_Block(int(idx[sel[0]]), int(obs.plane_id[sel[0]]), int(obs.scanner[sel[0]]),
+                          obs.points_scanner[sel], alpha[sel], obs.sigmas[sel]))
+    return out
+
+
+def estimate_extrinsics(
+    knot_times: FloatArray,
+    T_world_body: FloatArray,
+    planes: dict[int, tuple[FloatArray, float]],
+    obs: PointObservations,
+    T_init: list[FloatArray],
+    reference: int,
+    names: list[str] | None = None,
+    T_prior: list[FloatArray] | None = None,
+    config: EstimatorConfig | None = None,
+) -> BatchResult:
+    """Jointly refine poses, planes and the non-reference extrinsics (module docstring).
+
+    ``knot_times`` (K,), ``T_world_body`` (K, 4, 4) initial trajectory; ``planes`` id ->
+    (unit normal, d) in the world; ``T_init`` the initial ``T_body_scanner`` per scanner (the
+    reference's stays fixed) and ``T_prior`` the prior centres (default ``T_init``).
+    """
+    cfg = config or EstimatorConfig()
+    t_wall = _time.perf_counter()
+    kt = np.asarray(knot_times, dtype=float)
+    n_sc = len(T_init)
+    names = names or [f"scanner{i}" for i in range(n_sc)]
+    T_prior = T_prior or T_init
+    if not 0 <= reference < n_sc:
+        raise ValueError(f"reference: scanner index {reference} outside [0, {n_sc})")
+    inside = (obs.times >= kt[0]) & (obs.times <= kt[-1]) & np.isin(obs.plane_id, list(planes))
+    obs = obs.select(inside)
+    counts = {int(j): int(c) for j, c in zip(*np.unique(obs.plane_id, return_counts=True), strict=True)}
+    obs = obs.select(np.array([counts[int(j)] >= cfg.min_plane_points for j in obs.plane_id], dtype=bool))
+    if len(obs) == 0:
+        raise ValueError("observations: no points on known planes within the trajectory's time span")
+    calibrated = [s for s in range(n_sc) if s != reference and np.any(obs.scanner == s)]
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for i, T in enumerate(np.asarray(T_world_body, dtype=float)):
+        values.insert(X(i), gtsam.Pose3(T))
+    graph.add(datum_prior(X(0), gtsam.Pose3(T_world_body[0])))
+    for i in range(2, kt.size):
+        graph.add(constant_velocity_factor(X(i - 2), X(i - 1), X(i), kt[i - 1] - kt[i - 2],
+                                           kt[i] - kt[i - 1], cfg.motion))
+    used_planes = sorted(int(j) for j in np.unique(obs.plane_id))
+    for j in used_planes:
+        n, d = planes[j]
+        pl = gtsam.OrientedPlane3(gtsam.Unit3(np.asarray(n, dtype=float)), float(d))
+        values.insert(P(j), pl)
+        graph.add(_plane_prior(P(j), pl, cfg.plane_prior_sigma))
+    prior_sig = np.array([cfg.sigma_rot] * 3 + [cfg.sigma_trans] * 3)
+    for s in calibrated:
+        values.insert(E(s), gtsam.Pose3(T_init[s]))
+        graph.add(gtsam.PriorFactorPose3(E(s), gtsam.Pose3(T_prior[s]),
+                                         gtsam.noiseModel.Diagonal.Sigmas(prior_sig)))
+        if cfg.time_offsets:
+            values.insert(D(s), np.zeros(1))
+            graph.add(gtsam.PriorFactorVector(D(s), np.zeros(1),
+                                              gtsam.noiseModel.Isotropic.Sigma(1, cfg.sigma_time)))
+    T_ref = np.asarray(T_init[reference], dtype=float)
+    blocks = _blocks(kt, obs)
+    for b in blocks:
+        xa, xb, pj = X(b.knot), X(b.knot + 1), P(b.plane)
+        if b.scanner == reference or b.scanner not in calibrated:
+            Tb = T_init[b.scanner]
+            p_b = b.points @ Tb[:3, :3].T + Tb[:3, 3]
+            graph.add(point_plane_factor(xa, xb, pj, p_b, b.alphas, b.sigmas, cfg.kernel))
+        elif cfg.time_offsets:
+            graph.add(timed_scanner_plane_factor(xa, xb, pj, E(b.scanner), D(b.scanner), b.points,
+                                                 b.alphas, kt[b.knot + 1] - kt[b.knot], b.sigmas,
+                                                 cfg.kernel))
+        else:
+            graph.add(scanner_point_plane_factor(xa, xb, pj, E(b.scanner), b.points, b.alphas,
+                                                 b.sigmas, cfg.kernel))
+
+    before = _residuals(blocks, values, kt, calibrated, T_init, cfg.time_offsets, n_sc)
+    e0 = float(graph.error(values))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.max_iterations)
+    params.setRelativeErrorTol(cfg.relative_tolerance)
+    params.setAbsoluteErrorTol(0.0)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        result = opt.optimize()
+        marginals = gtsam.Marginals(graph, result)
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else "gtsam error"
+        raise ValueError(f"calibration graph is singular or failed to solve ({first})") from None
+    T_final = [np.asarray(T_init[s], dtype=float) if s not in calibrated
+               else np.asarray(result.atPose3(E(s)).matrix()) for s in range(n_sc)]
+    after = _residuals(blocks, result, kt, calibrated, T_final, cfg.time_offsets, n_sc)
+
+    scanners = []
+    for s in range(n_sc):
+        cal = s in calibrated
+        cov = np.asarray(marginals.marginalCovariance(E(s))) if cal else None
+        dt, dt_sig = 0.0, None
+        if cal and cfg.time_offsets:
+            dt = float(result.atVector(D(s))[0])
+            dt_sig = float(np.sqrt(marginals.marginalCovariance(D(s))[0, 0]))
+        scanners.append(ScannerEstimate(
+            s, names[s], s == reference, np.asarray(T_init[s], dtype=float), T_final[s],
+            None if cov is None else 0.5 * (cov + cov.T), dt, dt_sig, before[s], after[s],
+            int(np.sum(obs.scanner == s))))
+    poses = np.array([result.atPose3(X(i)).matrix() for i in range(kt.size)])
+    return BatchResult(scanners, poses, np.asarray(used_planes, dtype=np.int64), e0,
+                       float(graph.error(result)), int(opt.iterations()),
+                       _time.perf_counter() - t_wall, len(blocks), prior_sig)
+
+
+def _residuals(blocks: list[_Block], values: gtsam.Values, kt: FloatArray, calibrated: list[int],
+               T_bs: list[FloatArray], timed: bool, n_sc: int) -> list[FloatArray]:
+    """Unwhitened signed point-to-plane distances [m] per scanner at ``values``."""
+    out: list[list[FloatArray]] = [[] for _ in range(n_sc)]
+    for b in blocks:
+        cal = b.scanner in calibrated
+        T = np.asarray(values.atPose3(E(b.scanner)).matrix()) if cal else T_bs[b.scanner]
+        al = b.alphas
+        if cal and timed:
+            al = al + float(values.atVector(D(b.scanner))[0]) / (kt[b.knot + 1] - kt[b.knot])
+        p_b = b.points @ T[:3, :3].T + T[:3, 3]
+        t = point_plane_terms(values.atPose3(X(b.knot)), values.atPose3(X(b.knot + 1)),
+                              values.atOrientedPlane3(P(b.plane)), p_b, al, jacobians=False)
+        out[b.scanner].append(t.residuals)
+    return [np.concatenate(r) if r else np.zeros(0) for r in out]
