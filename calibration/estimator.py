@@ -9,7 +9,10 @@ points enter with its fixed extrinsic and no ``E``.
 Factors: one batched point-on-plane block per (knot interval, plane, scanner) (the points of
 :class:`calibration.observations.PointObservations` placed at their beam times on the SE(3)
 interpolated trajectory, per-point Huber weights), the constant-velocity motion prior of
-:mod:`slam.motion` on every three knots, a datum prior fixing the first knot, a weak prior on each
+:mod:`slam.motion` on every three knots, a datum prior fixing the first knot (and a weak prior on
+the first interval's motion, as in :mod:`slam.backend`), a weak prior on every knot around its
+SLAM pose (``pose_prior_sigma``, rad and m: keeps motions the planes leave free, such as along a
+straight corridor, from making the system singular), a weak prior on each
 plane (its SLAM estimate, ``plane_prior_sigma``: keeps planes seen from one line direction only
 well posed) and on each extrinsic a prior around the initial rig (``sigma_rot`` / ``sigma_trans``,
 default 5 deg / 10 cm) and on each offset a prior around 0 (``sigma_time``).
@@ -21,6 +24,7 @@ Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal 
 
 from __future__ import annotations
 
+import re
 import time as _time
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,9 +36,19 @@ from numpy.typing import NDArray
 
 from calibration.factors import timed_scanner_plane_factor
 from calibration.observations import PointObservations
-from slam.factors import RobustKernel, point_plane_factor, point_plane_terms, scanner_point_plane_factor
+from slam.factors import (
+    RobustKernel,
+    point_plane_factor,
+    point_plane_terms,
+    scanner_point_plane_factor,
+)
 from slam.interpolation import knot_fractions
-from slam.motion import MotionPriorConfig, constant_velocity_factor, datum_prior
+from slam.motion import (
+    MotionPriorConfig,
+    constant_velocity_factor,
+    datum_prior,
+    initial_velocity_factor,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -50,6 +64,7 @@ class EstimatorConfig:
     kernel: RobustKernel = field(default_factory=lambda: RobustKernel("huber", 2.5))
     motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
     plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
+    pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
     min_plane_points: int = 6
     max_iterations: int = 50
     relative_tolerance: float = 1e-9
@@ -168,9 +183,14 @@ def estimate_extrinsics(
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
+    pose_noise = gtsam.noiseModel.Diagonal.Sigmas(np.repeat(cfg.pose_prior_sigma, 3))
     for i, T in enumerate(np.asarray(T_world_body, dtype=float)):
         values.insert(X(i), gtsam.Pose3(T))
+        graph.add(gtsam.PriorFactorPose3(X(i), gtsam.Pose3(T), pose_noise))
     graph.add(datum_prior(X(0), gtsam.Pose3(T_world_body[0])))
+    if kt.size >= 2:  # weak, as in the SLAM back end: the first interval's motion
+        T01 = gtsam.Pose3(T_world_body[0]).between(gtsam.Pose3(T_world_body[1]))
+        graph.add(initial_velocity_factor(X(0), X(1), T01, kt[1] - kt[0], 3.0, 3.0))
     for i in range(2, kt.size):
         graph.add(constant_velocity_factor(X(i - 2), X(i - 1), X(i), kt[i - 1] - kt[i - 2],
                                            kt[i] - kt[i - 1], cfg.motion))
@@ -189,7 +209,6 @@ def estimate_extrinsics(
             values.insert(D(s), np.zeros(1))
             graph.add(gtsam.PriorFactorVector(D(s), np.zeros(1),
                                               gtsam.noiseModel.Isotropic.Sigma(1, cfg.sigma_time)))
-    T_ref = np.asarray(T_init[reference], dtype=float)
     blocks = _blocks(kt, obs)
     for b in blocks:
         xa, xb, pj = X(b.knot), X(b.knot + 1), P(b.plane)
@@ -216,8 +235,11 @@ def estimate_extrinsics(
         result = opt.optimize()
         marginals = gtsam.Marginals(graph, result)
     except RuntimeError as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else "gtsam error"
-        raise ValueError(f"calibration graph is singular or failed to solve ({first})") from None
+        text = str(err).strip()
+        first = text.splitlines()[0] if text else "gtsam error"
+        m = re.search(r"Symbol: (\w+)", text)
+        raise ValueError(f"calibration graph is singular or failed to solve ({first}"
+                         f"{' ' + m.group(1) if m else ''})") from None
     T_final = [np.asarray(T_init[s], dtype=float) if s not in calibrated
                else np.asarray(result.atPose3(E(s)).matrix()) for s in range(n_sc)]
     after = _residuals(blocks, result, kt, calibrated, T_final, cfg.time_offsets, n_sc)

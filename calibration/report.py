@@ -113,7 +113,7 @@ def _plots(cal: Calibration, out: Path, d: dict[str, Any]) -> None:
         fig, ax = plt.subplots(figsize=(6, 4))
         both = np.concatenate([s.residuals_before, s.residuals_after]) * 1e3
         lim = float(np.percentile(np.abs(both), 99)) if both.size else 1.0
-        bins = np.linspace(-lim, lim, 81)
+        bins = np.linspace(-lim, lim, 81).tolist()
         ax.hist(s.residuals_before * 1e3, bins=bins, alpha=0.5, label="before")
         ax.hist(s.residuals_after * 1e3, bins=bins, alpha=0.5, label="after")
         ax.set_xlabel("point-to-plane residual (mm)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,8 @@ def extrinsic_from_matrix(T: FloatArray, covariance: FloatArray | None = None) -
                      rpy=[float(a) for a in matrix_to_rpy(M[:3, :3])], covariance=cov)
 
 
-def updated_rig(rig: Rig, extrinsics: dict[str, tuple[FloatArray, FloatArray | None]],
-                time_offsets: dict[str, float] | None = None, name: str | None = None) -> Rig:
+def updated_rig(rig: Rig, extrinsics: Mapping[str, tuple[FloatArray, FloatArray | None]],
+                time_offsets: Mapping[str, float] | None = None, name: str | None = None) -> Rig:
     """A copy of ``rig`` with the given scanners' ``(T_body_scanner, covariance)`` and offsets."""
     offsets = time_offsets or {}
     scanners = []

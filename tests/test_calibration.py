@@ -1,0 +1,198 @@
+"""Calibration: extrinsic recovery on analytic scenes, observability, rig writer, CLI errors."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from box_scene import BOX_PLANES, SCANNERS, _pose, walking_knots
+
+from backpack_slam.cli import main
+from backpack_slam.rig import load_rig, resolve_rig
+from calibration.estimator import EstimatorConfig, estimate_extrinsics
+from calibration.factors import timed_scanner_plane_factor
+from calibration.observability import UnobservableWarning, parameter_sigmas, warn_unobservable
+from calibration.observations import PointObservations
+from calibration.rig_io import updated_rig, write_rig
+from slam.interpolation import interpolate_trajectory, se3_exp, se3_log
+from slam.motion import MotionPriorConfig
+
+CORRIDOR = np.array([
+    [0.0, 0.0, 1.0, 1.3],    # floor
+    [0.0, 0.0, -1.0, 1.7],   # ceiling
+    [0.0, 1.0, 0.0, 1.5],    # wall y = -1.5
+    [0.0, -1.0, 0.0, 1.5],   # wall y = 1.5
+])
+
+
+def scan_points(kt: np.ndarray, kp: np.ndarray, planes: np.ndarray, scanners: list[np.ndarray],
+                beams: int = 61, offsets: tuple[float, ...] = (0.0, 0.008, 0.016),
+                clock_errors: tuple[float, ...] = (0.0, 0.0, 0.0)) -> PointObservations:
+    """Noise-free scanner-frame points on ``planes`` seen from the true trajectory. A scanner's
+    ``clock_errors`` entry shifts its stamps: the beam really taken at t is stamped t - error."""
+    angles = np.deg2rad(np.linspace(-135.0, 135.0, beams))
+    dt_beam = 0.01875 / (beams - 1)
+    parts = []
+    for s, T_bs in enumerate(scanners):
+        for i in range(kt.size - 1):
+            times = kt[i] + offsets[s] + np.arange(beams) * dt_beam
+            ok = times + clock_errors[s] <= kt[-1]
+            times, ang = times[ok], angles[ok]
+            T_ws = interpolate_trajectory(kt, kp, times + clock_errors[s]) @ T_bs
+            u_s = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], axis=1)
+            o = T_ws[:, :3, 3]
+            u = np.einsum("nij,nj->ni", T_ws[:, :3, :3], u_s)
+            nu = u @ planes[:, :3].T
+            no = o @ planes[:, :3].T + planes[:, 3]
+            lam = np.where(nu < -1e-9, -no / np.where(nu < -1e-9, nu, -1.0), np.inf)
+            j = np.argmin(lam, axis=1)
+            r = lam[np.arange(j.size), j]
+            v = np.isfinite(r) & (r > 0.1) & (r < 30.0) & (np.abs(nu[np.arange(j.size), j]) > 0.15)
+            parts.append(PointObservations(np.full(v.sum(), s), j[v].astype(np.int64),
+                                           u_s[v] * r[v, None], times[v], np.full(v.sum(), 0.003)))
+    return PointObservations.concatenate(parts)
+
+
+def _planes(p: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
+    return {j: (p[j, :3], float(p[j, 3])) for j in range(p.shape[0])}
+
+
+def _perturbed(rng: np.random.Generator, deg: float, m: float) -> list[np.ndarray]:
+    return [SCANNERS[0]] + [T @ se3_exp(np.concatenate([np.radians(rng.uniform(-deg, deg, 3)),
+                                                         rng.uniform(-m, m, 3)])) for T in SCANNERS[1:]]
+
+
+def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    d = se3_log(np.linalg.inv(T_true) @ T_est)
+    return float(np.degrees(np.abs(d[:3]).max())), float(np.abs(T_est[:3, 3] - T_true[:3, 3]).max())
+
+
+def test_recovers_perturbed_extrinsics_in_box_room() -> None:
+    kt, kp = walking_knots(duration=1.5)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS)
+    T0 = _perturbed(np.random.default_rng(3), 3.0, 0.05)
+    # wide priors and a weak motion prior (the gait is not constant-velocity): the data decide
+    wide = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
+    res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=wide)
+    for s in res.scanners[1:]:
+        e0 = _errors(T0[s.index], SCANNERS[s.index])
+        rot, tr = _errors(s.T_body_scanner, SCANNERS[s.index])
+        assert e0[0] > 0.5 and e0[1] > 0.01  # the perturbation was real
+        assert rot < 2e-4 and tr < 1e-5, (s.name, rot, tr)
+        assert np.sqrt(np.mean(s.residuals_after**2)) < 1e-5 < np.sqrt(np.mean(s.residuals_before**2))
+        assert s.covariance is not None and np.all(np.linalg.eigvalsh(s.covariance) > 0)
+    assert res.scanners[0].covariance is None
+    np.testing.assert_allclose(res.scanners[0].T_body_scanner, SCANNERS[0])
+
+
+def test_recovers_time_offset() -> None:
+    kt, kp = walking_knots(duration=1.5)
+    clock = (0.0, 0.003, -0.002)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS, clock_errors=clock)
+    T0 = _perturbed(np.random.default_rng(4), 1.0, 0.01)
+    cfg = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, time_offsets=True, sigma_time=0.02,
+                          motion=MotionPriorConfig(100.0, 100.0))
+    res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=cfg)
+    for s in res.scanners[1:]:
+        assert s.time_offset_sigma is not None
+        assert abs(s.time_offset - clock[s.index]) < 5e-5, (s.name, s.time_offset)
+        rot, tr = _errors(s.T_body_scanner, SCANNERS[s.index])
+        # small bias: a shifted beam time extrapolates its stamped interval's twist (module doc)
+        assert rot < 0.02 and tr < 2e-3
+
+
+def test_time_offset_factor_jacobians_match_numerical() -> None:
+    import gtsam
+    from gtsam.symbol_shorthand import D, E, P, X
+
+    from slam.factors import RobustKernel
+
+    rng = np.random.default_rng(0)
+    kt, kp = walking_knots(duration=0.1)
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose3(kp[0]))
+    v.insert(X(1), gtsam.Pose3(kp[1]))
+    v.insert(P(0), gtsam.OrientedPlane3(gtsam.Unit3(np.array([0.3, -0.2, 0.93])), 1.2))
+    v.insert(E(1), gtsam.Pose3(SCANNERS[1]))
+    v.insert(D(1), np.array([0.004]))
+    pts = rng.uniform(-3, 3, (5, 3))
+    pts[:, 2] = 0.0
+    f = timed_scanner_plane_factor(X(0), X(1), P(0), E(1), D(1), pts, rng.uniform(0, 1, 5),
+                                   kt[1] - kt[0], np.full(5, 0.003), RobustKernel("none"))
+    A = f.linearize(v).jacobian()[0]
+    eps = 1e-7
+    col = 0
+    for k, dim in zip([X(0), X(1), P(0), E(1), D(1)], [6, 6, 3, 6, 1], strict=True):
+        for c in range(dim):
+            d = np.zeros(dim)
+            d[c] = eps
+            vp, vm = gtsam.Values(v), gtsam.Values(v)
+            if dim == 1:
+                vp.update(k, v.atVector(k) + d)
+                vm.update(k, v.atVector(k) - d)
+            elif dim == 3:
+                vp.update(k, v.atOrientedPlane3(k).retract(d))
+                vm.update(k, v.atOrientedPlane3(k).retract(-d))
+            else:
+                vp.update(k, v.atPose3(k).retract(d))
+                vm.update(k, v.atPose3(k).retract(-d))
+            num = (f.unwhitenedError(vp) - f.unwhitenedError(vm)) / (2 * eps)
+            np.testing.assert_allclose(A[:, col], num, rtol=1e-5, atol=1e-3)  # whitened by 3 mm
+            col += 1
+
+
+def test_straight_corridor_reports_translation_along_it_unobservable() -> None:
+    t = np.arange(61) / 40.0
+    kp = np.array([_pose(np.array([0.02 * np.sin(2 * np.pi * a), 0.0, 0.0]),
+                         np.array([-2.0 + 1.2 * a, 0.1 * np.sin(a), 0.02 * np.sin(4 * np.pi * a)])) for a in t])
+    obs = scan_points(t, kp, CORRIDOR, SCANNERS)
+    res = estimate_extrinsics(t, kp, _planes(CORRIDOR), obs, list(SCANNERS), 0)
+    for s in res.scanners[1:]:
+        assert s.covariance is not None
+        p = parameter_sigmas(s.name, s.T_body_scanner, s.covariance, res.prior_sigmas)
+        assert "x" in p.unobservable, p
+        assert "z" not in p.unobservable and "roll" not in p.unobservable
+        with pytest.warns(UnobservableWarning, match=rf"scanner '{s.name}': parameter x "):
+            warn_unobservable(p)
+    # the box room constrains everything
+    kt, kpb = walking_knots(duration=1.5)
+    res = estimate_extrinsics(kt, kpb, _planes(BOX_PLANES), scan_points(kt, kpb, BOX_PLANES, SCANNERS),
+                              list(SCANNERS), 0)
+    for s in res.scanners[1:]:
+        assert s.covariance is not None
+        assert parameter_sigmas(s.name, s.T_body_scanner, s.covariance, res.prior_sigmas).unobservable == ()
+
+
+def test_rig_writer_round_trips(tmp_path: Path) -> None:
+    rig = resolve_rig("itc_backpack")
+    T = rig.scanner("left").T_body_scanner.matrix() @ se3_exp(np.array([0.01, -0.02, 0.03, 0.004, 0.005, -0.006]))
+    C = np.diag([1e-6, 2e-6, 3e-6, 1e-7, 2e-7, 3e-7])
+    C[0, 4] = C[4, 0] = 1e-8
+    new = updated_rig(rig, {"left": (T, C)}, {"left": 0.0015})
+    out = write_rig(tmp_path / "cal.yaml", new, header="test")
+    back = load_rig(out)
+    np.testing.assert_allclose(back.scanner("left").T_body_scanner.matrix(), T, atol=1e-12)
+    np.testing.assert_allclose(np.array(back.scanner("left").T_body_scanner.covariance), C)
+    assert back.scanner("left").time_offset == pytest.approx(0.0015)
+    assert back.scanner("right") == rig.scanner("right")
+    assert [p.name for p in tmp_path.iterdir()] == ["cal.yaml"]
+
+
+def test_cli_rejects_malformed_rig_naming_the_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nreference: top\nscanners:\n  - name: top\n    topic: /scan_top\n"
+                   "    T_body_scanner: {translation: [0, 0], rpy: [0, 0, 0]}\n")
+    bag = tmp_path / "none.bag"
+    assert main(["calibrate", str(bag), "--rig", str(bad), "--out", str(tmp_path / "o.yaml")]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "scanners.0.T_body_scanner.translation" in err[0] and str(bad) in err[0]
+    assert not (tmp_path / "o.yaml").exists()
+
+
+def test_no_observations_is_a_clear_error() -> None:
+    kt, kp = walking_knots(duration=0.2)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS)
+    with warnings.catch_warnings(), pytest.raises(ValueError, match="no points on known planes"):
+        estimate_extrinsics(kt, kp, {99: (np.array([0, 0, 1.0]), 1.0)}, obs, list(SCANNERS), 0)
