@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import gtsam
 import numpy as np
@@ -94,6 +94,7 @@ class BackendConfig:
     datum: Literal["pose", "position_yaw"] = "pose"
     datum_sigma: float = 1e-6
     datum_tilt_sigma: float = 0.1
+    vertical_sigma: float = 1e-3
     horizontal_sigma: float = 1e-3
     relinearize_threshold: float = 1e-3
     relinearize_skip: int = 1
@@ -169,6 +170,7 @@ class Backend:
         self._pending_removals: list[int] = []
         self._marginals: gtsam.Marginals | None = None
         self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
+        self._links: list[tuple[int, int, int]] = []  # (keep, drop, factor id) plane equality ties
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike,
@@ -222,9 +224,10 @@ class Backend:
         return i
 
     def add_plane(self, plane_id: int, normal_world: ArrayLike, offset: float,
-                  horizontal: bool = False) -> None:
+                  horizontal: bool = False, vertical: bool = False) -> None:
         """Add plane ``plane_id`` (int >= 0): ``normal_world . x + offset = 0`` (the normal is
-        normalised). ``horizontal`` adds a prior keeping it a floor/ceiling."""
+        normalised). ``horizontal`` adds a prior keeping it a floor/ceiling, ``vertical`` one
+        keeping it a wall (its normal horizontal: ``n_z = 0``)."""
         j = _plane_id(plane_id)
         if self._values.exists(P(j)):
             raise ValueError(f"plane_id: plane {j} already exists")
@@ -238,6 +241,9 @@ class Backend:
         if horizontal:
             self._plane_priors[j] = self._add_factor(
                 horizontal_plane_prior(P(j), n, self.config.horizontal_sigma))
+        elif vertical:
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, self.config.vertical_sigma)
+            self._plane_priors[j] = self._add_factor(gtsam.CustomFactor(noise, [P(j)], _vertical_error))
 
     def add_extrinsic(self, scanner: int, T_body_scanner: ArrayLike, sigma_rot: float,
                       sigma_trans: float) -> None:
@@ -348,6 +354,44 @@ class Backend:
         self._values.erase(P(drop))
         self._invalidate_isam()
         return len(moved)
+
+    def link_planes(self, keep_id: int, drop_id: int, sigma_angle: float = 1e-5,
+                    sigma_offset: float = 1e-5) -> int:
+        """Tie plane ``drop_id`` to ``keep_id`` with a tight equality factor: the incremental way to
+        merge (iSAM2 is not rebuilt); :meth:`merge_planes` can fold them for good later. Returns
+        the factor id. The residual is ``(B_keep^T n_drop, d_drop - d_keep)`` with the normals
+        oriented alike, ``B_keep`` the tangent basis of ``keep``'s normal."""
+        keep, drop = self._check_plane(keep_id), self._check_plane(drop_id)
+        if keep == drop:
+            raise ValueError(f"link_planes: cannot link plane {keep} with itself")
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, sigma_offset]))
+        fid = self._add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], _plane_equality_error))
+        self._links.append((keep, drop, fid))
+        return fid
+
+    def fold_links(self) -> dict[int, int]:
+        """Turn every :meth:`link_planes` tie into a real merge (blocks re-keyed onto the surviving
+        plane, linked variables removed). Returns dropped id -> surviving id. iSAM2 is rebuilt at
+        the next :meth:`update`; meant for the end of a run, before the batch."""
+        parent: dict[int, int] = {}
+
+        def root(j: int) -> int:
+            while parent.get(j, j) != j:
+                j = parent[j]
+            return j
+
+        for keep, drop, fid in self._links:
+            self._records.pop(fid, None)
+            rk, rd = root(keep), root(drop)
+            if rk != rd:
+                parent[rd] = rk
+        self._links = []
+        out = {j: root(j) for j in parent}
+        for drop, keep in out.items():
+            if drop != keep:
+                self.merge_planes(keep, drop)
+        self._invalidate_isam()
+        return out
 
     def remove_plane(self, plane_id: int) -> None:
         """Remove a plane with all its observation blocks and priors."""
@@ -649,6 +693,45 @@ def _plane_id(plane_id: int) -> int:
     if j < 0 or j >= 2**56:
         raise ValueError(f"plane_id: must be an integer in [0, 2^56), got {plane_id}")
     return j
+
+
+def _vertical_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+    """Wall prior: the z component of the plane's unit normal (world frame) is zero."""
+    u = v.atOrientedPlane3(this.keys()[0]).normal()
+    if H is not None:
+        B = u.basis()
+        H[0] = np.array([[B[2, 0], B[2, 1], 0.0]])
+    return np.array([u.point3()[2]])
+
+
+def _plane_residual(a: gtsam.OrientedPlane3, b: gtsam.OrientedPlane3) -> FloatArray:
+    na = a.normal().point3()
+    nb = b.normal().point3()
+    db = b.distance()
+    if float(na @ nb) < 0.0:  # the same plane with the opposite orientation
+        nb, db = -nb, -db
+    B = a.normal().basis()
+    return np.array([*(B.T @ nb), db - a.distance()])
+
+
+def _plane_equality_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+    """Equality of two planes (3 residuals); Jacobians by central differences on the manifold
+    (two planes per factor and few factors: cheaper to write than the Unit3 chain rule)."""
+    ka, kb = this.keys()[0], this.keys()[1]
+    a, b = v.atOrientedPlane3(ka), v.atOrientedPlane3(kb)
+    e = _plane_residual(a, b)
+    if H is not None:
+        h = 1e-7
+        Ha = np.zeros((3, 3))
+        Hb = np.zeros((3, 3))
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = h
+            Ha[:, i] = (_plane_residual(a.retract(d), b) - _plane_residual(a.retract(-d), b)) / (2 * h)
+            Hb[:, i] = (_plane_residual(a, b.retract(d)) - _plane_residual(a, b.retract(-d))) / (2 * h)
+        H[0] = Ha
+        H[1] = Hb
+    return e
 
 
 def _as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:

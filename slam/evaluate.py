@@ -185,6 +185,7 @@ def _evo_traj(times: FloatArray, T: FloatArray) -> Any:
 
 def _rpe(ref: Any, est: Any, delta: float, rotation: bool) -> Stats | None:
     from evo.core import metrics
+    from evo.core.filters import FilterException
     from evo.core.units import Unit
 
     relation = (
@@ -207,7 +208,7 @@ def _rpe(ref: Any, est: Any, delta: float, rotation: bool) -> Stats | None:
     )
     try:
         rpe.process_data((ref, est))
-    except metrics.MetricsException:
+    except (metrics.MetricsException, FilterException):
         return None  # walk shorter than delta
     return Stats.of(rpe.error) if len(rpe.error) else None
 

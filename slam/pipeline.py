@@ -45,7 +45,14 @@ from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool
-from slam.frontend.planemap import KIND_CEILING, KIND_FLOOR, KIND_NAMES, PlaneMap, classify
+from slam.frontend.planemap import (
+    KIND_CEILING,
+    KIND_FLOOR,
+    KIND_NAMES,
+    KIND_WALL,
+    PlaneMap,
+    classify,
+)
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 from slam.motion import MotionPriorConfig
@@ -122,6 +129,7 @@ class SlamRunner:
                 min_spread=fe.min_spread,
                 coplanar_distance=fe.coplanar_distance,
                 window=fe.pool_window,
+                vertical_walls=cfg.backend.vertical_walls,
             )
         )
         dt = 1.0 / cfg.trajectory.knot_rate
@@ -134,6 +142,7 @@ class SlamRunner:
                 relinearize_skip=be.relinearize_skip,
                 lm_relative_tolerance=1e-4,
                 horizontal_sigma=np.radians(be.horizontal_prior_deg),
+                vertical_sigma=np.radians(be.vertical_prior_deg),
             )
         )
         self.dt = dt
@@ -418,7 +427,10 @@ class SlamRunner:
         for plane in new:
             kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
             pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
-            self.backend.add_plane(pl.id, plane.normal, plane.d, horizontal=kind in (KIND_FLOOR, KIND_CEILING))
+            vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
+            self.backend.add_plane(
+                pl.id, plane.normal, plane.d, horizontal=kind in (KIND_FLOOR, KIND_CEILING), vertical=vertical
+            )
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
                 rec = by_serial.get(m.ref[0])
@@ -499,7 +511,7 @@ class SlamRunner:
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
-                self.backend.merge_planes(keep.id, drop.id)
+                self.backend.link_planes(keep.id, drop.id)
                 self.pmap.merge(keep.id, drop.id)
                 self.stats["planes_merged"] += 1
 
@@ -507,6 +519,7 @@ class SlamRunner:
     def result(self, batch: bool = True) -> SlamResult:
         t = _time.perf_counter()
         summary = None
+        self.backend.fold_links()
         if batch and self._n_knots >= 2:
             summary = self.backend.batch_optimize(self.cfg.backend.batch_iterations, graduated=False)
         self._timer.add("batch", t)

@@ -48,6 +48,8 @@ class PlaneInitParams:
     min_scan_plane_angle: float = np.radians(15.0)  # a plane this close to a member's scan plane is that scan plane
     window: float = 1.0  # s, pooled segments older than this are dropped
     max_partners: int = 4  # seed pairs tried per seed segment (nearest in distance first)
+    vertical_walls: bool = True  # allow walls from horizontal segments alone (kept vertical by a prior)
+    horizontal_tolerance: float = np.radians(3.0)  # a segment this close to horizontal counts as horizontal
 
 
 @dataclass
@@ -56,6 +58,7 @@ class NewPlane:
     d: float
     members: list[PooledSegment]
     rms: float
+    vertical_hypothesis: bool = False  # defined by horizontal segments + verticality
 
 
 @dataclass
@@ -142,7 +145,47 @@ class SegmentPool:
                 plane = self._grow(a, int(b), normals[b], near)
                 if plane is not None:
                     return plane
+            if p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance):
+                plane = self._vertical(a, near)
+                if plane is not None:
+                    return plane
         return None
+
+    def _vertical(self, a: int, near: NDArray[np.bool_]) -> NewPlane | None:
+        """A wall from horizontal segments alone (e.g. the horizontal scanner's lines on a wall it
+        faces, where bob gives no 2D spread): the vertical plane through the seed's line. The
+        caller must keep such a plane vertical (a prior), as its tilt about the line is unseen."""
+        p = self.params
+        items = self.items
+        ua = items[a].direction
+        n = np.cross(ua, np.array([0.0, 0.0, 1.0]))
+        n /= np.linalg.norm(n)
+        d = -float(n @ items[a].centroid)
+        members = []
+        for i in np.flatnonzero(near):
+            s = items[i]
+            if abs(float(s.direction[2])) > np.sin(p.horizontal_tolerance) or abs(float(s.direction @ n)) > np.sin(p.coplanar_angle):
+                continue
+            if np.max(np.abs(s.samples @ n + d)) > p.coplanar_distance:
+                continue
+            if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle):
+                continue
+            members.append(s)
+        if len(members) < p.min_support + 1 or len({s.scan_serial for s in members}) < p.min_scans + 1:
+            return None
+        pts = np.vstack([s.samples for s in members])
+        # refit the offset and the heading, keeping the normal horizontal
+        c = pts.mean(axis=0)
+        q = (pts - c)[:, :2]
+        _, _, vt = np.linalg.svd(q, full_matrices=False)
+        n2 = np.array([vt[1, 0], vt[1, 1], 0.0])
+        if n2 @ n < 0:
+            n2 = -n2
+        d2 = -float(n2 @ c)
+        res = pts @ n2 + d2
+        if np.max(np.abs(res)) > p.coplanar_distance * 1.5:
+            return None
+        return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))), vertical_hypothesis=True)
 
     def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_]) -> NewPlane | None:
         p = self.params
