@@ -40,7 +40,8 @@ class FrontEndConfig(StrictModel):
 
     point_sigma: float = Field(0.003, gt=0, description="range noise of one point (m)")
     sigma_pose: float = Field(0.004, gt=0, description="pose uncertainty at a segment for association (m)")
-    sigma_rotation_deg: float = Field(0.3, gt=0)
+    sigma_rotation_deg: float = Field(0.3, gt=0, description="rotation uncertainty in the angle test (deg)")
+    sigma_lever_deg: float = Field(0.05, gt=0, description="rotation uncertainty times range in the distance test (deg)")
     drift_rate: float = Field(0.003, ge=0, description="offset uncertainty per metre walked since a plane was seen")
     tracking_loosen: float = Field(8.0, ge=1, description="gate factor of the tracking (pre-)association")
     tracking_iterations: int = Field(3, ge=0)

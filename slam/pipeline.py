@@ -118,6 +118,7 @@ class SlamRunner:
         self.gates = Gates(
             sigma_pose=fe.sigma_pose,
             sigma_rotation=np.radians(fe.sigma_rotation_deg),
+            sigma_lever=np.radians(fe.sigma_lever_deg),
             drift_rate=fe.drift_rate,
             extent_margin_cells=fe.extent_margin_cells,
         )
@@ -288,7 +289,10 @@ class SlamRunner:
 
     def _associate_scan(self, p: _Pending, gates: Gates) -> NDArray[np.int64]:
         v_world, e_world = self._world_summaries(p)
-        ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points)
+        origin = self._pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3]
+        ws = world_segments(
+            v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
+        )
         ids = associate(ws, self.pmap, self._odometer, gates)
         ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
         return ids
@@ -366,8 +370,8 @@ class SlamRunner:
                 samples = self._place(segs.points_of(j)[::step], segs.times_of(j)[::step])
                 v_world, e_world = self._world_summaries_one(segs, int(j))
                 d = e_world[1] - e_world[0]
-                T_mid = self._pose_at(float(segs.virtual_times[j].mean()))
-                scan_normal = T_mid[:3, :3] @ self._T_body_scanner[segs.scanner][:3, 2]
+                T_mid = self._pose_at(float(segs.virtual_times[j].mean())) @ self._T_body_scanner[segs.scanner]
+                scan_normal = T_mid[:3, 2]
                 self.pool.add(
                     PooledSegment(
                         ref=(p.serial, int(j)),
@@ -378,6 +382,7 @@ class SlamRunner:
                         endpoints=e_world,
                         samples=samples,
                         scan_normal=scan_normal,
+                        origin=T_mid[:3, 3].copy(),
                     )
                 )
             self._done.append(p)
@@ -499,8 +504,7 @@ class SlamRunner:
             for b in self.pmap.planes:
                 if b.id == a.id or not b.active or not a.active:
                     continue
-                c = float(a.normal @ b.normal)
-                if abs(c) < cos_max:
+                if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall
                     continue
                 since = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
                 tol = fe.merge_distance + fe.drift_rate * since

@@ -40,6 +40,8 @@ class WorldSegments:
     endpoints: FloatArray  # (k, 2, 3)
     sigma_centroid: FloatArray  # (k,) m
     sigma_direction: FloatArray  # (k,) rad
+    range: FloatArray  # (k,) m, distance of the centroid from the scanner
+    origin: FloatArray  # (3,) the scanner's position, world frame
 
     @property
     def n(self) -> int:
@@ -51,10 +53,12 @@ class Gates:
     """Uncertainties added to every test, and the extent margin."""
 
     sigma_pose: float = 0.004  # m, current pose estimate at the segment
-    sigma_rotation: float = np.radians(0.3)  # rad
+    sigma_rotation: float = np.radians(0.3)  # rad, in the angle test
+    sigma_lever: float = np.radians(0.05)  # rad, rotation error times range in the distance test
     drift_rate: float = 0.003  # m of offset uncertainty per m walked since the plane was seen
     extent_margin_cells: int = 2
     max_extra_cells: int = 8  # cap of the drift-grown extent margin
+    max_drift_sigma: float = 0.05  # m, cap of the drift-grown offset uncertainty
     chi2: float = CHI2_2DOF_99
     max_endpoint_distance: float = 0.05  # m, hard cap on either endpoint's distance
 
@@ -62,17 +66,20 @@ class Gates:
         return Gates(
             self.sigma_pose * factor,
             self.sigma_rotation * factor,
+            self.sigma_lever * factor,
             self.drift_rate,
             self.extent_margin_cells,
             self.max_extra_cells,
+            self.max_drift_sigma,
             self.chi2,
             self.max_endpoint_distance * factor,
         )
 
 
 def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtual_sigma: FloatArray,
-                   point_sigma: float, n_points: NDArray[np.int64]) -> WorldSegments:
-    """Summaries from the virtual points (k, 2, 3) and endpoints (k, 2, 3) already placed in the world."""
+                   point_sigma: float, n_points: NDArray[np.int64], origin_world: FloatArray) -> WorldSegments:
+    """Summaries from the virtual points (k, 2, 3) and endpoints (k, 2, 3) already placed in the
+    world; ``origin_world`` (3,) is the scanner's position (for the rotation's lever arm)."""
     c = virtual_world.mean(axis=1)
     diff = endpoints_world[:, 1] - endpoints_world[:, 0]
     length = np.linalg.norm(diff, axis=1)
@@ -80,7 +87,8 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
     n = n_points.astype(np.float64)
     # TLS direction error: sigma / sqrt(sum s_i^2), sum s_i^2 ~ n L^2 / 12
     sig_dir = point_sigma / np.maximum(length * np.sqrt(n / 12.0), 1e-9)
-    return WorldSegments(c, u, endpoints_world, virtual_sigma / np.sqrt(2.0), sig_dir)
+    rng = np.linalg.norm(c - origin_world, axis=1)
+    return WorldSegments(c, u, endpoints_world, virtual_sigma / np.sqrt(2.0), sig_dir, rng, origin_world)
 
 
 def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
@@ -92,16 +100,23 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     normals, offs = pmap.arrays(ids)
     sig_plane = np.array([pmap.planes[i].sigma_offset for i in ids])
     since = np.array([odometer - pmap.planes[i].last_seen_odometer for i in ids])
-    sig_drift = gates.drift_rate * np.maximum(since, 0.0)
+    sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
     dist_c = segs.centroid @ normals.T + offs  # (k, P)
     sin_a = np.abs(segs.direction @ normals.T)
-    sig_d2 = segs.sigma_centroid[:, None] ** 2 + sig_plane[None] ** 2 + gates.sigma_pose**2 + sig_drift[None] ** 2
+    # a rotation error of the pose moves a segment by its range times the angle (lever arm)
+    lever = (gates.sigma_lever * segs.range) ** 2
+    sig_d2 = (
+        segs.sigma_centroid[:, None] ** 2 + sig_plane[None] ** 2 + gates.sigma_pose**2 + lever[:, None] + sig_drift[None] ** 2
+    )
     sig_a2 = segs.sigma_direction[:, None] ** 2 + gates.sigma_rotation**2 + (sig_drift[None] / 5.0) ** 2
     m2 = dist_c**2 / sig_d2 + sin_a**2 / sig_a2
     e0 = np.abs(segs.endpoints[:, 0] @ normals.T + offs)
     e1 = np.abs(segs.endpoints[:, 1] @ normals.T + offs)
-    cap = gates.max_endpoint_distance + 3.0 * sig_drift[None]
-    ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap)
+    cap = gates.max_endpoint_distance + 3.0 * sig_drift[None] + 3.0 * gates.sigma_lever * segs.range[:, None]
+    # map normals face the side they were seen from: the scanner must be on that side (this
+    # keeps the two faces of a thin wall apart)
+    facing = (normals @ segs.origin + offs) > 0.0
+    ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap) & facing[None, :]
     cell = pmap.cell_size
     for k in np.flatnonzero(ok.any(axis=1)):
         cand = np.flatnonzero(ok[k])

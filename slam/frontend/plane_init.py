@@ -33,6 +33,7 @@ class PooledSegment:
     endpoints: FloatArray  # (2, 3)
     samples: FloatArray  # (m, 3) points, world frame
     scan_normal: FloatArray  # (3,) normal of the scanner's scan plane, world frame
+    origin: FloatArray  # (3,) the scanner's position when it saw the segment, world frame
 
 
 @dataclass(frozen=True)
@@ -144,11 +145,11 @@ class SegmentPool:
             for b in cand[np.argsort(dist_b[cand])][: p.max_partners]:
                 plane = self._grow(a, int(b), normals[b], near)
                 if plane is not None:
-                    return plane
+                    return _facing(plane, items[a].origin)
             if p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance):
                 plane = self._vertical(a, near)
                 if plane is not None:
-                    return plane
+                    return _facing(plane, items[a].origin)
         return None
 
     def _vertical(self, a: int, near: NDArray[np.bool_]) -> NewPlane | None:
@@ -214,6 +215,13 @@ class SegmentPool:
         if np.max(np.abs(res)) > p.coplanar_distance * 1.5:
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))))
+
+
+def _facing(plane: NewPlane, origin: FloatArray) -> NewPlane:
+    """Orient the plane's normal towards the side it was seen from."""
+    if float(plane.normal @ origin) + plane.d < 0.0:
+        plane.normal, plane.d = -plane.normal, -plane.d
+    return plane
 
 
 def fit_plane(points: FloatArray) -> tuple[FloatArray, float, FloatArray]:
