@@ -8,7 +8,7 @@ parameters, so swapping segmenters is one line of configuration.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -60,7 +60,7 @@ class FrontEndConfig(StrictModel):
 class BackEndConfig(StrictModel):
     """Factor graph: noise, robust kernel, priors, update cadence."""
 
-    robust: str = Field("huber", pattern="^(none|huber|cauchy)$")
+    robust: Literal["none", "huber", "cauchy"] = "huber"
     robust_k: float = Field(2.5, gt=0, description="kernel width in sigmas")
     motion_sigma_acc: float = Field(3.0, gt=0, description="m/s^2, constant-velocity prior")
     motion_sigma_angacc: float = Field(10.0, gt=0, description="rad/s^2")

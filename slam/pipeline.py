@@ -136,7 +136,7 @@ class SlamRunner:
         dt = 1.0 / cfg.trajectory.knot_rate
         self.backend = Backend(
             BackendConfig(
-                kernel=RobustKernel(be.robust, be.robust_k) if be.robust != "none" else RobustKernel("none"),
+                kernel=RobustKernel(be.robust, be.robust_k),
                 motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
                 datum="position_yaw",
                 relinearize_threshold=be.relinearize_threshold,
@@ -355,7 +355,7 @@ class SlamRunner:
             ids = self._associate_scan(p, self.gates)
             p.plane_ids = ids
             segs = p.segs
-            for j in np.flatnonzero(ids >= 0):
+            for j in map(int, np.flatnonzero(ids >= 0)):
                 pid = int(ids[j])
                 self._observe(segs, j, pid, blocks)
                 pts = self._place(segs.points_of(j)[:: max(1, segs.n_points[j] // 8)], segs.times_of(j)[:: max(1, segs.n_points[j] // 8)])
@@ -365,7 +365,7 @@ class SlamRunner:
                 pl.last_seen_time = now
                 pl.last_seen_odometer = self._odometer
             self.stats["associated"] += int((ids >= 0).sum())
-            for j in np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points)):
+            for j in map(int, np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))):
                 step = max(1, int(segs.n_points[j]) // 12)
                 samples = self._place(segs.points_of(j)[::step], segs.times_of(j)[::step])
                 v_world, e_world = self._world_summaries_one(segs, int(j))

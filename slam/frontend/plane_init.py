@@ -76,7 +76,8 @@ class SegmentPool:
 
     def expire(self, now: float) -> list[PooledSegment]:
         """Drop and return segments older than the window."""
-        keep, gone = [], []
+        keep: list[PooledSegment] = []
+        gone: list[PooledSegment] = []
         for s in self.items:
             (keep if now - s.time <= self.params.window else gone).append(s)
         self.items = keep
