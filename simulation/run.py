@@ -286,7 +286,8 @@ def simulate(
             "start_time": base,
             "scanner_phase": dict(zip([s.name for s in rig_obj.scanners], phases, strict=True)),
             "counts": {"messages": counts, "scans": {s.name: int(st.size) for s, st in zip(rig_obj.scanners, stamps, strict=True)}, "rays": n_rays, "poses": len(traj.times)},
-            "config": cfg.model_dump(mode="json"),
+            # the config as run: the world and rig actually used, not the config's defaults
+            "config": {**cfg.model_dump(mode="json"), "world": world.name, "rig": rig_obj.name},
             "conventions": {
                 "ranges": "inf: no return (nothing hit or beyond range_max); NaN: dropout or closer than range_min",
                 "plane_id": "-1: invalid return; -2: mixed pixel",
