@@ -84,7 +84,7 @@ def run_cell(cell: Cell, out_dir: str) -> dict[str, Any]:
     row.update(status=STATUS_FAILED, stage="", error="")
     cell_dir = out / "cells" / cell.cell_id
     run_dir = (out / "runs" / cell.cell_id) if cell.keep_runs else (cell_dir / "run")
-    t_cell = time.perf_counter()
+    t_cell, cpu_cell = time.perf_counter(), time.process_time()
     stage = "config"
     try:
         true_rig = resolve_rig(cell.rig)
@@ -129,6 +129,8 @@ def run_cell(cell: Cell, out_dir: str) -> dict[str, Any]:
         if not cell.keep_runs:
             shutil.rmtree(run_dir, ignore_errors=True)
     row["t_cell_s"] = time.perf_counter() - t_cell
+    # CPU seconds of this worker: the cost of the cell on an idle core, whatever the load
+    row["cpu_cell_s"] = time.process_time() - cpu_cell
     return row
 
 

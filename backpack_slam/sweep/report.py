@@ -57,6 +57,7 @@ TIME = [
     Metric("seg_ms_per_scan", "segmentation time per scanline", "ms"),
     Metric("t_slam_segmentation_s", "segmentation time in SLAM", "s"),
     Metric("t_slam_s", "SLAM wall time", "s"),
+    Metric("cpu_cell_s", "CPU time per cell (simulation included when not cached)", "s"),
 ]
 
 
@@ -210,7 +211,9 @@ def write_report(out_dir: str | Path) -> Path:
         best = _ranking(ok)
         if best:
             lines += ["## Finding", "", *best, ""]
-        for title, metrics, png in groups:
+        for title, all_metrics, png in groups:
+            # a column no cell wrote (an older engine's table) gets no empty panel
+            metrics = [m for m in all_metrics if m.column in ok] or all_metrics
             summary = summarise(ok, metrics)
             plot_metrics(ok, summary, metrics, out / png, title)
             lines += [f"## {title}", "", f"![{title}]({png})", ""]
@@ -233,30 +236,37 @@ def write_report(out_dir: str | Path) -> Path:
     return path
 
 
+RANKED = [
+    (DRIFT[0], "ATE"),
+    (DRIFT[1], "RPE drift"),
+    (MAP[0], "cloud-to-mesh median"),
+]
+
+
 def _ranking(ok: pd.DataFrame) -> list[str]:
-    """Per condition, the variants ordered by mean ATE (and whether the best one's interval
-    overlaps the runner-up's), as plain sentences."""
+    """Per condition and ranked metric (ATE, RPE drift, map error), the variants ordered by
+    mean (lower is better) and whether the best one's interval overlaps the runner-up's, as
+    plain sentences."""
     out = []
-    summary = summarise(ok, [DRIFT[0], MAP[0]])
+    summary = summarise(ok, [m for m, _ in RANKED])
     for cond, sub in summary.groupby([*CONDITION], sort=True, dropna=False):
-        sub = sub[np.isfinite(sub["ate_rmse_m"])].sort_values("ate_rmse_m")
-        if sub.empty:
-            continue
         label = condition_label(dict(zip(CONDITION, cond, strict=True)))
-        b = sub.iloc[0]
-        text = f"- {label}: lowest mean ATE {fmt(b['ate_rmse_m'], b['ate_rmse_m_ci'])} cm with **{b['variant']}**"
-        if len(sub) > 1:
-            r = sub.iloc[1]
-            overlap = (
-                not math.isfinite(b["ate_rmse_m_ci"])
-                or not math.isfinite(r["ate_rmse_m_ci"])
-                or b["ate_rmse_m"] + b["ate_rmse_m_ci"] >= r["ate_rmse_m"] - r["ate_rmse_m_ci"]
-            )
-            text += (
-                f"; runner-up {r['variant']} {fmt(r['ate_rmse_m'], r['ate_rmse_m_ci'])} cm"
-                + (" (confidence intervals overlap: not a significant difference)" if overlap else " (intervals disjoint)")
-            )
-        w = sub.iloc[-1]
-        text += f"; worst {w['variant']} {fmt(w['ate_rmse_m'], w['ate_rmse_m_ci'])} cm."
-        out.append(text)
+        for m, name in RANKED:
+            col, ci = m.column, m.column + "_ci"
+            ranked = sub[np.isfinite(sub[col])].sort_values(col)
+            if ranked.empty:
+                continue
+            b = ranked.iloc[0]
+            text = f"- {label}: lowest mean {name} {fmt(b[col], b[ci])} {m.unit} with **{b['variant']}**"
+            if len(ranked) > 1:
+                r = ranked.iloc[1]
+                overlap = (
+                    not math.isfinite(b[ci]) or not math.isfinite(r[ci]) or b[col] + b[ci] >= r[col] - r[ci]
+                )
+                text += f"; runner-up {r['variant']} {fmt(r[col], r[ci])} {m.unit}" + (
+                    " (confidence intervals overlap: not a significant difference)" if overlap else " (intervals disjoint)"
+                )
+            w = ranked.iloc[-1]
+            text += f"; worst {w['variant']} {fmt(w[col], w[ci])} {m.unit}."
+            out.append(text)
     return out
