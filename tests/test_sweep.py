@@ -285,6 +285,7 @@ def test_real_cell_end_to_end_is_recorded(tmp_path: Path) -> None:
     assert s.n_ok + s.n_failed == 1
     row = read_results(results_path(out)).iloc[0]
     assert row["cell_id"] == cells[0].cell_id and row["sim_cached"] == False  # noqa: E712
+    assert 0 < row["cpu_cell_s"] and np.isfinite(row["t_cell_s"])
     assert (out / "cache" / cells[0].sim_key / "run.bag").is_file()
     assert not (out / "cells" / cells[0].cell_id / "run").exists()  # run folders are not kept
     if row["status"] == "ok":
@@ -327,6 +328,9 @@ def test_report_on_a_hand_made_table(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert f"| ror sigma=0.0095 | 3 | 1.200 ± {half:.3f} |" in md
     assert "| ror sigma=0.011 | 3 | 2.000 ± 0.000 |" in md
     assert "lowest mean ATE 1.200" in md and "**ror sigma=0.0095**" in md
+    # map error (cloud_median = ATE / 10, in mm): ranked too; iepf's interval is disjoint from the best
+    assert "lowest mean cloud-to-mesh median 1.200" in md and "worst iepf 6.000" in md
+    assert "runner-up ror sigma=0.011 2.000 ± 0.000 mm (intervals disjoint)" in md
     assert "| iepf | demo | 3 | 3 | slam | RuntimeError: diverged |" in md
     for png in ("drift.png", "map_error.png", "segmentation.png", "time.png"):
         assert (tmp_path / png).stat().st_size > 1000 and f"]({png})" in md
