@@ -1,0 +1,208 @@
+"""SLAM benchmark on a simulated walk through the ``office`` world (issue 4's goals).
+
+Simulates the walk once (or reuses the bag in ``--cache``), runs SLAM with each segmenter of
+``--segmenters`` (RoR first by default) on that same bag, each in a fresh child process so that
+its peak memory (``ru_maxrss``) is its own, evaluates every run against the ground truth and
+prints one markdown table: time per stage (``summary.json`` timings), total, ratio to real time,
+peak memory, and the accuracy figures, with the goals marked reached or not.
+
+Usage:
+    .venv/bin/python scripts/bench_slam.py [--duration 600] [--cache DIR] [--out DIR]
+        [--segmenters ror,split_and_merge,...] [--seed 1] [--markdown FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+STAGES = ("segmentation", "frontend", "tracking", "association", "plane_creation", "backend", "batch", "export")
+GOALS = {  # issue 4, office 10 min walk
+    "ate": ("ATE RMSE (start-aligned)", 0.01, "m"),
+    "cloud_median": ("cloud-to-mesh median", 0.005, "m"),
+    "cloud_p95": ("cloud-to-mesh p95", 0.02, "m"),
+    "plane_angle_max": ("plane angle error (max)", 0.1, "deg"),
+    "speed": (">= 2x real time", 2.0, "x"),
+    "memory": ("peak memory < 4 GB", 4.0, "GB"),
+}
+
+
+def _child(bag: str, gt: str, method: str, out: str) -> None:
+    """One SLAM run + evaluation in this process; prints one JSON line with the figures."""
+    from backpack_slam.rig import resolve_rig
+    from slam.config import SlamConfig
+    from slam.evaluate import Stats, evaluate
+    from slam.run import run_slam
+
+    cfg = SlamConfig.model_validate({"segmenter": {"method": method}})
+    summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=True)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
+    res = evaluate(out, gt)
+    tr = res.trajectory
+    row: dict[str, Any] = {
+        "method": method,
+        "timings": summary["timings"],
+        "data_duration": summary["data_duration"],
+        "realtime_factor": summary["realtime_factor"],
+        "peak_bytes": peak,
+        "counts": summary["counts"],
+        "path_length": tr.path_length,
+        "ate": tr.ate["start_aligned"].rmse,
+        "ate_se3": tr.ate["se3_aligned"].rmse,
+        "rpe_1m": tr.rpe_1m.mean if tr.rpe_1m else float("nan"),
+        "rpe_10m": tr.rpe_10m.mean if tr.rpe_10m else float("nan"),
+        "drift_endpoint": tr.drift_endpoint_per_100m,
+        "drift_rpe": tr.drift_rpe_per_100m,
+        "drift_rot": tr.rot_drift_deg_per_100m,
+    }
+    if res.cloud is not None:
+        d = Stats.of(res.cloud.distances)
+        row |= {"cloud_median": d.median, "cloud_p95": d.p95}
+    if res.planes is not None:
+        a = res.planes.angle
+        row |= {"plane_angle_median": a.median, "plane_angle_p95": a.p95, "plane_angle_max": a.max,
+                "plane_offset_median": res.planes.offset.median, "planes_matched": len(res.planes.matches)}
+    if res.association is not None:
+        row |= {"assoc_associated": res.association.fraction_associated,
+                "assoc_correct_of_associated": res.association.fraction_correct_of_associated}
+    print("BENCH_ROW " + json.dumps(row))
+
+
+def _bag(cache: Path, duration: float, seed: int) -> tuple[Path, Path]:
+    from simulation.run import gt_dir_for, simulate
+
+    cache.mkdir(parents=True, exist_ok=True)
+    bag = cache / f"office_{duration:g}s_seed{seed}.bag"
+    gt = gt_dir_for(bag)
+    if bag.is_file() and (gt / "meta.json").is_file():
+        print(f"reusing {bag}", flush=True)
+        return bag, gt
+    print(f"simulating {duration:g} s in the office world -> {bag}", flush=True)
+    sim = simulate("office", "itc_backpack", duration=duration, seed=seed, out=bag, fmt="ros1", progress=True)
+    print(f"  {sim.n_rays / 1e6:.1f} M rays in {sim.wall_time:.1f} s", flush=True)
+    return sim.bag, sim.gt
+
+
+def _fmt(v: Any, scale: float = 1.0, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and v != v):
+        return "-"
+    return f"{v * scale:.{digits}f}"
+
+
+def table(rows: list[dict[str, Any]], duration: float) -> str:
+    """The markdown table: one column per segmenter."""
+    head = "| | " + " | ".join(r["method"] for r in rows) + " |"
+    sep = "|---|" + "---:|" * len(rows)
+    lines = [head, sep]
+
+    def add(name: str, vals: list[str]) -> None:
+        lines.append(f"| {name} | " + " | ".join(vals) + " |")
+
+    for st in STAGES:
+        add(f"time: {st} (s)", [_fmt(r["timings"].get(st), 1, 1) for r in rows])
+    add("**time: total wall (s)**", [_fmt(r["timings"]["wall"], 1, 1) for r in rows])
+    add("data duration (s)", [_fmt(r["data_duration"], 1, 1) for r in rows])
+    add("**speed (x real time)**", [_fmt(r["realtime_factor"]) for r in rows])
+    add("**peak memory (GB)**", [_fmt(r["peak_bytes"], 1e-9) for r in rows])
+    add("knots / planes / merged", [f"{r['counts']['knots']} / {r['counts']['planes']} / {r['counts']['planes_merged']}" for r in rows])
+    add("path length (m)", [_fmt(r["path_length"], 1, 1) for r in rows])
+    add("**ATE RMSE start-aligned (mm)**", [_fmt(r["ate"], 1e3) for r in rows])
+    add("ATE RMSE SE(3)-aligned (mm)", [_fmt(r["ate_se3"], 1e3) for r in rows])
+    add("RPE 1 m, mean (mm)", [_fmt(r["rpe_1m"], 1e3) for r in rows])
+    add("RPE 10 m, mean (mm)", [_fmt(r["rpe_10m"], 1e3) for r in rows])
+    add("drift per 100 m: endpoint (%)", [_fmt(r["drift_endpoint"], 1, 4) for r in rows])
+    add("drift per 100 m: RPE (%)", [_fmt(r["drift_rpe"], 1, 4) for r in rows])
+    add("rotation drift (deg / 100 m)", [_fmt(r["drift_rot"], 1, 4) for r in rows])
+    add("**cloud-to-mesh median (mm)**", [_fmt(r.get("cloud_median"), 1e3) for r in rows])
+    add("**cloud-to-mesh p95 (mm)**", [_fmt(r.get("cloud_p95"), 1e3) for r in rows])
+    add("plane angle median (deg)", [_fmt(r.get("plane_angle_median"), 1, 4) for r in rows])
+    add("plane angle p95 (deg)", [_fmt(r.get("plane_angle_p95"), 1, 4) for r in rows])
+    add("**plane angle max (deg)**", [_fmt(r.get("plane_angle_max"), 1, 4) for r in rows])
+    add("plane offset median (mm)", [_fmt(r.get("plane_offset_median"), 1e3) for r in rows])
+    add("segments associated (%)", [_fmt(r.get("assoc_associated"), 100, 1) for r in rows])
+    add("association correct of associated (%)", [_fmt(r.get("assoc_correct_of_associated"), 100, 2) for r in rows])
+    return "\n".join(lines)
+
+
+def goals(rows: list[dict[str, Any]]) -> str:
+    """Which of issue 4's goals each run reaches."""
+    lines = ["| goal | " + " | ".join(r["method"] for r in rows) + " |", "|---|" + "---|" * len(rows)]
+    for key, (name, limit, _unit) in GOALS.items():
+        vals = []
+        for r in rows:
+            if key == "speed":
+                v, ok = r["realtime_factor"], r["realtime_factor"] >= limit
+                vals.append(f"{'reached' if ok else 'NOT reached'} ({v:.2f}x)")
+                continue
+            if key == "memory":
+                v = r["peak_bytes"] * 1e-9
+                vals.append(f"{'reached' if v < limit else 'NOT reached'} ({v:.2f} GB)")
+                continue
+            v = r.get(key)
+            if v is None:
+                vals.append("-")
+                continue
+            scale = 1e3 if _unit == "m" else 1.0
+            shown = f"{v * scale:.2f} {'mm' if _unit == 'm' else _unit}"
+            vals.append(f"{'reached' if v < limit else 'NOT reached'} ({shown})")
+        lines.append(f"| {name} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=600.0, help="seconds of walking (default 600)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/bench_slam_cache"), help="folder of cached bags")
+    ap.add_argument("--out", type=Path, default=None, help="run folders (default: <cache>/runs_<duration>s)")
+    ap.add_argument("--segmenters", default="ror", help="comma-separated segmenter names (default: ror)")
+    ap.add_argument("--markdown", type=Path, default=None, help="also write the tables to this file")
+    ap.add_argument("--child", nargs=4, metavar=("BAG", "GT", "METHOD", "OUT"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        _child(*args.child)
+        return 0
+    if not args.duration > 0:
+        ap.error(f"--duration {args.duration}: must be > 0")
+    import segmentation
+
+    methods = [m.strip() for m in args.segmenters.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in segmentation.available()]
+    if unknown:
+        ap.error(f"--segmenters: unknown {', '.join(unknown)} (available: {', '.join(segmentation.available())})")
+    bag, gt = _bag(args.cache, args.duration, args.seed)
+    out = args.out or args.cache / f"runs_{args.duration:g}s_seed{args.seed}"
+    rows = []
+    for m in methods:
+        print(f"SLAM with {m} ...", flush=True)
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            [sys.executable, __file__, "--child", str(bag), str(gt), m, str(out / m)],
+            stdout=subprocess.PIPE, text=True, check=False,
+        )
+        line = next((ln for ln in proc.stdout.splitlines() if ln.startswith("BENCH_ROW ")), None)
+        if proc.returncode != 0 or line is None:
+            print(f"  {m}: failed (exit {proc.returncode})", file=sys.stderr)
+            continue
+        rows.append(json.loads(line[len("BENCH_ROW "):]))
+        print(f"  done in {time.perf_counter() - t0:.0f} s (incl. evaluation)", flush=True)
+    if not rows:
+        return 1
+    text = (
+        f"office world, {args.duration:g} s walk (seed {args.seed}), bag {bag}\n\n"
+        + table(rows, args.duration) + "\n\nGoals (issue 4):\n\n" + goals(rows) + "\n"
+    )
+    print(text)
+    if args.markdown:
+        args.markdown.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,213 @@
+"""End-to-end tests of the SLAM pipeline on simulated bags (slam.pipeline, slam.run).
+
+Worlds are small YAML files written into a temporary folder; bags are simulated once per
+module and shared. Long walks (the demo, office) live in scripts/bench_slam.py.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import segmentation
+from backpack_slam.rig import resolve_rig
+from simulation.run import SimulationResult, simulate
+from simulation.scanner import ScannerNoiseConfig
+from slam.config import SlamConfig
+from slam.evaluate import evaluate
+from slam.export import read_planes_json, read_segments_npz
+from slam.run import run_slam
+
+# an 8 x 6 m box room (2.8 m ceiling) with a short walk across it
+BOX_WORLD = """
+name: box
+floor_z: 0.0
+ceiling_z: 2.8
+spaces:
+  - {name: room, rect: [0.0, 0.0, 8.0, 6.0]}
+walk:
+  speed: 1.2
+  waypoints:
+    - [1.5, 1.5]
+    - [6.0, 2.0]
+    - [6.0, 4.5]
+"""
+
+# a ring corridor (1.8 m wide) round a solid 3 x 2 m block: a closed walk on which the walls
+# of the start corridor leave the view and come back
+RING_WORLD = """
+name: ring
+floor_z: 0.0
+ceiling_z: 2.6
+spaces:
+  - {name: south, rect: [0.0, 0.0, 6.6, 1.8]}
+  - {name: north, rect: [0.0, 3.8, 6.6, 5.6]}
+  - {name: west, rect: [0.0, 1.8, 1.8, 3.8]}
+  - {name: east, rect: [4.8, 1.8, 6.6, 3.8]}
+walk:
+  speed: 1.2
+  closed: true
+  waypoints:
+    - [0.9, 0.9]
+    - [5.7, 0.9]
+    - [5.7, 4.7]
+    - [0.9, 4.7]
+"""
+
+NO_NOISE = ScannerNoiseConfig(enabled=False)
+
+
+def _fast(cfg: SlamConfig | None = None) -> SlamConfig:
+    """Config without cloud and rerun outputs (the run-command test writes them)."""
+    cfg = cfg or SlamConfig()
+    return cfg.model_copy(update={"output": cfg.output.model_copy(update={"cloud": False, "rerun": False})})
+
+
+def _simulate(folder: Path, name: str, text: str, duration: float, noise: ScannerNoiseConfig | None) -> SimulationResult:
+    world = folder / f"{name}.yaml"
+    world.write_text(text)
+    return simulate(world, "itc_backpack", duration=duration, seed=3, out=folder / f"{name}.bag", noise=noise, progress=False)
+
+
+@pytest.fixture(scope="module")
+def rig() -> Any:
+    return resolve_rig("itc_backpack")
+
+
+@pytest.fixture(scope="module")
+def box_clean(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _simulate(tmp_path_factory.mktemp("box_clean"), "box", BOX_WORLD, 4.0, NO_NOISE)
+
+
+@pytest.fixture(scope="module")
+def box_noisy(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    """2.5 s of walking with the default scanner noise: shared by every segmenter."""
+    return _simulate(tmp_path_factory.mktemp("box_noisy"), "box", BOX_WORLD, 2.5, None)
+
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _simulate(tmp_path_factory.mktemp("ring"), "ring", RING_WORLD, 14.5, None)
+
+
+def test_noise_free_box_walk_recovers_the_trajectory(box_clean: SimulationResult, rig: Any, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    run_slam(box_clean.bag, rig, _fast(), run_dir, progress=False)
+    res = evaluate(run_dir, box_clean.gt)
+    ate = res.trajectory.ate["start_aligned"]
+    assert ate.rmse < 1e-3, f"ATE {1000 * ate.rmse:.2f} mm"
+    assert ate.max < 2e-3
+    assert res.planes is not None
+    assert res.planes.angle.max < 0.05  # deg
+
+
+@pytest.mark.parametrize("method", segmentation.available())
+def test_every_segmenter_runs_end_to_end(method: str, box_noisy: SimulationResult, rig: Any, tmp_path: Path) -> None:
+    cfg = _fast(SlamConfig.model_validate({"segmenter": {"method": method}}))
+    summary = run_slam(box_noisy.bag, rig, cfg, tmp_path / "run", progress=False)
+    c = summary["counts"]
+    assert c["knots"] >= 2.5 * cfg.trajectory.knot_rate - 1
+    assert c["planes"] >= 3, c
+    assert c["segments_associated"] > 0.3 * c["segments"], c
+    res = evaluate(tmp_path / "run", box_noisy.gt)
+    assert np.isfinite(res.trajectory.ate["start_aligned"].rmse)
+    assert res.trajectory.ate["start_aligned"].rmse < 0.05, method  # a sane trajectory, not a benchmark
+
+
+def test_loop_closes_onto_the_start_planes(ring: SimulationResult, rig: Any, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    summary = run_slam(ring.bag, rig, _fast(), run_dir, progress=False)
+    segs = read_segments_npz(run_dir / "segments.npz")
+    t0 = float(segs.stamp.min())
+    # the planes that segments of the first 1.5 s went to (all walls of the start corridor)
+    early = set(np.unique(segs.plane_id[(segs.stamp < t0 + 1.5) & (segs.plane_id >= 0)]).tolist())
+    assert early
+    late = (segs.stamp > float(segs.stamp.max()) - 1.0) & (segs.plane_id >= 0)
+    assert late.sum() > 0
+    on_early = np.isin(segs.plane_id[late], list(early))
+    assert on_early.mean() > 0.8, f"{on_early.mean():.2f} of the last second's segments on start planes"
+    # nothing between them: some planes of the start are not seen half way round
+    mid = (np.abs(segs.stamp - (t0 + 7.0)) < 1.0) & (segs.plane_id >= 0)
+    walls_only = {int(p["id"]) for p in _planes(run_dir) if p["kind"] == "wall"}
+    assert (early & walls_only) - set(segs.plane_id[mid].tolist()), "no start wall leaves the view: not a loop"
+    # duplicates: merged, or never created (each true plane has one estimated plane)
+    res = evaluate(run_dir, ring.gt)
+    assert res.association is not None and res.planes is not None
+    assert res.association.fraction_correct_of_associated > 0.97
+    true_of = [m.true_id for m in res.planes.matches]
+    dup = {t for t in true_of if true_of.count(t) > 1}
+    assert summary["counts"]["planes_merged"] > 0 or not dup, f"duplicated true planes {dup}"
+    assert res.trajectory.ate["start_aligned"].rmse < 0.01
+
+
+def _planes(run_dir: Path) -> list[dict[str, Any]]:
+    return [{"id": p.id, "kind": p.kind} for p in read_planes_json(run_dir / "planes.json")]
+
+
+def test_run_command_writes_every_output(box_noisy: SimulationResult, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from backpack_slam.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", str(box_noisy.bag), "--out", str(out), "--quiet"]) == 0
+    for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert "outputs:" in capsys.readouterr().out
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folders left
+
+
+def test_bag_without_the_rig_topics_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from backpack_slam.cli import main
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    bag = tmp_path / "other.bag"
+    with Writer(bag) as w:
+        Str = ts.types["std_msgs/msg/String"]
+        conn = w.add_connection("/chatter", Str.__msgtype__, typestore=ts)
+        w.write(conn, 1_000_000_000, ts.serialize_ros1(Str(data="hi"), Str.__msgtype__))
+    out = tmp_path / "run"
+    assert main(["run", str(bag), "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "other.bag" in err and "/scan" in err, err  # names the bag and a missing topic
+    assert not out.exists()
+
+
+def test_interrupted_run_leaves_no_output(box_noisy: SimulationResult, rig: Any, tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    from slam.pipeline import SlamRunner
+
+    calls = {"n": 0}
+    original = SlamRunner.add_scan
+
+    def interrupted(self: SlamRunner, line: Any) -> None:
+        calls["n"] += 1
+        if calls["n"] == 50:
+            raise KeyboardInterrupt
+        original(self, line)
+
+    monkeypatch.setattr(SlamRunner, "add_scan", interrupted)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(box_noisy.bag, rig, SlamConfig(), out, progress=False)
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+
+    # interrupted while writing the outputs: no half-written folder either, an old one survives
+    monkeypatch.setattr(SlamRunner, "add_scan", original)
+    out.mkdir()
+    (out / "keep.txt").write_text("old run")
+
+    def broken(*args: Any, **kwargs: Any) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("slam.run.write_map_rrd", broken)
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(box_noisy.bag, rig, SlamConfig(), out, progress=False)
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert (out / "keep.txt").read_text() == "old run"
