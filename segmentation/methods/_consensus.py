@@ -96,3 +96,23 @@ def discard_inliers(inl: BoolArray, alive: BoolArray) -> int:
             alive[i] = False
             n += 1
     return n
+
+
+@nb.njit(cache=True)
+def can_take_more(alive: BoolArray, step_ok: BoolArray, min_len: int) -> bool:
+    """Whether some ``min_len`` consecutive points are all alive with no step over ``max_gap``.
+
+    ``step_ok[i]``: point i is within ``max_gap`` of point i - 1 (``gaps_ok``).
+    Every run ``take_runs`` can take is such a stretch, so when none is left
+    no further segment can be found and the extraction may stop: the labels
+    are those it would end with anyway.
+    """
+    run = 0
+    for i in range(alive.shape[0]):
+        if not alive[i]:
+            run = 0
+            continue
+        run = run + 1 if run > 0 and step_ok[i] else 1
+        if run >= min_len:
+            return True
+    return False

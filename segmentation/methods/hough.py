@@ -26,10 +26,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
-from segmentation.methods._consensus import BoolArray, refine_line, take_runs
+from segmentation.methods._consensus import BoolArray, can_take_more, refine_line, take_runs
+from segmentation.methods._incremental import gaps_ok
 from segmentation.registry import register
 
-Votes = NDArray[np.int32]
+Cells = NDArray[np.int32]
+SUPPRESSED = 1 << 30  # subtracted from a suppressed cell's votes: withdrawals still count down
 
 
 @dataclass(frozen=True)
@@ -51,39 +53,84 @@ class HoughParams(CommonParams):
 
 
 @nb.njit(cache=True)
-def _vote(acc: Votes, ct: FloatArray, st: FloatArray, x: float, y: float, r_max: float,
-          inv_res: float, w: int) -> None:
-    for k in range(ct.shape[0]):
-        acc[k, int((x * ct[k] + y * st[k] + r_max) * inv_res)] += w
+def _rho_bins(x: FloatArray, y: FloatArray, ct: FloatArray, st: FloatArray, r_max: float,
+              inv_res: float) -> Cells:
+    """``bins[k, i]``: the rho cell point i votes for in theta row k (cells ``rho_res`` wide from -r_max)."""
+    n_t = ct.shape[0]
+    m = x.shape[0]
+    bins = np.empty((n_t, m), dtype=np.int32)
+    for k in range(n_t):
+        c = ct[k]
+        s = st[k]
+        for i in range(m):
+            bins[k, i] = np.int32((x[i] * c + y[i] * s + r_max) * inv_res)
+    return bins
 
 
 @nb.njit(cache=True)
-def _peak(acc: Votes, suppressed: BoolArray, row_bound: IntArray) -> tuple[int, int, int]:
-    """Highest unsuppressed cell (ties: lowest theta, then lowest rho) as (votes, theta bin, rho bin).
+def _row_extent(bins: Cells) -> tuple[IntArray, IntArray, IntArray]:
+    """Accumulator layout: row k holds only the rho cells its points reach.
 
-    ``row_bound[k]`` is an upper bound of row k's highest count (votes only
-    ever decrease); rows are rescanned in decreasing bound order until no
-    bound can beat the best found, so few rows are read per peak.
+    Returns (row_base, row_lo, row_len): cell (k, b) is ``votes[row_base[k] + b]``, row k
+    spans bins row_lo[k] .. row_lo[k] + row_len[k] - 1. Long-range scans make few votes
+    over a wide rho range: the rows follow the data, not twice the farthest range.
     """
-    order = np.argsort(-row_bound, kind="mergesort")
+    n_t, m = bins.shape
+    row_base = np.empty(n_t, dtype=np.int64)
+    row_lo = np.empty(n_t, dtype=np.int64)
+    row_len = np.empty(n_t, dtype=np.int64)
+    total = 0
+    for k in range(n_t):
+        lo = bins[k, 0]
+        hi = bins[k, 0]
+        for i in range(1, m):
+            lo = min(lo, bins[k, i])
+            hi = max(hi, bins[k, i])
+        row_lo[k] = lo
+        row_len[k] = hi - lo + 1
+        row_base[k] = total - lo
+        total += hi - lo + 1
+    return row_base, row_lo, row_len
+
+
+@nb.njit(cache=True)
+def _count_row(bins: Cells, k: int, alive_idx: IntArray, n_alive: int, votes: Cells, suppressed: BoolArray,
+               base: int, lo: int, length: int) -> tuple[int, int]:
+    """Recount row k's votes (cells ``votes[base + lo]`` on) from the alive points; its highest
+    unsuppressed cell (ties: lowest rho) as (votes, offset in the row), suppressed cells held at -1."""
+    first = base + lo
+    for c in range(length):
+        votes[first + c] = 0
+    row = bins[k]
+    # two interleaved halves: consecutive points of a wall share a cell, and back-to-back
+    # increments of one cell would wait on each other
+    half = n_alive // 2
+    for t in range(half):
+        votes[base + row[alive_idx[t]]] += 1
+        votes[base + row[alive_idx[t + half]]] += 1
+    if n_alive % 2:
+        votes[base + row[alive_idx[n_alive - 1]]] += 1
     best = -1
-    kb = 0
-    bb = 0
-    for k in order:
-        if row_bound[k] < best or (row_bound[k] == best and k > kb):
-            break
-        row_best = -1
-        row_arg = 0
-        for b in range(acc.shape[1]):
-            if acc[k, b] > row_best and not suppressed[k, b]:
-                row_best = acc[k, b]
-                row_arg = b
-        row_bound[k] = row_best
-        if row_best > best or (row_best == best and k < kb):
-            best = row_best
-            kb = k
-            bb = row_arg
-    return best, kb, bb
+    arg = 0
+    for c in range(length):
+        if suppressed[first + c]:
+            votes[first + c] = -1
+        elif votes[first + c] > best:
+            best = votes[first + c]
+            arg = c
+    return best, arg
+
+
+@nb.njit(cache=True)
+def _row_peak(votes: Cells, first: int, length: int) -> tuple[int, int]:
+    """Highest cell of a row starting at ``votes[first]`` (ties: lowest rho) as (votes, offset)."""
+    best = votes[first]
+    arg = 0
+    for c in range(1, length):
+        if votes[first + c] > best:
+            best = votes[first + c]
+            arg = c
+    return best, arg
 
 
 @nb.njit(cache=True)
@@ -99,32 +146,59 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
     for i in range(m):
         r_max = max(r_max, np.hypot(points[i, 0], points[i, 1]))
     r_max += rho_res
-    n_r = int(2.0 * r_max / rho_res) + 2
-    inv_res = 1.0 / rho_res
-    acc = np.zeros((n_t, n_r), dtype=np.int32)
-    suppressed = np.zeros((n_t, n_r), dtype=np.bool_)
-    for i in range(m):
-        _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, inv_res, 1)
-    row_bound = np.full(n_t, m, dtype=np.int64)
+    bins = _rho_bins(np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]), ct, st, r_max,
+                     1.0 / rho_res)
+    row_base, row_lo, row_len = _row_extent(bins)
+    total = row_base[n_t - 1] + row_lo[n_t - 1] + row_len[n_t - 1]
+    votes = np.empty(total, dtype=np.int32)
+    suppressed = np.zeros(total, dtype=np.bool_)
+    alive_idx = np.arange(m)
+    n_alive = m
+    # Votes are withdrawn lazily: after a take, a row's stored counts (and so row_max[k])
+    # are upper bounds until the row is recounted from the alive points (fresh[k]).
+    row_max = np.empty(n_t, dtype=np.int64)
+    row_arg = np.empty(n_t, dtype=np.int64)
+    fresh = np.ones(n_t, dtype=np.bool_)
+    for k in range(n_t):
+        row_max[k], row_arg[k] = _count_row(bins, k, alive_idx, n_alive, votes, suppressed,
+                                            row_base[k], row_lo[k], row_len[k])
+    step_ok = gaps_ok(points, max_gap)
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
     inl = np.zeros(m, dtype=np.bool_)
     seg = 0
-    while True:
-        best, kb, bb = _peak(acc, suppressed, row_bound)
-        if best < min_votes:
+    while can_take_more(alive, step_ok, min_len):
+        # highest peak, ties: lowest theta (then lowest rho: row_arg); a fresh winner beats
+        # every other row's upper bound, so it is the exact peak
+        while True:
+            kb = 0
+            for k in range(1, n_t):
+                if row_max[k] > row_max[kb]:
+                    kb = k
+            if fresh[kb]:
+                break
+            row_max[kb], row_arg[kb] = _count_row(bins, kb, alive_idx, n_alive, votes, suppressed,
+                                                  row_base[kb], row_lo[kb], row_len[kb])
+            fresh[kb] = True
+        if row_max[kb] < min_votes:
             break
+        bb = row_lo[kb] + row_arg[kb]
+        row = bins[kb]
         for i in range(m):
-            inl[i] = alive[i] and int((points[i, 0] * ct[kb] + points[i, 1] * st[kb] + r_max) * inv_res) == bb
+            inl[i] = alive[i] and row[i] == bb
         refine_line(points, thr, alive, inl, 2)
-        seg0 = seg
         seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
-        if taken == 0:
-            suppressed[kb, bb] = True
+        if taken == 0:  # never a peak again; row kb is fresh, so only its maximum moves
+            suppressed[row_base[kb] + bb] = True
+            votes[row_base[kb] + bb] = -1
+            row_max[kb], row_arg[kb] = _row_peak(votes, row_base[kb] + row_lo[kb], row_len[kb])
             continue
+        n_alive = 0
         for i in range(m):
-            if labels[i] >= seg0:
-                _vote(acc, ct, st, points[i, 0], points[i, 1], r_max, inv_res, -1)
+            if alive[i]:
+                alive_idx[n_alive] = i
+                n_alive += 1
+        fresh[:] = False
     return labels
 
 

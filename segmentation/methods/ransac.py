@@ -24,7 +24,14 @@ import numba as nb
 import numpy as np
 
 from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
-from segmentation.methods._consensus import discard_inliers, mark_inliers, refine_line, take_runs
+from segmentation.methods._consensus import (
+    can_take_more,
+    discard_inliers,
+    mark_inliers,
+    refine_line,
+    take_runs,
+)
+from segmentation.methods._incremental import gaps_ok
 from segmentation.registry import register
 
 
@@ -45,19 +52,12 @@ class RansacParams(CommonParams):
 
 
 @nb.njit(cache=True)
-def _count_pair(points: FloatArray, thr: FloatArray, pool: IntArray, q: int, a: int, b: int) -> int:
-    ax = points[a, 0]
-    ay = points[a, 1]
-    ex = points[b, 0] - ax
-    ey = points[b, 1] - ay
-    ln = np.sqrt(ex * ex + ey * ey)
-    nx = -ey / ln
-    ny = ex / ln
+def _count_line(xs: FloatArray, ys: FloatArray, ts: FloatArray, q: int, ax: float, ay: float, nx: float,
+                ny: float) -> int:
+    """Points among the first ``q`` of (xs, ys) within ``ts`` of the line through (ax, ay) with normal (nx, ny)."""
     count = 0
     for t in range(q):
-        i = pool[t]
-        if abs((points[i, 0] - ax) * nx + (points[i, 1] - ay) * ny) <= thr[i]:
-            count += 1
+        count += abs((xs[t] - ax) * nx + (ys[t] - ay) * ny) <= ts[t]
     return count
 
 
@@ -69,29 +69,39 @@ def ransac_labels(points: FloatArray, thr: FloatArray, n_iter: int, min_len: int
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
     inl = np.zeros(m, dtype=np.bool_)
-    pool = np.arange(m)
+    step_ok = gaps_ok(points, max_gap)
+    # the alive points packed in scan order (contiguous, so the inlier count vectorises)
+    xs = np.ascontiguousarray(points[:, 0])
+    ys = np.ascontiguousarray(points[:, 1])
+    ts = thr.copy()
     q = m
     seg = 0
-    while q >= min_len:
+    while q >= min_len and can_take_more(alive, step_ok, min_len):
         best = -1
         best_a = 0
         best_b = 0
-        for _ in range(n_iter):
-            a = pool[rng.integers(0, q)]
-            b = pool[rng.integers(0, q)]
-            if a == b or (points[a, 0] == points[b, 0] and points[a, 1] == points[b, 1]):
+        draws = rng.integers(0, q, size=2 * n_iter)  # one batch: the stream of 2 * n_iter scalar draws
+        for j in range(n_iter):
+            a = draws[2 * j]
+            b = draws[2 * j + 1]
+            if a == b or (xs[a] == xs[b] and ys[a] == ys[b]):
                 continue
-            c = _count_pair(points, thr, pool, q, a, b)
+            ex = xs[b] - xs[a]
+            ey = ys[b] - ys[a]
+            ln = np.sqrt(ex * ex + ey * ey)
+            c = _count_line(xs, ys, ts, q, xs[a], ys[a], -ey / ln, ex / ln)
             if c > best:
                 best = c
                 best_a = a
                 best_b = b
         if best < min_len:
             break
-        ex = points[best_b, 0] - points[best_a, 0]
-        ey = points[best_b, 1] - points[best_a, 1]
+        ax = xs[best_a]
+        ay = ys[best_a]
+        ex = xs[best_b] - ax
+        ey = ys[best_b] - ay
         ln = np.sqrt(ex * ex + ey * ey)
-        mark_inliers(points, thr, alive, points[best_a, 0], points[best_a, 1], -ey / ln, ex / ln, inl)
+        mark_inliers(points, thr, alive, ax, ay, -ey / ln, ex / ln, inl)
         refine_line(points, thr, alive, inl, 2)
         seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
         if taken == 0 and discard_inliers(inl, alive) == 0:
@@ -99,7 +109,9 @@ def ransac_labels(points: FloatArray, thr: FloatArray, n_iter: int, min_len: int
         q = 0
         for i in range(m):
             if alive[i]:
-                pool[q] = i
+                xs[q] = points[i, 0]
+                ys[q] = points[i, 1]
+                ts[q] = thr[i]
                 q += 1
     return labels
 
