@@ -44,7 +44,13 @@ from slam.config import SlamConfig
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.observations import ScanSegments, scan_segments
-from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool
+from slam.frontend.plane_init import (
+    NewPlane,
+    PlaneInitParams,
+    PooledSegment,
+    SegmentPool,
+    tilt_sigma,
+)
 from slam.frontend.planemap import (
     KIND_CEILING,
     KIND_FLOOR,
@@ -61,6 +67,7 @@ FloatArray = NDArray[np.float64]
 
 TRACK_WINDOW = 6  # knot intervals refined together by tracking
 FIRST_PRIOR_SIGMAS = np.array([np.radians(0.2)] * 3 + [0.01] * 3)  # oldest knot of the window
+MAX_TILT_SIGMA = np.radians(1.0)  # a new plane's worst tilt must be observed at least this well
 CV_SIGMAS = np.array([0.006] * 3 + [0.002] * 3)  # change of the body twist per knot interval (rad, m)
 
 
@@ -168,6 +175,7 @@ class SlamRunner:
             "observation_blocks": 0,
             "updates": 0,
             "skipped_scans": 0,
+            "planes_rejected": 0,
         }
         self._since_update = 0
 
@@ -431,8 +439,11 @@ class SlamRunner:
         body_z = float(self._T[self._n_knots - 1, 2, 3])
         for plane in new:
             kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
-            pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
             vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
+            if not self._constrained(plane, by_serial, kind, vertical):
+                self.stats["planes_rejected"] += 1
+                continue
+            pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
             self.backend.add_plane(
                 pl.id, plane.normal, plane.d, horizontal=kind in (KIND_FLOOR, KIND_CEILING), vertical=vertical
             )
@@ -450,6 +461,26 @@ class SlamRunner:
             self.stats["planes_created"] += 1
             self.stats["associated"] += len(plane.members)
             self._adopt_pooled(pl.id, by_serial)
+
+    def _constrained(self, plane: NewPlane, by_serial: dict[int, _Pending], kind: int, vertical: bool) -> bool:
+        """Whether the members' observations (virtual points, as the back end will see them) fix
+        the new plane's tilt to ``MAX_TILT_SIGMA``, given its horizontality/verticality prior:
+        a thin strip of points (a door frame seen edge-on) leaves the solver a nearly singular
+        plane, which makes iSAM2 fail."""
+        if kind in (KIND_FLOOR, KIND_CEILING):
+            return True  # both tilts held by the horizontality prior
+        pts, sig = [], []
+        for m in plane.members:
+            rec = by_serial.get(m.ref[0])
+            if rec is None:
+                continue
+            j = m.ref[1]
+            pts.append(self._place(rec.segs.virtual_body[j], rec.segs.virtual_times[j]))
+            sig.append(np.repeat(rec.segs.virtual_sigma[j], 2))
+        if len(pts) < 2:
+            return False
+        about = np.array([0.0, 0.0, 1.0]) if vertical else None
+        return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < MAX_TILT_SIGMA
 
     def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
         """Give a new plane the pooled segments that lie on it but were not among its seed group."""

@@ -233,3 +233,29 @@ def fit_plane(points: FloatArray) -> tuple[FloatArray, float, FloatArray]:
     n = vt[2]
     spreads = s / np.sqrt(max(points.shape[0], 1))
     return n, float(-n @ c), spreads
+
+
+def tilt_sigma(points_world: FloatArray, sigmas: FloatArray, normal: FloatArray, about: FloatArray | None = None) -> float:
+    """Standard deviation (rad) of a plane's worst-observed tilt from weighted points on it.
+
+    A plane fitted to points (m, 3) with point-to-plane sigmas (m,) tilts about an in-plane
+    axis ``e`` with information ``sum w_k s_k^2``, ``s_k`` the points' coordinates across ``e``
+    from their weighted centroid. Returns the largest sigma over in-plane axes, or, with
+    ``about`` (a unit in-plane axis, e.g. the vertical of a wall kept vertical by a prior),
+    the sigma of the tilt about that axis only. Points in a thin strip far from the origin make
+    the world-frame plane parameters (normal, offset) nearly singular for the solver.
+    """
+    w = 1.0 / np.maximum(sigmas, 1e-12) ** 2
+    c = (w[:, None] * points_world).sum(axis=0) / w.sum()
+    q = points_world - c
+    if about is not None:
+        across = np.cross(about, normal)
+        s = q @ (across / max(float(np.linalg.norm(across)), 1e-12))
+        info = float(w @ (s * s))
+        return float(1.0 / np.sqrt(max(info, 1e-300)))
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    uv = q @ np.column_stack((u, v))
+    S = (w[:, None, None] * uv[:, :, None] * uv[:, None, :]).sum(axis=0)
+    return float(1.0 / np.sqrt(max(float(np.linalg.eigvalsh(S)[0]), 1e-300)))
