@@ -26,12 +26,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
-from segmentation.methods._consensus import BoolArray, can_take_more, refine_line, take_runs
+from segmentation.methods._consensus import can_take_more, refine_line, take_runs
 from segmentation.methods._incremental import gaps_ok
 from segmentation.registry import register
 
 Cells = NDArray[np.int32]
-SUPPRESSED = 1 << 30  # subtracted from a suppressed cell's votes: withdrawals still count down
 
 
 @dataclass(frozen=True)
@@ -94,13 +93,27 @@ def _row_extent(bins: Cells) -> tuple[IntArray, IntArray, IntArray]:
 
 
 @nb.njit(cache=True)
-def _count_row(bins: Cells, k: int, alive_idx: IntArray, n_alive: int, votes: Cells, suppressed: BoolArray,
-               base: int, lo: int, length: int) -> tuple[int, int]:
-    """Recount row k's votes (cells ``votes[base + lo]`` on) from the alive points; its highest
-    unsuppressed cell (ties: lowest rho) as (votes, offset in the row), suppressed cells held at -1."""
-    first = base + lo
+def _first_max(a: IntArray | Cells, first: int, length: int) -> tuple[int, int]:
+    """Largest of ``a[first:first + length]`` and the offset of its first occurrence."""
+    row = a[first:first + length]
+    best = row[0]
+    for c in range(1, length):
+        v = row[c]
+        best = v if v > best else best  # (this form vectorises; max() does not)
     for c in range(length):
-        votes[first + c] = 0
+        if row[c] == best:
+            return int(best), c
+    return int(best), 0
+
+
+@nb.njit(cache=True)
+def _count_row(bins: Cells, k: int, alive_idx: IntArray, n_alive: int, votes: Cells, base: int, lo: int,
+               length: int, suppressed: IntArray, n_suppressed: int) -> tuple[int, int]:
+    """Recount row k's votes (cells ``votes[base + lo]`` on) from the alive points, hold the
+    suppressed cells (flat indices) at -1; the row's highest cell (ties: lowest rho) as
+    (votes, offset in the row)."""
+    first = base + lo
+    votes[first:first + length] = 0
     row = bins[k]
     # two interleaved halves: consecutive points of a wall share a cell, and back-to-back
     # increments of one cell would wait on each other
@@ -110,27 +123,10 @@ def _count_row(bins: Cells, k: int, alive_idx: IntArray, n_alive: int, votes: Ce
         votes[base + row[alive_idx[t + half]]] += 1
     if n_alive % 2:
         votes[base + row[alive_idx[n_alive - 1]]] += 1
-    best = -1
-    arg = 0
-    for c in range(length):
-        if suppressed[first + c]:
-            votes[first + c] = -1
-        elif votes[first + c] > best:
-            best = votes[first + c]
-            arg = c
-    return best, arg
-
-
-@nb.njit(cache=True)
-def _row_peak(votes: Cells, first: int, length: int) -> tuple[int, int]:
-    """Highest cell of a row starting at ``votes[first]`` (ties: lowest rho) as (votes, offset)."""
-    best = votes[first]
-    arg = 0
-    for c in range(1, length):
-        if votes[first + c] > best:
-            best = votes[first + c]
-            arg = c
-    return best, arg
+    for j in range(n_suppressed):
+        if first <= suppressed[j] < first + length:
+            votes[suppressed[j]] = -1
+    return _first_max(votes, first, length)
 
 
 @nb.njit(cache=True)
@@ -149,38 +145,36 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
     bins = _rho_bins(np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]), ct, st, r_max,
                      1.0 / rho_res)
     row_base, row_lo, row_len = _row_extent(bins)
-    total = row_base[n_t - 1] + row_lo[n_t - 1] + row_len[n_t - 1]
-    votes = np.empty(total, dtype=np.int32)
-    suppressed = np.zeros(total, dtype=np.bool_)
+    votes = np.empty(row_base[n_t - 1] + row_lo[n_t - 1] + row_len[n_t - 1], dtype=np.int32)
+    suppressed = np.empty(votes.shape[0], dtype=np.int64)  # flat indices of suppressed cells
+    n_suppressed = 0
     alive_idx = np.arange(m)
     n_alive = m
-    # Votes are withdrawn lazily: after a take, a row's stored counts (and so row_max[k])
-    # are upper bounds until the row is recounted from the alive points (fresh[k]).
+    # Votes are withdrawn lazily: after a take, a stale row's counts (and row_max[k]) are
+    # upper bounds until the row is recounted from the alive points.
     row_max = np.empty(n_t, dtype=np.int64)
     row_arg = np.empty(n_t, dtype=np.int64)
     fresh = np.ones(n_t, dtype=np.bool_)
     for k in range(n_t):
-        row_max[k], row_arg[k] = _count_row(bins, k, alive_idx, n_alive, votes, suppressed,
-                                            row_base[k], row_lo[k], row_len[k])
+        row_max[k], row_arg[k] = _count_row(bins, k, alive_idx, n_alive, votes, row_base[k], row_lo[k],
+                                            row_len[k], suppressed, n_suppressed)
     step_ok = gaps_ok(points, max_gap)
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
     inl = np.zeros(m, dtype=np.bool_)
     seg = 0
-    while can_take_more(alive, step_ok, min_len):
+    more = can_take_more(alive, step_ok, min_len)
+    while more:
         # highest peak, ties: lowest theta (then lowest rho: row_arg); a fresh winner beats
         # every other row's upper bound, so it is the exact peak
         while True:
-            kb = 0
-            for k in range(1, n_t):
-                if row_max[k] > row_max[kb]:
-                    kb = k
+            best, kb = _first_max(row_max, 0, n_t)
             if fresh[kb]:
                 break
-            row_max[kb], row_arg[kb] = _count_row(bins, kb, alive_idx, n_alive, votes, suppressed,
-                                                  row_base[kb], row_lo[kb], row_len[kb])
+            row_max[kb], row_arg[kb] = _count_row(bins, kb, alive_idx, n_alive, votes, row_base[kb], row_lo[kb],
+                                                  row_len[kb], suppressed, n_suppressed)
             fresh[kb] = True
-        if row_max[kb] < min_votes:
+        if best < min_votes:
             break
         bb = row_lo[kb] + row_arg[kb]
         row = bins[kb]
@@ -189,9 +183,10 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
         refine_line(points, thr, alive, inl, 2)
         seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
         if taken == 0:  # never a peak again; row kb is fresh, so only its maximum moves
-            suppressed[row_base[kb] + bb] = True
+            suppressed[n_suppressed] = row_base[kb] + bb
+            n_suppressed += 1
             votes[row_base[kb] + bb] = -1
-            row_max[kb], row_arg[kb] = _row_peak(votes, row_base[kb] + row_lo[kb], row_len[kb])
+            row_max[kb], row_arg[kb] = _first_max(votes, row_base[kb] + row_lo[kb], row_len[kb])
             continue
         n_alive = 0
         for i in range(m):
@@ -199,6 +194,7 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
                 alive_idx[n_alive] = i
                 n_alive += 1
         fresh[:] = False
+        more = can_take_more(alive, step_ok, min_len)
     return labels
 
 
