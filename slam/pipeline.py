@@ -176,6 +176,7 @@ class SlamRunner:
             "updates": 0,
             "skipped_scans": 0,
             "planes_rejected": 0,
+            "isam2_rebuilds": 0,
         }
         self._since_update = 0
 
@@ -512,7 +513,13 @@ class SlamRunner:
         self._since_update = 0
         if self._n_knots < 2:
             return
-        self.backend.update()
+        try:
+            self.backend.update()
+        except ValueError:
+            # an iSAM2 step can fail numerically (indeterminate system) where the same graph
+            # relinearised from scratch factors fine: rebuild once, fail for real the second time
+            self.stats["isam2_rebuilds"] += 1
+            self.backend.update()
         self.stats["updates"] += 1
         # refresh the recent knots and the recently seen planes
         k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)

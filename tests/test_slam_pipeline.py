@@ -143,6 +143,20 @@ def test_loop_closes_onto_the_start_planes(ring: SimulationResult, rig: Any, tmp
     assert res.trajectory.ate["start_aligned"].rmse < 0.01
 
 
+def test_tilt_sigma_flags_thin_strips() -> None:
+    from slam.frontend.plane_init import tilt_sigma
+
+    rng = np.random.default_rng(0)
+    n = np.array([1.0, 0.0, 0.0])
+    square = np.column_stack((np.full(40, 5.0), rng.uniform(-0.5, 0.5, 40), rng.uniform(0.5, 1.5, 40)))
+    strip = square * [1.0, 1.0, 0.0] + [0.0, 0.0, 1.0] + rng.normal(0, 1e-3, (40, 3)) * [0, 0, 1]
+    sig = np.full(40, 0.003)
+    assert tilt_sigma(square, sig, n) < np.radians(0.3)
+    assert tilt_sigma(strip, sig, n) > np.radians(1.0)  # a horizontal strip: tilt about y unseen
+    # kept vertical by a prior, only the heading (tilt about z) must be observed: the strip does
+    assert tilt_sigma(strip, sig, n, about=np.array([0.0, 0.0, 1.0])) < np.radians(0.3)
+
+
 def _planes(run_dir: Path) -> list[dict[str, Any]]:
     return [{"id": p.id, "kind": p.kind} for p in read_planes_json(run_dir / "planes.json")]
 
