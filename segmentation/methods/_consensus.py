@@ -7,6 +7,12 @@ inliers (consecutive valid points, no jump over ``max_gap``) with at least
 ``min_len`` points as a segment and remove those points. Inliers in shorter
 runs stay alive: on a line through a corner or across another wall they
 belong to that other wall, and removing them would punch holes in it.
+
+The steps work on the alive points packed in scan order (``Alive``: their
+coordinates, thresholds and original indices, first ``q`` entries valid):
+dead points are never inliers, so skipping them changes no sum and no test,
+and the contiguous arrays let the distance tests vectorise. ``inl`` flags are
+per packed entry.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from segmentation.methods._incremental import moments_add, moments_line, moments_of
+from segmentation.methods._incremental import moments_add, moments_line
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -23,77 +29,91 @@ BoolArray = NDArray[np.bool_]
 
 
 @nb.njit(cache=True)
-def mark_inliers(points: FloatArray, thr: FloatArray, alive: BoolArray, cx: float, cy: float,
-                 nx: float, ny: float, inl: BoolArray) -> int:
-    """Set ``inl[i]`` for alive points within ``thr[i]`` of the line (centroid, unit normal); count them."""
-    count = 0
+def pack_alive(points: FloatArray, thr: FloatArray, alive: BoolArray, xs: FloatArray, ys: FloatArray,
+               ts: FloatArray, idx: IntArray) -> int:
+    """Pack the alive points (scan order) into xs, ys, ts (threshold) and idx (index); how many."""
+    q = 0
     for i in range(points.shape[0]):
-        ok = alive[i] and abs((points[i, 0] - cx) * nx + (points[i, 1] - cy) * ny) <= thr[i]
-        inl[i] = ok
-        if ok:
-            count += 1
+        if alive[i]:
+            xs[q] = points[i, 0]
+            ys[q] = points[i, 1]
+            ts[q] = thr[i]
+            idx[q] = i
+            q += 1
+    return q
+
+
+@nb.njit(cache=True)
+def mark_inliers(xs: FloatArray, ys: FloatArray, ts: FloatArray, q: int, cx: float, cy: float, nx: float,
+                 ny: float, inl: BoolArray) -> int:
+    """Set ``inl[t]`` for the packed points within ``ts[t]`` of the line (point on it, unit normal); count them."""
+    count = 0
+    for t in range(q):
+        ok = abs((xs[t] - cx) * nx + (ys[t] - cy) * ny) <= ts[t]
+        inl[t] = ok
+        count += ok
     return count
 
 
 @nb.njit(cache=True)
-def refine_line(points: FloatArray, thr: FloatArray, alive: BoolArray, inl: BoolArray,
-                n_refits: int) -> int:
+def refine_line(xs: FloatArray, ys: FloatArray, ts: FloatArray, q: int, inl: BoolArray, n_refits: int) -> int:
     """Refit the TLS line of the current inliers ``n_refits`` times, updating ``inl``; the final count."""
     count = 0
-    for i in range(inl.shape[0]):
-        if inl[i]:
-            count += 1
+    for t in range(q):
+        count += inl[t]
+    mom = np.zeros(8)
     for _ in range(n_refits):
         if count < 2:
             break
-        mom = moments_of(points, 0, -1)  # empty state (the range 0..-1 holds no point)
-        for i in range(points.shape[0]):
-            if inl[i]:
-                moments_add(mom, points[i, 0], points[i, 1], 1.0)
+        mom[0] = 0.0  # empty state: the next point added becomes the local origin
+        mom[1:6] = 0.0
+        for t in range(q):
+            if inl[t]:
+                moments_add(mom, xs[t], ys[t], 1.0)
         cx, cy, nx, ny = moments_line(mom)
-        count = mark_inliers(points, thr, alive, cx, cy, nx, ny, inl)
+        count = mark_inliers(xs, ys, ts, q, cx, cy, nx, ny, inl)
     return count
 
 
 @nb.njit(cache=True)
-def take_runs(points: FloatArray, inl: BoolArray, alive: BoolArray, labels: IntArray, seg: int,
-              min_len: int, max_gap: float) -> tuple[int, int]:
+def take_runs(xs: FloatArray, ys: FloatArray, idx: IntArray, q: int, inl: BoolArray, alive: BoolArray,
+              labels: IntArray, seg: int, min_len: int, max_gap: float) -> tuple[int, int]:
     """Label every run of >= ``min_len`` consecutive inliers with a new id from ``seg`` on and kill its points.
 
-    Returns (next free id, number of points taken).
+    A run follows consecutive points of the scan (consecutive indices) with no step
+    over ``max_gap``. Returns (next free id, number of points taken).
     """
-    m = points.shape[0]
     g2 = max_gap * max_gap
     taken = 0
-    i = 0
-    while i < m:
-        if not inl[i]:
-            i += 1
+    t = 0
+    while t < q:
+        if not inl[t]:
+            t += 1
             continue
-        j = i
-        while j + 1 < m and inl[j + 1]:
-            dx = points[j + 1, 0] - points[j, 0]
-            dy = points[j + 1, 1] - points[j, 1]
+        u = t
+        while u + 1 < q and inl[u + 1] and idx[u + 1] == idx[u] + 1:
+            dx = xs[u + 1] - xs[u]
+            dy = ys[u + 1] - ys[u]
             if dx * dx + dy * dy > g2:
                 break
-            j += 1
-        if j - i + 1 >= min_len:
-            for q in range(i, j + 1):
-                labels[q] = seg
-                alive[q] = False
+            u += 1
+        if u - t + 1 >= min_len:
+            for v in range(t, u + 1):
+                labels[idx[v]] = seg
+                alive[idx[v]] = False
             seg += 1
-            taken += j - i + 1
-        i = j + 1
+            taken += u - t + 1
+        t = u + 1
     return seg, taken
 
 
 @nb.njit(cache=True)
-def discard_inliers(inl: BoolArray, alive: BoolArray) -> int:
-    """Kill the inliers without labelling them (a line whose inliers form no long run); how many."""
+def discard_inliers(idx: IntArray, q: int, inl: BoolArray, alive: BoolArray) -> int:
+    """Kill the inliers still alive without labelling them (a line whose inliers form no long run); how many."""
     n = 0
-    for i in range(inl.shape[0]):
-        if inl[i] and alive[i]:
-            alive[i] = False
+    for t in range(q):
+        if inl[t] and alive[idx[t]]:
+            alive[idx[t]] = False
             n += 1
     return n
 

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
-from segmentation.methods._consensus import can_take_more, refine_line, take_runs
+from segmentation.methods._consensus import can_take_more, pack_alive, refine_line, take_runs
 from segmentation.methods._incremental import gaps_ok
 from segmentation.registry import register
 
@@ -161,7 +161,11 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
     step_ok = gaps_ok(points, max_gap)
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
+    xs = np.empty(m)
+    ys = np.empty(m)
+    ts = np.empty(m)
     inl = np.zeros(m, dtype=np.bool_)
+    n_alive = pack_alive(points, thr, alive, xs, ys, ts, alive_idx)
     seg = 0
     more = can_take_more(alive, step_ok, min_len)
     while more:
@@ -178,21 +182,17 @@ def hough_labels(points: FloatArray, thr: FloatArray, theta_res: float, rho_res:
             break
         bb = row_lo[kb] + row_arg[kb]
         row = bins[kb]
-        for i in range(m):
-            inl[i] = alive[i] and row[i] == bb
-        refine_line(points, thr, alive, inl, 2)
-        seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
+        for t in range(n_alive):
+            inl[t] = row[alive_idx[t]] == bb
+        refine_line(xs, ys, ts, n_alive, inl, 2)
+        seg, taken = take_runs(xs, ys, alive_idx, n_alive, inl, alive, labels, seg, min_len, max_gap)
         if taken == 0:  # never a peak again; row kb is fresh, so only its maximum moves
             suppressed[n_suppressed] = row_base[kb] + bb
             n_suppressed += 1
             votes[row_base[kb] + bb] = -1
             row_max[kb], row_arg[kb] = _first_max(votes, row_base[kb] + row_lo[kb], row_len[kb])
             continue
-        n_alive = 0
-        for i in range(m):
-            if alive[i]:
-                alive_idx[n_alive] = i
-                n_alive += 1
+        n_alive = pack_alive(points, thr, alive, xs, ys, ts, alive_idx)
         fresh[:] = False
         more = can_take_more(alive, step_ok, min_len)
     return labels

@@ -28,6 +28,7 @@ from segmentation.methods._consensus import (
     can_take_more,
     discard_inliers,
     mark_inliers,
+    pack_alive,
     refine_line,
     take_runs,
 )
@@ -68,13 +69,14 @@ def ransac_labels(points: FloatArray, thr: FloatArray, n_iter: int, min_len: int
     m = points.shape[0]
     labels = np.full(m, -1, dtype=np.int64)
     alive = np.ones(m, dtype=np.bool_)
-    inl = np.zeros(m, dtype=np.bool_)
     step_ok = gaps_ok(points, max_gap)
-    # the alive points packed in scan order (contiguous, so the inlier count vectorises)
-    xs = np.ascontiguousarray(points[:, 0])
-    ys = np.ascontiguousarray(points[:, 1])
-    ts = thr.copy()
-    q = m
+    # the alive points packed in scan order (pairs are drawn among them by packed index)
+    xs = np.empty(m)
+    ys = np.empty(m)
+    ts = np.empty(m)
+    idx = np.empty(m, dtype=np.int64)
+    inl = np.zeros(m, dtype=np.bool_)
+    q = pack_alive(points, thr, alive, xs, ys, ts, idx)
     seg = 0
     while q >= min_len and can_take_more(alive, step_ok, min_len):
         best = -1
@@ -101,18 +103,12 @@ def ransac_labels(points: FloatArray, thr: FloatArray, n_iter: int, min_len: int
         ex = xs[best_b] - ax
         ey = ys[best_b] - ay
         ln = np.sqrt(ex * ex + ey * ey)
-        mark_inliers(points, thr, alive, ax, ay, -ey / ln, ex / ln, inl)
-        refine_line(points, thr, alive, inl, 2)
-        seg, taken = take_runs(points, inl, alive, labels, seg, min_len, max_gap)
-        if taken == 0 and discard_inliers(inl, alive) == 0:
+        mark_inliers(xs, ys, ts, q, ax, ay, -ey / ln, ex / ln, inl)
+        refine_line(xs, ys, ts, q, inl, 2)
+        seg, taken = take_runs(xs, ys, idx, q, inl, alive, labels, seg, min_len, max_gap)
+        if taken == 0 and discard_inliers(idx, q, inl, alive) == 0:
             break
-        q = 0
-        for i in range(m):
-            if alive[i]:
-                xs[q] = points[i, 0]
-                ys[q] = points[i, 1]
-                ts[q] = thr[i]
-                q += 1
+        q = pack_alive(points, thr, alive, xs, ys, ts, idx)
     return labels
 
 
