@@ -17,9 +17,24 @@ plane (its SLAM estimate, ``plane_prior_sigma``: keeps planes seen from one line
 well posed) and on each extrinsic a prior around the initial rig (``sigma_rot`` / ``sigma_trans``,
 default 5 deg / 10 cm) and on each offset a prior around 0 (``sigma_time``).
 
+Robustness and the variance factor: the point residuals get a redescending Cauchy kernel
+(``kernel``, threshold in units of the *robust* residual scale) so that wrong associations (a
+door recessed 1-2 cm associated with its wall, a proud whiteboard) stop pulling. The stated point
+sigmas (scanner noise / sqrt(n / 2) per virtual point) ignore such outliers, line-fit and
+trajectory model errors, so after each solve the spread of every scanner's whitened residuals is
+measured robustly, ``scale = 1.4826 median |e - median e|`` (MAD), floored at ``scale_floor``
+(the sensor model is a lower bound; noise-free data would otherwise give a vanishing scale), and
+the scanner's point sigmas are multiplied by it; the graph is solved again from the previous
+solution (``scale_rounds`` solves in all; ``variance_factor=False``: one solve with the stated
+sigmas). The kernel threshold thus tracks the real spread, and
+the covariance, computed with the scaled sigmas, is the robust a-posteriori (variance-factor
+scaled) covariance of the data part; the priors keep their own sigmas, so a parameter that only
+the prior constrains keeps its prior sigma.
+
 Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal covariances of
 ``E(s)`` (6x6, gtsam tangent order: rotation then translation, right perturbation of
-``T_body_scanner``) and ``D(s)`` come from ``gtsam.Marginals`` at the solution.
+``T_body_scanner``) and ``D(s)`` come from ``gtsam.Marginals`` at the solution of the last
+(scaled) graph.
 """
 
 from __future__ import annotations
@@ -61,7 +76,10 @@ class EstimatorConfig:
     sigma_trans: float = 0.10
     time_offsets: bool = False
     sigma_time: float = 0.005
-    kernel: RobustKernel = field(default_factory=lambda: RobustKernel("huber", 2.5))
+    kernel: RobustKernel = field(default_factory=lambda: RobustKernel("cauchy", 3.0))
+    variance_factor: bool = True
+    scale_rounds: int = 2
+    scale_floor: float = 1.0
     motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
     plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
     pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
@@ -74,15 +92,19 @@ class EstimatorConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: must be > 0, got {v}")
-        if self.max_iterations < 1 or self.min_plane_points < 1:
-            raise ValueError("max_iterations and min_plane_points: must be >= 1")
+        if self.max_iterations < 1 or self.min_plane_points < 1 or self.scale_rounds < 1:
+            raise ValueError("max_iterations, min_plane_points and scale_rounds: must be >= 1")
+        if not (np.isfinite(self.scale_floor) and self.scale_floor > 0):
+            raise ValueError(f"scale_floor: must be > 0, got {self.scale_floor}")
 
 
 @dataclass
 class ScannerEstimate:
     """One scanner's calibration: ``T_body_scanner`` (4, 4) before and after, the 6x6 marginal
     covariance (None for the reference), the time offset correction [s] and its sigma (None when
-    not estimated), and unwhitened point-to-plane residuals [m] before/after."""
+    not estimated), unwhitened point-to-plane residuals [m] before/after, and ``scale``: the
+    robust spread of the whitened residuals that multiplied the point sigmas (variance factor
+    ``scale**2``; see the module docstring)."""
 
     index: int
     name: str
@@ -95,6 +117,7 @@ class ScannerEstimate:
     residuals_before: FloatArray
     residuals_after: FloatArray
     n_points: int
+    scale: float = 1.0
 
 
 @dataclass
@@ -210,36 +233,27 @@ def estimate_extrinsics(
             graph.add(gtsam.PriorFactorVector(D(s), np.zeros(1),
                                               gtsam.noiseModel.Isotropic.Sigma(1, cfg.sigma_time)))
     blocks = _blocks(kt, obs)
-    for b in blocks:
-        xa, xb, pj = X(b.knot), X(b.knot + 1), P(b.plane)
-        if b.scanner == reference or b.scanner not in calibrated:
-            Tb = T_init[b.scanner]
-            p_b = b.points @ Tb[:3, :3].T + Tb[:3, 3]
-            graph.add(point_plane_factor(xa, xb, pj, p_b, b.alphas, b.sigmas, cfg.kernel))
-        elif cfg.time_offsets:
-            graph.add(timed_scanner_plane_factor(xa, xb, pj, E(b.scanner), D(b.scanner), b.points,
-                                                 b.alphas, kt[b.knot + 1] - kt[b.knot], b.sigmas,
-                                                 cfg.kernel))
-        else:
-            graph.add(scanner_point_plane_factor(xa, xb, pj, E(b.scanner), b.points, b.alphas,
-                                                 b.sigmas, cfg.kernel))
-
+    prior_graph = graph
+    scale = np.ones(n_sc)
     before = _residuals(blocks, values, kt, calibrated, T_init, cfg.time_offsets, n_sc)
-    e0 = float(graph.error(values))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.max_iterations)
-    params.setRelativeErrorTol(cfg.relative_tolerance)
-    params.setAbsoluteErrorTol(0.0)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    e0 = float(_data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg).error(values))
+    iterations = 0
+    for _ in range(cfg.scale_rounds):
+        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg)
+        result, it = _solve(graph, values, cfg)
+        iterations += it
+        values = result
+        if not cfg.variance_factor:
+            break
+        res_k = _residuals(blocks, result, kt, calibrated, T_init, cfg.time_offsets, n_sc)
+        scale = np.array([max(cfg.scale_floor, robust_scale(res_k[i] / sig[i]))
+                          for i, sig in enumerate(_sigmas(blocks, n_sc))])
+    if cfg.variance_factor:  # the covariance with the scale of the final residuals
+        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg)
     try:
-        result = opt.optimize()
         marginals = gtsam.Marginals(graph, result)
     except RuntimeError as err:
-        text = str(err).strip()
-        first = text.splitlines()[0] if text else "gtsam error"
-        m = re.search(r"Symbol: (\w+)", text)
-        raise ValueError(f"calibration graph is singular or failed to solve ({first}"
-                         f"{' ' + m.group(1) if m else ''})") from None
+        raise _solve_error(err) from None
     T_final = [np.asarray(T_init[s], dtype=float) if s not in calibrated
                else np.asarray(result.atPose3(E(s)).matrix()) for s in range(n_sc)]
     after = _residuals(blocks, result, kt, calibrated, T_final, cfg.time_offsets, n_sc)
@@ -255,11 +269,71 @@ def estimate_extrinsics(
         scanners.append(ScannerEstimate(
             s, names[s], s == reference, np.asarray(T_init[s], dtype=float), T_final[s],
             None if cov is None else 0.5 * (cov + cov.T), dt, dt_sig, before[s], after[s],
-            int(np.sum(obs.scanner == s))))
+            int(np.sum(obs.scanner == s)), float(scale[s])))
     poses = np.array([result.atPose3(X(i)).matrix() for i in range(kt.size)])
     return BatchResult(scanners, poses, np.asarray(used_planes, dtype=np.int64), e0,
-                       float(graph.error(result)), int(opt.iterations()),
+                       float(graph.error(result)), iterations,
                        _time.perf_counter() - t_wall, len(blocks), prior_sig)
+
+
+def robust_scale(e: FloatArray) -> float:
+    """MAD-based standard deviation ``1.4826 median |e - median e|`` of residuals (0 if empty)."""
+    e = np.asarray(e, dtype=float)
+    if e.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(e - np.median(e))))
+
+
+def _data_graph(prior_graph: gtsam.NonlinearFactorGraph, blocks: list[_Block], kt: FloatArray,
+                reference: int, calibrated: list[int], T_init: list[FloatArray], scale: FloatArray,
+                cfg: EstimatorConfig) -> gtsam.NonlinearFactorGraph:
+    """The priors plus one point-on-plane factor per block, point sigmas times ``scale[scanner]``."""
+    graph = gtsam.NonlinearFactorGraph(prior_graph)
+    for b in blocks:
+        xa, xb, pj = X(b.knot), X(b.knot + 1), P(b.plane)
+        sig = b.sigmas * scale[b.scanner]
+        if b.scanner == reference or b.scanner not in calibrated:
+            Tb = T_init[b.scanner]
+            p_b = b.points @ Tb[:3, :3].T + Tb[:3, 3]
+            graph.add(point_plane_factor(xa, xb, pj, p_b, b.alphas, sig, cfg.kernel))
+        elif cfg.time_offsets:
+            graph.add(timed_scanner_plane_factor(xa, xb, pj, E(b.scanner), D(b.scanner), b.points,
+                                                 b.alphas, kt[b.knot + 1] - kt[b.knot], sig,
+                                                 cfg.kernel))
+        else:
+            graph.add(scanner_point_plane_factor(xa, xb, pj, E(b.scanner), b.points, b.alphas,
+                                                 sig, cfg.kernel))
+    return graph
+
+
+def _solve_error(err: RuntimeError) -> ValueError:
+    text = str(err).strip()
+    first = text.splitlines()[0] if text else "gtsam error"
+    m = re.search(r"Symbol: (\w+)", text)
+    return ValueError(f"calibration graph is singular or failed to solve ({first}"
+                      f"{' ' + m.group(1) if m else ''})")
+
+
+def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+           cfg: EstimatorConfig) -> tuple[gtsam.Values, int]:
+    """Levenberg-Marquardt from ``values``; gtsam failures become a ValueError."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.max_iterations)
+    params.setRelativeErrorTol(cfg.relative_tolerance)
+    params.setAbsoluteErrorTol(0.0)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        return opt.optimize(), int(opt.iterations())
+    except RuntimeError as err:
+        raise _solve_error(err) from None
+
+
+def _sigmas(blocks: list[_Block], n_sc: int) -> list[FloatArray]:
+    """The stated point sigmas [m] per scanner, in :func:`_residuals`' order."""
+    out: list[list[FloatArray]] = [[] for _ in range(n_sc)]
+    for b in blocks:
+        out[b.scanner].append(b.sigmas)
+    return [np.concatenate(r) if r else np.zeros(0) for r in out]
 
 
 def _residuals(blocks: list[_Block], values: gtsam.Values, kt: FloatArray, calibrated: list[int],

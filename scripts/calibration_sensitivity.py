@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,8 @@ def main() -> None:
     ap.add_argument("--world", default="demo")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--rot-deg", type=float, nargs="+", default=list(ROT_DEG), help="rotation errors (deg)")
+    ap.add_argument("--trans-mm", type=float, nargs="+", default=list(TRANS_MM), help="translation errors (mm)")
     args = ap.parse_args()
     from simulation.run import simulate
     from slam.evaluate import evaluate
@@ -63,8 +66,9 @@ def main() -> None:
     cfg = SlamConfig()
     cfg = cfg.model_copy(update={"output": cfg.output.model_copy(update={"rerun": False, "voxel": 0.02})})
     rows = []
-    for deg in ROT_DEG:
-        for mm in TRANS_MM:
+    t0 = time.perf_counter()
+    for deg in args.rot_deg:
+        for mm in args.trans_mm:
             rig = perturb(true, np.random.default_rng(args.seed), deg, mm)
             run_dir = args.out / f"run_{deg:g}deg_{mm:g}mm"
             run_slam(bag, rig, cfg, run_dir, progress=False)
@@ -74,16 +78,17 @@ def main() -> None:
                    "plane_angle_median_deg": ev.planes.angle.median if ev.planes else float("nan"),
                    "cloud_median_mm": float(np.median(ev.cloud.distances)) * 1e3 if ev.cloud else float("nan")}
             rows.append(row)
-            print(", ".join(f"{k} {v:.4g}" for k, v in row.items()), flush=True)
+            print(", ".join(f"{k} {v:.4g}" for k, v in row.items()) + f", {time.perf_counter() - t0:.0f} s",
+                  flush=True)
     with open(args.out / "sensitivity.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    _plot(rows, args.out / "sensitivity.png")
+    _plot(rows, args.out / "sensitivity.png", args.trans_mm)
     print(f"wrote {args.out / 'sensitivity.csv'} and {args.out / 'sensitivity.png'}")
 
 
-def _plot(rows: list[dict[str, float]], path: Path) -> None:
+def _plot(rows: list[dict[str, float]], path: Path, trans_mm: list[float]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,7 +98,7 @@ def _plot(rows: list[dict[str, float]], path: Path) -> None:
             ("cloud_median_mm", "cloud-to-mesh median (mm)"))
     fig, axes = plt.subplots(1, 3, figsize=(13, 4))
     for ax, (key, label) in zip(axes, keys, strict=True):
-        for mm in TRANS_MM:
+        for mm in trans_mm:
             sel = [r for r in rows if r["trans_mm"] == mm]
             ax.plot([r["rot_deg"] for r in sel], [r[key] for r in sel], "o-", label=f"{mm:g} mm")
         ax.set_xlabel("rotation error of the tilted scanners (deg)")

@@ -16,6 +16,7 @@ from calibration.factors import timed_scanner_plane_factor
 from calibration.observability import UnobservableWarning, parameter_sigmas, warn_unobservable
 from calibration.observations import PointObservations
 from calibration.rig_io import updated_rig, write_rig
+from slam.factors import RobustKernel
 from slam.interpolation import interpolate_trajectory, se3_exp, se3_log
 from slam.motion import MotionPriorConfig
 
@@ -196,3 +197,53 @@ def test_no_observations_is_a_clear_error() -> None:
     obs = scan_points(kt, kp, BOX_PLANES, SCANNERS)
     with warnings.catch_warnings(), pytest.raises(ValueError, match="no points on known planes"):
         estimate_extrinsics(kt, kp, {99: (np.array([0, 0, 1.0]), 1.0)}, obs, list(SCANNERS), 0)
+
+
+def test_sigmas_scale_with_residual_spread_and_outliers_do_not_bias() -> None:
+    """Noise twice the stated sigma and 10 % wrong associations (points 2 cm off their plane, like a
+    recessed door): the robust scale finds the spread, the reported sigmas grow by it and cover
+    the actual error; without the scaling they would not be smaller than the stated-noise ones."""
+    from calibration.estimator import robust_scale
+    from calibration.observability import parameter_covariance
+
+    rng = np.random.default_rng(12)
+    kt, kp = walking_knots(duration=1.5)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS, beams=41)
+    noise = rng.normal(0.0, 0.006, len(obs))  # stated sigma: 3 mm
+    wrong = rng.random(len(obs)) < 0.10
+    pts = obs.points_scanner.copy()
+    r = np.linalg.norm(pts, axis=1, keepdims=True)
+    pts *= (r + (noise + 0.02 * wrong * rng.choice([-1.0, 1.0], len(obs)))[:, None]) / r  # along the beam
+    obs = PointObservations(obs.scanner, obs.plane_id, pts, obs.times, obs.sigmas)
+    T0 = _perturbed(np.random.default_rng(5), 1.0, 0.02)
+    base = dict(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
+    res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=EstimatorConfig(**base))
+    naive = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0,
+                                config=EstimatorConfig(**base, variance_factor=False,
+                                                       kernel=RobustKernel("none")))
+    for s, n in zip(res.scanners, naive.scanners, strict=True):
+        # point-to-plane spread: 2 x the stated sigma times the beams' incidence cosines
+        assert 1.2 < s.scale < 2.2, (s.name, s.scale)
+        assert robust_scale(s.residuals_after / 0.003) == pytest.approx(s.scale, rel=0.35)
+        if s.reference:
+            continue
+        assert s.covariance is not None and n.covariance is not None
+        d = se3_log(np.linalg.inv(SCANNERS[s.index]) @ s.T_body_scanner)
+        sig = np.sqrt(np.diag(s.covariance))
+        assert np.all(np.abs(d) < 3 * sig), (s.name, d / sig)
+        # the scaled sigmas exceed the naive ones by about the scale
+        ratio = np.sqrt(np.diag(parameter_covariance(s.T_body_scanner, s.covariance))
+                        / np.diag(parameter_covariance(n.T_body_scanner, n.covariance)))
+        assert np.all(ratio > 1.4), ratio
+        # the robust kernel keeps the 2 cm outliers from biasing the translation
+        d_naive = se3_log(np.linalg.inv(SCANNERS[s.index]) @ n.T_body_scanner)
+        assert np.linalg.norm(d[3:]) < np.linalg.norm(d_naive[3:]), (d, d_naive)
+
+
+def test_robust_scale_is_the_mad_sigma() -> None:
+    from calibration.estimator import robust_scale
+
+    e = np.random.default_rng(1).normal(0.0, 2.0, 20000)
+    e[:2000] += 50.0  # 10 % gross outliers barely move it
+    assert robust_scale(e) == pytest.approx(2.0 * 1.15, rel=0.1)
+    assert robust_scale(np.zeros(0)) == 0.0
