@@ -56,6 +56,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     target = Path(path)
     if not target.parent.is_dir():
         raise OutputFileError(f"{target}: folder {target.parent} does not exist")
+    if target.is_symlink() or (target.exists() and not target.is_file()):
+        # renaming over a device (e.g. /dev/null), a folder or a link would destroy it
+        raise OutputFileError(f"{target}: exists and is not a regular file; not replacing it")
     tmp = target.with_name(f".{target.stem}.tmp-{uuid.uuid4().hex[:12]}{target.suffix}")
     try:
         yield tmp

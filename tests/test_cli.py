@@ -142,7 +142,7 @@ def test_segment_real_log_scan_index_and_bag_topic(tmp_path: Path, capsys: pytes
 
 def test_demo_writes_plots_and_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out)]) == 0
+    assert main(["demo", "--out", str(out), "--segmentation-only"]) == 0
     text = capsys.readouterr().out
     assert "figure1_segmentation.png" in text and "ror" in text
     data = json.loads((out / "segmentation_demo.json").read_text())
@@ -151,6 +151,17 @@ def test_demo_writes_plots_and_json(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert (out / "figure1_segmentation.png").stat().st_size > 10_000
     if INTEL.is_file():
         assert (out / "real_scan_segmentation.png").is_file() and data["real"]["n_beams"] == 180
+
+
+def test_demo_runs_the_whole_chain_on_a_short_walk(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--duration", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "ATE RMSE" in text
+    for name in ("trajectory.tum", "planes.json", "cloud.ply", "map.rrd", "summary.json", "eval.json"):
+        assert (out / "slam" / name).is_file(), name
+    ate = json.loads((out / "slam" / "eval.json").read_text())["trajectory"]
+    assert ate["ate_m"]["start_aligned"]["rmse"] < 0.02
 
 
 def test_interrupt_and_unexpected_bugs(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
