@@ -130,11 +130,16 @@ def test_sef_corner_criterion_splits_a_corner_at_the_vertex() -> None:
 
 
 def test_sef_corner_threshold_default_follows_the_noise() -> None:
-    from segmentation.methods.sef import CORNER_SIGMAS
+    from segmentation.methods.sef import CORNER_SIGMAS, SEFParams
 
-    assert sg.get("sef").params.corner == pytest.approx(3.0 * np.sqrt(6.0) * 0.003)
-    assert sg.get("sef", point_sigma=0.01).params.corner == pytest.approx(CORNER_SIGMAS * 0.01)
-    assert sg.get("sef", corner_threshold=0.05).params.corner == 0.05
+    def corner(**params: float) -> float:
+        p = sg.get("sef", **params).params
+        assert isinstance(p, SEFParams)
+        return p.corner
+
+    assert corner() == pytest.approx(3.0 * np.sqrt(6.0) * 0.003)
+    assert corner(point_sigma=0.01) == pytest.approx(CORNER_SIGMAS * 0.01)
+    assert corner(corner_threshold=0.05) == 0.05
     # on a straight wall with 3 mm range noise, false corners are rare at 3 sigma (0.27 % of the points
     # exceed it) and frequent at 1 sigma
     x = np.linspace(-3.0, 3.0, 1000)
@@ -214,6 +219,129 @@ def test_hough_resolution_parameters_matter_and_are_deterministic() -> None:
     assert coarse.n_segments < a.n_segments
 
 
+
+# ---- the fast RANSAC and Hough kernels against plain reference implementations -----------------
+# The kernels pack the alive points, withdraw Hough votes lazily, keep row maxima and stop once no
+# run can be taken; none of that may change a label. The references below are the textbook loops
+# (dense accumulator recounted for every peak; one scalar draw at a time, counts over all points).
+
+def _hough_reference(pts: np.ndarray, thr: np.ndarray, theta_res: float, rho_res: float, min_votes: int,
+                     min_len: int, max_gap: float) -> np.ndarray:
+    from segmentation.methods._consensus import pack_alive, refine_line, take_runs
+
+    m = pts.shape[0]
+    n_t = max(1, round(np.pi / theta_res))
+    theta = np.arange(n_t) * (np.pi / n_t)
+    r_max = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) + rho_res
+    n_r = int(2.0 * r_max / rho_res) + 2
+    rho = pts[:, 0][None, :] * np.cos(theta)[:, None] + pts[:, 1][None, :] * np.sin(theta)[:, None]
+    bins = ((rho + r_max) * (1.0 / rho_res)).astype(np.int64)
+    flat = bins + (np.arange(n_t) * n_r)[:, None]
+    labels = np.full(m, -1, dtype=np.int64)
+    alive = np.ones(m, dtype=bool)
+    suppressed = np.zeros(n_t * n_r, dtype=bool)
+    xs, ys, ts, idx = np.empty(m), np.empty(m), np.empty(m), np.empty(m, dtype=np.int64)
+    inl = np.zeros(m, dtype=bool)
+    seg = 0
+    while True:
+        votes = np.bincount(flat[:, alive].ravel(), minlength=n_t * n_r)
+        votes[suppressed] = -1
+        cell = int(np.argmax(votes))  # first maximum: lowest theta, then lowest rho
+        if votes[cell] < min_votes:
+            return labels
+        k, b = divmod(cell, n_r)
+        q = pack_alive(pts, thr, alive, xs, ys, ts, idx)
+        inl[:q] = bins[k, idx[:q]] == b
+        refine_line(xs, ys, ts, q, inl, 2)
+        seg, taken = take_runs(xs, ys, idx, q, inl, alive, labels, seg, min_len, max_gap)
+        if taken == 0:
+            suppressed[cell] = True
+
+
+def _ransac_reference(pts: np.ndarray, thr: np.ndarray, n_iter: int, min_len: int, max_gap: float,
+                      seed: int) -> np.ndarray:
+    from segmentation.methods._consensus import (
+        discard_inliers,
+        mark_inliers,
+        pack_alive,
+        refine_line,
+        take_runs,
+    )
+
+    rng = np.random.default_rng(seed)
+    m = pts.shape[0]
+    labels = np.full(m, -1, dtype=np.int64)
+    alive = np.ones(m, dtype=bool)
+    xs, ys, ts, idx = np.empty(m), np.empty(m), np.empty(m), np.empty(m, dtype=np.int64)
+    inl = np.zeros(m, dtype=bool)
+    seg = 0
+    while True:
+        pool = np.flatnonzero(alive)
+        q = pool.size
+        if q < min_len:
+            return labels
+        best, best_a, best_b = -1, 0, 0
+        for _ in range(n_iter):
+            a = pool[rng.integers(0, q)]
+            b = pool[rng.integers(0, q)]
+            if a == b or (pts[a, 0] == pts[b, 0] and pts[a, 1] == pts[b, 1]):
+                continue
+            e = pts[b] - pts[a]
+            ln = np.sqrt(e[0] * e[0] + e[1] * e[1])
+            d = (pts[pool, 0] - pts[a, 0]) * (-e[1] / ln) + (pts[pool, 1] - pts[a, 1]) * (e[0] / ln)
+            c = int(np.count_nonzero(np.abs(d) <= thr[pool]))
+            if c > best:
+                best, best_a, best_b = c, a, b
+        if best < min_len:
+            return labels
+        e = pts[best_b] - pts[best_a]
+        ln = np.sqrt(e[0] * e[0] + e[1] * e[1])
+        q = pack_alive(pts, thr, alive, xs, ys, ts, idx)
+        mark_inliers(xs, ys, ts, q, pts[best_a, 0], pts[best_a, 1], -e[1] / ln, e[0] / ln, inl)
+        refine_line(xs, ys, ts, q, inl, 2)
+        seg, taken = take_runs(xs, ys, idx, q, inl, alive, labels, seg, min_len, max_gap)
+        if taken == 0 and discard_inliers(idx, q, inl, alive) == 0:
+            return labels
+
+
+def _reference_scans() -> list[sg.Scanline]:
+    """The figure-1 scanline and a long-range sparse one (a 40 m x 16 m hall with a pillar, 0.5 deg beams)."""
+    def faces(name: str, v: list[tuple[float, float]]) -> list[tuple[str | None, list[tuple[float, float]]]]:
+        return [(f"{name}{k}", [v[k], v[(k + 1) % len(v)]]) for k in range(len(v))]
+
+    hall = World2D.from_pieces(faces("wall", [(-25.0, -6.0), (15.0, -6.0), (15.0, 10.0), (-25.0, 10.0)])
+                               + faces("pillar", [(3.0, 2.0), (4.0, 2.0), (4.0, 3.0), (3.0, 3.0)]))
+    spec = ScannerSpec(n_beams=541, angle_increment=float(np.deg2rad(0.5)), range_max=80.0, noise_sigma=0.01)
+    return [_line(figure1(noise_sigma=0.003, seed=5)), _line(scan(hall, (0.0, 0.0, 0.3), spec, 2))]
+
+
+@pytest.mark.parametrize("params", [{}, {"min_len": 4, "max_gap": 1.0}, {"theta_res": np.deg2rad(2.0), "rho_res": 0.2}])
+def test_hough_kernel_equals_the_dense_accumulator_reference(params: dict[str, float]) -> None:
+    from segmentation.methods.hough import HoughParams, hough_labels
+
+    p = HoughParams(**params)  # type: ignore[arg-type]
+    for line in _reference_scans():
+        pts = line.points_xy
+        thr = np.full(pts.shape[0], p.threshold)
+        args = (pts, thr, p.theta_res, p.rho_res, p.min_votes, p.min_len, p.max_gap)
+        expected = _hough_reference(*args)
+        assert expected.max() >= 1  # at least two segments: a non-trivial case
+        np.testing.assert_array_equal(hough_labels(*args), expected)
+
+
+@pytest.mark.parametrize("params", [{}, {"n_iter": 7, "seed": 3}, {"min_len": 4, "max_gap": 1.0, "seed": 1}])
+def test_ransac_kernel_equals_the_one_draw_at_a_time_reference(params: dict[str, float]) -> None:
+    from segmentation.methods.ransac import RansacParams, ransac_labels
+
+    p = RansacParams(**params)  # type: ignore[arg-type]
+    for line in _reference_scans():
+        pts = line.points_xy
+        thr = np.full(pts.shape[0], p.threshold)
+        expected = _ransac_reference(pts, thr, p.n_iter, p.min_len, p.max_gap, p.seed)
+        assert expected.max() >= 1  # at least two segments: a non-trivial case
+        got = ransac_labels(pts, thr, p.n_iter, p.min_len, p.max_gap, np.random.default_rng(p.seed))
+        np.testing.assert_array_equal(got, expected)
+
 def _spiked_wall(spike: float) -> sg.Scanline:
     s = _scan(World2D.from_pieces([("wall", [(-3.0, 3.0), (3.0, 3.0)])]), (0.0, 0.0, np.pi / 2), 0.003, seed=5)
     r = s.ranges.copy()
@@ -287,10 +415,11 @@ def test_parameter_errors_are_clear(method: str) -> None:
 
 def test_method_specific_parameter_errors() -> None:
     line = _line(figure1(noise_sigma=0.0))
-    for method, bad in [("hough", {"rho_res": -1.0}), ("hough", {"theta_res": 2.0}), ("hough", {"min_votes": 1}),
-                        ("ransac", {"n_iter": 0}), ("ransac", {"seed": -1}), ("split_and_merge", {"merge_alpha": 1.5}),
-                        ("sef", {"direction": "sideways"}), ("sef", {"corner_threshold": -0.01}),
-                        ("sef", {"corner_span": 0})]:
+    cases: list[tuple[str, dict[str, object]]] = [
+        ("hough", {"rho_res": -1.0}), ("hough", {"theta_res": 2.0}), ("hough", {"min_votes": 1}),
+        ("ransac", {"n_iter": 0}), ("ransac", {"seed": -1}), ("split_and_merge", {"merge_alpha": 1.5}),
+        ("sef", {"direction": "sideways"}), ("sef", {"corner_threshold": -0.01}), ("sef", {"corner_span": 0})]
+    for method, bad in cases:
         with pytest.raises(ValueError, match=next(iter(bad))):
             sg.segment(line, method=method, **bad)
 

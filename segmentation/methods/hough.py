@@ -15,6 +15,15 @@ Like RANSAC, Hough ignores scan order while voting: collinear but separate
 faces share a peak, and the resolution trades accuracy against split votes.
 Defaults: 1 deg x 5 cm cells (a 5 m wall misaligned by half a bin spreads
 over 2.2 cm of rho) and a 1 cm inlier threshold for 3 mm noise.
+
+Implementation (same peaks, same labels as the plain accumulator): each theta
+row spans only the rho cells its points reach (a sparse 80 m scan does not pay
+for twice its farthest range in every direction); every row's highest cell is
+kept, so a peak is a scan of the row maxima; votes are withdrawn lazily: after
+a take, a row is recounted from the alive points only when its (now upper
+bound) maximum could be the next peak; the extraction stops as soon as no
+``min_len`` alive, gap-free consecutive points are left, since no run could
+be taken any more.
 """
 
 from __future__ import annotations

@@ -9,7 +9,14 @@ every run of at least ``min_len`` consecutive inliers as a segment (see
 ``segmentation.methods._consensus``). Stop when fewer than ``min_len``
 points remain or the best line has fewer than ``min_len`` inliers. If a best
 line has enough inliers but no run long enough (scattered clutter), its
-inliers are discarded (left unsegmented) so the search moves on.
+inliers are discarded (left unsegmented) so the search moves on. It also
+stops as soon as no ``min_len`` alive, gap-free consecutive points are left:
+no run could be taken any more, so the labels are final.
+
+Speed without changing the result: the alive points are kept packed in scan
+order (pairs are drawn by packed index, as before), so the inlier count of a
+pair is one vectorised pass, and each line's ``2 * n_iter`` indices are drawn
+in one batch (the same stream as one draw at a time).
 
 RANSAC ignores scan order while fitting, so collinear but separate faces (a
 wall either side of a door recessed by less than ``threshold``) share a
