@@ -29,7 +29,10 @@ solution (``scale_rounds`` solves in all; ``variance_factor=False``: one solve w
 sigmas). The kernel threshold thus tracks the real spread, and
 the covariance, computed with the scaled sigmas, is the robust a-posteriori (variance-factor
 scaled) covariance of the data part; the priors keep their own sigmas, so a parameter that only
-the prior constrains keeps its prior sigma.
+the prior constrains keeps its prior sigma. The IRLS information ``sum w J^T J`` of a robust fit
+is still optimistic when many residuals sit in the kernel's down-weighted range, so the sigmas
+of the covariance graph get the M-estimator sandwich correction of
+:func:`robust_variance_factor` on top (with the thresholds divided by it: same weights).
 
 Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal covariances of
 ``E(s)`` (6x6, gtsam tangent order: rotation then translation, right perturbation of
@@ -41,7 +44,7 @@ from __future__ import annotations
 
 import re
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -55,6 +58,7 @@ from slam.factors import (
     RobustKernel,
     point_plane_factor,
     point_plane_terms,
+    robust_weights,
     scanner_point_plane_factor,
 )
 from slam.interpolation import knot_fractions
@@ -104,7 +108,7 @@ class ScannerEstimate:
     covariance (None for the reference), the time offset correction [s] and its sigma (None when
     not estimated), unwhitened point-to-plane residuals [m] before/after, and ``scale``: the
     robust spread of the whitened residuals that multiplied the point sigmas (variance factor
-    ``scale**2``; see the module docstring)."""
+    ``scale**2``) and ``sandwich``, the M-estimator correction on top of it (module docstring)."""
 
     index: int
     name: str
@@ -118,6 +122,7 @@ class ScannerEstimate:
     residuals_after: FloatArray
     n_points: int
     scale: float = 1.0
+    sandwich: float = 1.0
 
 
 @dataclass
@@ -248,8 +253,16 @@ def estimate_extrinsics(
         res_k = _residuals(blocks, result, kt, calibrated, T_init, cfg.time_offsets, n_sc)
         scale = np.array([max(cfg.scale_floor, robust_scale(res_k[i] / sig[i]))
                           for i, sig in enumerate(_sigmas(blocks, n_sc))])
+    sandwich = np.ones(n_sc)
     if cfg.variance_factor:  # the covariance with the scale of the final residuals
-        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg)
+        res_k = _residuals(blocks, result, kt, calibrated, T_init, cfg.time_offsets, n_sc)
+        sig_k = _sigmas(blocks, n_sc)
+        sandwich = np.array([robust_variance_factor(res_k[i] / (sig_k[i] * scale[i]), cfg.kernel)
+                             for i in range(n_sc)])
+        # sigmas x sandwich and thresholds / sandwich: the same IRLS weights, information / f^2
+        kernels = [replace(cfg.kernel, threshold=cfg.kernel.threshold / f) for f in sandwich]
+        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale * sandwich,
+                            cfg, kernels)
     try:
         marginals = gtsam.Marginals(graph, result)
     except RuntimeError as err:
@@ -269,7 +282,7 @@ def estimate_extrinsics(
         scanners.append(ScannerEstimate(
             s, names[s], s == reference, np.asarray(T_init[s], dtype=float), T_final[s],
             None if cov is None else 0.5 * (cov + cov.T), dt, dt_sig, before[s], after[s],
-            int(np.sum(obs.scanner == s)), float(scale[s])))
+            int(np.sum(obs.scanner == s)), float(scale[s]), float(sandwich[s])))
     poses = np.array([result.atPose3(X(i)).matrix() for i in range(kt.size)])
     return BatchResult(scanners, poses, np.asarray(used_planes, dtype=np.int64), e0,
                        float(graph.error(result)), iterations,
@@ -284,25 +297,50 @@ def robust_scale(e: FloatArray) -> float:
     return float(1.4826 * np.median(np.abs(e - np.median(e))))
 
 
+def robust_variance_factor(u: FloatArray, kernel: RobustKernel) -> float:
+    """Factor f on the sigmas of an IRLS (M-estimator) fit so that its covariance matches the
+    robust sandwich covariance, for residuals ``u`` whitened by the robust scale (N,):
+    ``f^2 = mean(psi^2) mean(w) / mean(psi')^2`` (1 for Gaussian residuals without a kernel;
+    > 1 when many residuals sit in the down-weighted range). The IRLS information is
+    ``sum w J^T J`` against the sandwich ``A^-1 B A^-1`` with ``A = sum psi' J^T J``,
+    ``B = sum psi^2 J^T J``; taking psi', psi^2 and w independent of J gives f. ``mean(psi')``
+    is floored at 0.1 (a redescending kernel's psi' turns negative far out)."""
+    u = np.asarray(u, dtype=float)
+    if u.size == 0 or kernel.name == "none":
+        return 1.0
+    k = kernel.threshold
+    w = robust_weights(u, kernel)
+    if kernel.name == "huber":
+        dpsi = (np.abs(u) <= k).astype(float)
+    else:
+        q = (u / k) ** 2
+        dpsi = (1.0 - q) / (1.0 + q) ** 2
+    f2 = float(np.mean((w * u) ** 2) * np.mean(w) / max(float(np.mean(dpsi)), 0.1) ** 2)
+    return float(np.sqrt(max(f2, 1.0)))
+
+
 def _data_graph(prior_graph: gtsam.NonlinearFactorGraph, blocks: list[_Block], kt: FloatArray,
                 reference: int, calibrated: list[int], T_init: list[FloatArray], scale: FloatArray,
-                cfg: EstimatorConfig) -> gtsam.NonlinearFactorGraph:
-    """The priors plus one point-on-plane factor per block, point sigmas times ``scale[scanner]``."""
+                cfg: EstimatorConfig, kernels: list[RobustKernel] | None = None
+                ) -> gtsam.NonlinearFactorGraph:
+    """The priors plus one point-on-plane factor per block, point sigmas times ``scale[scanner]``
+    and the scanner's kernel (default ``cfg.kernel`` for all)."""
     graph = gtsam.NonlinearFactorGraph(prior_graph)
+    kern = kernels or [cfg.kernel] * len(scale)
     for b in blocks:
         xa, xb, pj = X(b.knot), X(b.knot + 1), P(b.plane)
         sig = b.sigmas * scale[b.scanner]
         if b.scanner == reference or b.scanner not in calibrated:
             Tb = T_init[b.scanner]
             p_b = b.points @ Tb[:3, :3].T + Tb[:3, 3]
-            graph.add(point_plane_factor(xa, xb, pj, p_b, b.alphas, sig, cfg.kernel))
+            graph.add(point_plane_factor(xa, xb, pj, p_b, b.alphas, sig, kern[b.scanner]))
         elif cfg.time_offsets:
             graph.add(timed_scanner_plane_factor(xa, xb, pj, E(b.scanner), D(b.scanner), b.points,
                                                  b.alphas, kt[b.knot + 1] - kt[b.knot], sig,
-                                                 cfg.kernel))
+                                                 kern[b.scanner]))
         else:
             graph.add(scanner_point_plane_factor(xa, xb, pj, E(b.scanner), b.points, b.alphas,
-                                                 sig, cfg.kernel))
+                                                 sig, kern[b.scanner]))
     return graph
 
 

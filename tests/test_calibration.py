@@ -200,20 +200,22 @@ def test_no_observations_is_a_clear_error() -> None:
 
 
 def test_sigmas_scale_with_residual_spread_and_outliers_do_not_bias() -> None:
-    """Noise twice the stated sigma and 10 % wrong associations (points 2 cm off their plane, like a
-    recessed door): the robust scale finds the spread, the reported sigmas grow by it and cover
-    the actual error; without the scaling they would not be smaller than the stated-noise ones."""
+    """Noise twice the stated sigma and 10 % wrong associations (points 2 cm off their plane): the
+    robust scale finds the spread, the reported sigmas grow by it (not smaller than the empirical
+    spread says) and cover the actual error, and the kernel keeps the outliers from biasing."""
     from calibration.estimator import robust_scale
     from calibration.observability import parameter_covariance
 
     rng = np.random.default_rng(12)
     kt, kp = walking_knots(duration=1.5)
     obs = scan_points(kt, kp, BOX_PLANES, SCANNERS, beams=41)
-    noise = rng.normal(0.0, 0.006, len(obs))  # stated sigma: 3 mm
-    wrong = rng.random(len(obs)) < 0.10
-    pts = obs.points_scanner.copy()
-    r = np.linalg.norm(pts, axis=1, keepdims=True)
-    pts *= (r + (noise + 0.02 * wrong * rng.choice([-1.0, 1.0], len(obs)))[:, None]) / r  # along the beam
+    # off the plane along its normal (no errors-in-variables bias): 6 mm noise (stated: 3 mm) and
+    # 10 % wrong associations 2 cm in front of or behind it (proud boards, recessed doors)
+    off = rng.normal(0.0, 0.006, len(obs))
+    off += 0.02 * (rng.random(len(obs)) < 0.10) * rng.choice([-1.0, 1.0], len(obs))
+    T_ws = interpolate_trajectory(kt, kp, obs.times) @ np.stack([SCANNERS[s] for s in obs.scanner])
+    n_scanner = np.einsum("nji,nj->ni", T_ws[:, :3, :3], BOX_PLANES[obs.plane_id, :3])
+    pts = obs.points_scanner + off[:, None] * n_scanner
     obs = PointObservations(obs.scanner, obs.plane_id, pts, obs.times, obs.sigmas)
     T0 = _perturbed(np.random.default_rng(5), 1.0, 0.02)
     base = dict(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
@@ -222,8 +224,7 @@ def test_sigmas_scale_with_residual_spread_and_outliers_do_not_bias() -> None:
                                 config=EstimatorConfig(**base, variance_factor=False,
                                                        kernel=RobustKernel("none")))
     for s, n in zip(res.scanners, naive.scanners, strict=True):
-        # point-to-plane spread: 2 x the stated sigma times the beams' incidence cosines
-        assert 1.2 < s.scale < 2.2, (s.name, s.scale)
+        assert 1.7 < s.scale < 2.4, (s.name, s.scale)  # MAD of the whitened residuals ~ 2
         assert robust_scale(s.residuals_after / 0.003) == pytest.approx(s.scale, rel=0.35)
         if s.reference:
             continue
