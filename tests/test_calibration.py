@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -218,11 +219,10 @@ def test_sigmas_scale_with_residual_spread_and_outliers_do_not_bias() -> None:
     pts = obs.points_scanner + off[:, None] * n_scanner
     obs = PointObservations(obs.scanner, obs.plane_id, pts, obs.times, obs.sigmas)
     T0 = _perturbed(np.random.default_rng(5), 1.0, 0.02)
-    base = dict(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
-    res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=EstimatorConfig(**base))
+    robust = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
+    res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=robust)
     naive = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0,
-                                config=EstimatorConfig(**base, variance_factor=False,
-                                                       kernel=RobustKernel("none")))
+                                config=replace(robust, variance_factor=False, kernel=RobustKernel("none")))
     for s, n in zip(res.scanners, naive.scanners, strict=True):
         assert 1.7 < s.scale < 2.4, (s.name, s.scale)  # MAD of the whitened residuals ~ 2
         assert robust_scale(s.residuals_after / 0.003) == pytest.approx(s.scale, rel=0.35)
