@@ -329,7 +329,8 @@ def test_report_on_a_hand_made_table(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "| ror sigma=0.011 | 3 | 2.000 ± 0.000 |" in md
     assert "lowest mean ATE 1.200" in md and "**ror sigma=0.0095**" in md
     # map error (cloud_median = ATE / 10, in mm): ranked too; iepf's interval is disjoint from the best
-    assert "lowest mean cloud-to-mesh median 1.200" in md and "worst iepf 6.000" in md
+    assert "lowest mean cloud-to-mesh median 1.200" in md and "worst iepf (3 of 4 seeds; 1 failed) 6.000" in md
+    assert "demo, noise 3 mm: failed cells (seeds): iepf 1 of 4." in md
     assert "runner-up ror sigma=0.011 2.000 ± 0.000 mm (intervals disjoint)" in md
     assert "| iepf | demo | 3 | 3 | slam | RuntimeError: diverged |" in md
     for png in ("drift.png", "map_error.png", "segmentation.png", "time.png"):

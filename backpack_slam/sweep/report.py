@@ -208,7 +208,7 @@ def write_report(out_dir: str | Path) -> Path:
         ("Time", TIME, "time.png"),
     ]
     if not ok.empty:
-        best = _ranking(ok)
+        best = _ranking(ok, table)
         if best:
             lines += ["## Finding", "", *best, ""]
         for title, all_metrics, png in groups:
@@ -219,7 +219,8 @@ def write_report(out_dir: str | Path) -> Path:
             lines += [f"## {title}", "", f"![{title}]({png})", ""]
             for cond, sub in summary.groupby([*CONDITION], sort=True, dropna=False):
                 lines += [f"### {condition_label(dict(zip(CONDITION, cond, strict=True)))}", ""]
-                lines += markdown_table(sub, metrics)
+                order = {v: i for i, v in enumerate(variant_order(ok))}
+                lines += markdown_table(sub.sort_values("variant", key=lambda c: c.map(order)), metrics)
                 lines.append("")
     lines += ["## Failed cells", ""]
     if failed.empty:
@@ -243,30 +244,44 @@ RANKED = [
 ]
 
 
-def _ranking(ok: pd.DataFrame) -> list[str]:
+def _named(r: pd.Series, n_all: dict[str, int]) -> str:
+    """A summary row's variant, with its number of successful seeds when some failed."""
+    v = str(r["variant"])
+    n = n_all.get(v, 0)
+    return v + (f" ({r['seeds']} of {n} seeds; {n - r['seeds']} failed)" if r["seeds"] < n else "")
+
+
+def _ranking(ok: pd.DataFrame, table: pd.DataFrame) -> list[str]:
     """Per condition and ranked metric (ATE, RPE drift, map error), the variants ordered by
     mean (lower is better) and whether the best one's interval overlaps the runner-up's, as
-    plain sentences."""
+    plain sentences; a variant with failed cells says on how many seeds its mean rests, and
+    the failures per variant come first (a variant that fails is not a winner)."""
     out = []
     summary = summarise(ok, [m for m, _ in RANKED])
     for cond, sub in summary.groupby([*CONDITION], sort=True, dropna=False):
         label = condition_label(dict(zip(CONDITION, cond, strict=True)))
+        in_cond = table[(table[CONDITION] == pd.Series(cond, index=CONDITION)).all(axis=1)]
+        n_all = in_cond.groupby("variant")["seed"].nunique().to_dict()
+        n_bad = in_cond[in_cond["status"] != "ok"].groupby("variant")["seed"].nunique().to_dict()
+        if n_bad:
+            bad = ", ".join(f"{v} {n_bad[v]} of {n_all[v]}" for v in sorted(n_bad))
+            out.append(f"- {label}: failed cells (seeds): {bad}.")
         for m, name in RANKED:
             col, ci = m.column, m.column + "_ci"
             ranked = sub[np.isfinite(sub[col])].sort_values(col)
             if ranked.empty:
                 continue
             b = ranked.iloc[0]
-            text = f"- {label}: lowest mean {name} {fmt(b[col], b[ci])} {m.unit} with **{b['variant']}**"
+            text = f"- {label}: lowest mean {name} {fmt(b[col], b[ci])} {m.unit} with **{_named(b, n_all)}**"
             if len(ranked) > 1:
                 r = ranked.iloc[1]
                 overlap = (
                     not math.isfinite(b[ci]) or not math.isfinite(r[ci]) or b[col] + b[ci] >= r[col] - r[ci]
                 )
-                text += f"; runner-up {r['variant']} {fmt(r[col], r[ci])} {m.unit}" + (
+                text += f"; runner-up {_named(r, n_all)} {fmt(r[col], r[ci])} {m.unit}" + (
                     " (confidence intervals overlap: not a significant difference)" if overlap else " (intervals disjoint)"
                 )
             w = ranked.iloc[-1]
-            text += f"; worst {w['variant']} {fmt(w[col], w[ci])} {m.unit}."
+            text += f"; worst {_named(w, n_all)} {fmt(w[col], w[ci])} {m.unit}."
             out.append(text)
     return out
