@@ -14,7 +14,11 @@ and the process is pinned to one CPU. Goals (reported, not enforced): RoR
 combined >= 10,000 scans/s and >= 0.5x split_and_merge on ``office`` and
 ``figure1``; every method >= 1,000 scans/s.
 
-Usage: ``python scripts/bench_segmentation.py [--out table.md] [--repeats 7]``.
+The caption records the 1-minute load average before and after the run and
+the number of CPUs: on a shared, loaded machine absolute scans/s drop (the
+ratios, measured in the same run, move less); ``--note`` adds free text.
+
+Usage: ``python scripts/bench_segmentation.py [--out table.md] [--repeats 7] [--note TEXT]``.
 """
 
 from __future__ import annotations
@@ -93,6 +97,14 @@ def time_method(method: str, scans: list[sg.Scanline], repeats: int) -> float:
     return len(scans) / float(np.median(times))
 
 
+def _load_average() -> float:
+    """The 1-minute load average (NaN where the OS does not report it)."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float("nan")
+
+
 def markdown(results: dict[str, dict[str, float]], sets: dict[str, list[sg.Scanline]]) -> str:
     names = list(sets)
     beams = {k: int(np.median([s.n_beams for s in v])) for k, v in sets.items()}
@@ -124,6 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--real", type=Path, default=DEFAULT_REAL, help="folder of CARMEN logs")
     ap.add_argument("--max-real", type=int, default=400, help="scanlines per real log")
     ap.add_argument("--methods", nargs="*", help="subset of segmenters (default: all registered)")
+    ap.add_argument("--note", default="", help="free text appended to the table caption")
     args = ap.parse_args(argv)
     if args.repeats < 1 or args.office < 1 or args.max_real < 1:
         print("error: --repeats, --office and --max-real must be >= 1", file=sys.stderr)
@@ -145,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         print(f"warning: no real data folder {args.real}; synthetic only", file=sys.stderr)
 
+    load_before = _load_average()
     results: dict[str, dict[str, float]] = {m: {} for m in methods}
     with tqdm(total=len(methods) * len(sets), desc="bench", unit="set") as bar:
         for m in methods:
@@ -153,8 +167,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 bar.update()
 
     table = markdown(results, sets)
+    load = f"{load_before:.1f} before, {_load_average():.1f} after the run" if np.isfinite(load_before) else "unknown"
     header = (f"Segmentation speed, one core ({platform.processor() or platform.machine()}, "
-              f"numba threads 1), defaults, median of {args.repeats} passes; ratio to {REFERENCE}.\n\n")
+              f"numba threads 1), defaults, median of {args.repeats} passes; ratio to {REFERENCE}. "
+              f"Machine: {os.cpu_count()} CPUs, 1-minute load average {load}."
+              + (f" {args.note}" if args.note else "") + "\n\n")
     print("\n" + header + table)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
