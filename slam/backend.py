@@ -46,6 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam.factors import (
     RobustKernel,
+    _shifted,
     point_plane_factor,
     point_plane_terms,
     robust_weights,
@@ -171,6 +172,7 @@ class Backend:
         self._marginals: gtsam.Marginals | None = None
         self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
         self._links: list[tuple[int, int, int]] = []  # (keep, drop, factor id) plane equality ties
+        self._anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike,
@@ -224,10 +226,17 @@ class Backend:
         return i
 
     def add_plane(self, plane_id: int, normal_world: ArrayLike, offset: float,
-                  horizontal: bool = False, vertical: bool = False) -> None:
+                  horizontal: bool = False, vertical: bool = False,
+                  anchor: ArrayLike | None = None) -> None:
         """Add plane ``plane_id`` (int >= 0): ``normal_world . x + offset = 0`` (the normal is
         normalised). ``horizontal`` adds a prior keeping it a floor/ceiling, ``vertical`` one
-        keeping it a wall (its normal horizontal: ``n_z = 0``)."""
+        keeping it a wall (its normal horizontal: ``n_z = 0``).
+
+        ``anchor`` (3,), a world point near the plane's observed patch: the variable is the plane
+        expressed about it (``n . (x - anchor) + d_local = 0``). A plane seen far from the world
+        origin is otherwise badly conditioned (turning the normal about the origin and shifting
+        the offset nearly cancel at the patch: condition numbers of 1e7-1e9 at 20 m). Estimates
+        and inputs stay in the world frame; :meth:`plane_covariance` is about the anchor."""
         j = _plane_id(plane_id)
         if self._values.exists(P(j)):
             raise ValueError(f"plane_id: plane {j} already exists")
@@ -236,7 +245,12 @@ class Backend:
             raise ValueError(f"normal_world: expected a finite non-zero 3-vector, got {n}")
         if not np.isfinite(offset):
             raise ValueError(f"offset: must be finite, got {offset}")
-        self._values.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(n), float(offset)))
+        a = np.zeros(3) if anchor is None else np.asarray(anchor, dtype=float).reshape(3)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"anchor: must be finite, got {a}")
+        self._anchors[j] = a
+        n_unit = n / np.linalg.norm(n)
+        self._values.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(n), float(offset) + float(n_unit @ a)))
         self._plane_blocks[j] = set()
         if horizontal:
             self._plane_priors[j] = self._add_factor(
@@ -320,9 +334,10 @@ class Backend:
         if blk.scanner is not None:
             Es = v.atPose3(E(blk.scanner)).matrix()
             pts = pts @ Es[:3, :3].T + Es[:3, 3]
-        T_b = v.atPose3(X(blk.knot + 1)) if blk.alphas is not None else None
-        terms = point_plane_terms(v.atPose3(X(blk.knot)), T_b, v.atOrientedPlane3(P(blk.plane_id)),
-                                  pts, blk.alphas, jacobians=False)
+        a = self._anchors.get(blk.plane_id)
+        T_b = _shifted(v.atPose3(X(blk.knot + 1)), a) if blk.alphas is not None else None
+        terms = point_plane_terms(_shifted(v.atPose3(X(blk.knot)), a), T_b,
+                                  v.atOrientedPlane3(P(blk.plane_id)), pts, blk.alphas, jacobians=False)
         e = terms.residuals / blk.sigmas
         return e, robust_weights(e, self.config.kernel)
 
@@ -365,7 +380,8 @@ class Backend:
         if keep == drop:
             raise ValueError(f"link_planes: cannot link plane {keep} with itself")
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, sigma_offset]))
-        fid = self._add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], _plane_equality_error))
+        error = _plane_equality(self._anchors[keep], self._anchors[drop])
+        fid = self._add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], error))
         self._links.append((keep, drop, fid))
         return fid
 
@@ -507,15 +523,16 @@ class Backend:
     def planes(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
         """Plane ids (P,), unit normals (P, 3) and offsets (P,) in the world frame (n.x + d = 0)."""
         ids = self.plane_ids()
-        pl = [self._values.atOrientedPlane3(P(j)) for j in ids]
-        normals = np.array([p.normal().point3() for p in pl]).reshape(-1, 3)
-        return (np.asarray(ids, dtype=np.int64), normals,
-                np.array([p.distance() for p in pl], dtype=float))
+        world = [self.plane(j) for j in ids]
+        normals = np.array([w[0] for w in world]).reshape(-1, 3)
+        return (np.asarray(ids, dtype=np.int64), normals, np.array([w[1] for w in world], dtype=float))
 
     def plane(self, plane_id: int) -> tuple[FloatArray, float]:
         """Unit normal (3,) and offset of one plane (world frame)."""
-        p = self._values.atOrientedPlane3(P(self._check_plane(plane_id)))
-        return np.asarray(p.normal().point3()), float(p.distance())
+        j = self._check_plane(plane_id)
+        p = self._values.atOrientedPlane3(P(j))
+        n = np.asarray(p.normal().point3())
+        return n, float(p.distance()) - float(n @ self._anchors.get(j, np.zeros(3)))
 
     def extrinsic(self, scanner: int) -> FloatArray:
         """Current ``T_body_scanner`` (4, 4) of a scanner added with :meth:`add_extrinsic`."""
@@ -645,11 +662,12 @@ class Backend:
                       kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
         kernel = kernel or self.config.kernel
         kb = X(blk.knot + 1) if blk.alphas is not None else None
+        a = self._anchors.get(blk.plane_id)
         if blk.scanner is None:
             return point_plane_factor(X(blk.knot), kb, P(blk.plane_id), blk.points, blk.alphas,
-                                      blk.sigmas, kernel)
+                                      blk.sigmas, kernel, anchor=a)
         return scanner_point_plane_factor(X(blk.knot), kb, P(blk.plane_id), E(blk.scanner),
-                                          blk.points, blk.alphas, blk.sigmas, kernel)
+                                          blk.points, blk.alphas, blk.sigmas, kernel, anchor=a)
 
     def _make_block(self, knot: int, plane_id: int, points: ArrayLike, alphas: ArrayLike | None,
                     sigmas: ArrayLike, scanner: int | None) -> ObservationBlock:
@@ -704,34 +722,42 @@ def _vertical_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatA
     return np.array([u.point3()[2]])
 
 
-def _plane_residual(a: gtsam.OrientedPlane3, b: gtsam.OrientedPlane3) -> FloatArray:
+def _plane_residual(a: gtsam.OrientedPlane3, b: gtsam.OrientedPlane3, anchor_a: FloatArray,
+                    anchor_b: FloatArray) -> FloatArray:
+    """Difference of plane b from plane a (normal in a's tangent, offset at a's anchor)."""
     na = a.normal().point3()
     nb = b.normal().point3()
-    db = b.distance()
+    db = b.distance() + float(nb @ (anchor_a - anchor_b))  # b's offset about a's anchor
     if float(na @ nb) < 0.0:  # the same plane with the opposite orientation
         nb, db = -nb, -db
     B = a.normal().basis()
     return np.array([*(B.T @ nb), db - a.distance()])
 
 
-def _plane_equality_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
-    """Equality of two planes (3 residuals); Jacobians by central differences on the manifold
-    (two planes per factor and few factors: cheaper to write than the Unit3 chain rule)."""
-    ka, kb = this.keys()[0], this.keys()[1]
-    a, b = v.atOrientedPlane3(ka), v.atOrientedPlane3(kb)
-    e = _plane_residual(a, b)
-    if H is not None:
-        h = 1e-7
-        Ha = np.zeros((3, 3))
-        Hb = np.zeros((3, 3))
-        for i in range(3):
-            d = np.zeros(3)
-            d[i] = h
-            Ha[:, i] = (_plane_residual(a.retract(d), b) - _plane_residual(a.retract(-d), b)) / (2 * h)
-            Hb[:, i] = (_plane_residual(a, b.retract(d)) - _plane_residual(a, b.retract(-d))) / (2 * h)
-        H[0] = Ha
-        H[1] = Hb
-    return e
+def _plane_equality(anchor_a: FloatArray, anchor_b: FloatArray) -> Any:
+    """Error function of the equality of two (anchored) planes, 3 residuals; Jacobians by central
+    differences on the manifold (few such factors: cheaper to write than the Unit3 chain rule)."""
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+        ka, kb = this.keys()[0], this.keys()[1]
+        a, b = v.atOrientedPlane3(ka), v.atOrientedPlane3(kb)
+        e = _plane_residual(a, b, anchor_a, anchor_b)
+        if H is not None:
+            h = 1e-7
+            Ha = np.zeros((3, 3))
+            Hb = np.zeros((3, 3))
+            for i in range(3):
+                d = np.zeros(3)
+                d[i] = h
+                Ha[:, i] = (_plane_residual(a.retract(d), b, anchor_a, anchor_b)
+                            - _plane_residual(a.retract(-d), b, anchor_a, anchor_b)) / (2 * h)
+                Hb[:, i] = (_plane_residual(a, b.retract(d), anchor_a, anchor_b)
+                            - _plane_residual(a, b.retract(-d), anchor_a, anchor_b)) / (2 * h)
+            H[0] = Ha
+            H[1] = Hb
+        return e
+
+    return error
 
 
 def _as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:

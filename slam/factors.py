@@ -235,6 +235,7 @@ def point_plane_factor(
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
     kernel: RobustKernel | None = None,
+    anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for N body-frame points (N, 3) [m] observed between knots a and b on a plane.
 
@@ -243,7 +244,8 @@ def point_plane_factor(
     point-to-plane standard deviations from the scanner noise model. Error dimension N.
     """
     p, al, s = _check_block(points_body, alphas, sigmas, pose_key_b is not None, "points_body")
-    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel or RobustKernel())
+    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel or RobustKernel(),
+                         _anchor(anchor))
 
 
 def scanner_point_plane_factor(
@@ -255,13 +257,32 @@ def scanner_point_plane_factor(
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
     kernel: RobustKernel | None = None,
+    anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Like :func:`point_plane_factor` with points (N, 3) in the scanner frame and
     ``T_body_scanner`` the Pose3 variable ``extrinsic_key`` (last key; right perturbation)."""
     p, al, s = _check_block(points_scanner, alphas, sigmas, pose_key_b is not None,
                             "points_scanner")
     return _block_factor(pose_key_a, pose_key_b, plane_key, extrinsic_key, p, al, s,
-                         kernel or RobustKernel())
+                         kernel or RobustKernel(), _anchor(anchor))
+
+
+def _anchor(anchor: ArrayLike | None) -> FloatArray | None:
+    if anchor is None:
+        return None
+    a = np.asarray(anchor, dtype=float).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"anchor: expected a finite 3-vector, got {a}")
+    return a if np.any(a != 0.0) else None
+
+
+def _shifted(T: gtsam.Pose3, anchor: FloatArray | None) -> gtsam.Pose3:
+    """``T`` with the anchor subtracted from its translation: poses in the plane's anchor frame.
+
+    A constant left translation leaves the right-perturbation Jacobians unchanged."""
+    if anchor is None:
+        return T
+    return gtsam.Pose3(T.rotation(), T.translation() - anchor)
 
 
 def _block_factor(
@@ -273,6 +294,7 @@ def _block_factor(
     alphas: FloatArray | None,
     sigmas: FloatArray,
     kernel: RobustKernel,
+    anchor: FloatArray | None = None,
 ) -> gtsam.CustomFactor:
     inv_s = 1.0 / sigmas
     keys = [key_a] + ([key_b] if key_b is not None else []) + [plane_key]
@@ -285,9 +307,9 @@ def _block_factor(
             E = v.atPose3(extrinsic_key).matrix()
             R_bs = E[:3, :3]
             p_b = points @ R_bs.T + E[:3, 3]
-        T_b = v.atPose3(key_b) if key_b is not None else None
-        t = point_plane_terms(v.atPose3(key_a), T_b, v.atOrientedPlane3(plane_key), p_b, alphas,
-                              H is not None)
+        T_b = _shifted(v.atPose3(key_b), anchor) if key_b is not None else None
+        t = point_plane_terms(_shifted(v.atPose3(key_a), anchor), T_b, v.atOrientedPlane3(plane_key),
+                              p_b, alphas, H is not None)
         e = t.residuals * inv_s
         if H is None:  # error evaluation only: the robust cost
             return robust_residual(e, kernel)

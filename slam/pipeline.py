@@ -445,8 +445,14 @@ class SlamRunner:
                 self.stats["planes_rejected"] += 1
                 continue
             pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
+            anchor = np.vstack([m.samples for m in plane.members]).mean(axis=0)
             self.backend.add_plane(
-                pl.id, plane.normal, plane.d, horizontal=kind in (KIND_FLOOR, KIND_CEILING), vertical=vertical
+                pl.id,
+                plane.normal,
+                plane.d,
+                horizontal=kind in (KIND_FLOOR, KIND_CEILING),
+                vertical=vertical,
+                anchor=anchor,
             )
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
