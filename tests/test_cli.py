@@ -142,7 +142,8 @@ def test_segment_real_log_scan_index_and_bag_topic(tmp_path: Path, capsys: pytes
 
 def test_demo_writes_plots_and_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--segmentation-only"]) == 0
+    log = ["--log", str(INTEL)] if INTEL.is_file() else []
+    assert main(["demo", "--out", str(out), "--segmentation-only", *log]) == 0
     text = capsys.readouterr().out
     assert "figure1_segmentation.png" in text and "ror" in text
     data = json.loads((out / "segmentation_demo.json").read_text())
