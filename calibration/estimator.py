@@ -25,8 +25,9 @@ trajectory model errors, so after each solve the spread of every scanner's white
 measured robustly, ``scale = 1.4826 median |e - median e|`` (MAD), floored at ``scale_floor``
 (the sensor model is a lower bound; noise-free data would otherwise give a vanishing scale), and
 the scanner's point sigmas are multiplied by it; the graph is solved again from the previous
-solution (``scale_rounds`` solves in all; ``variance_factor=False``: one solve with the stated
-sigmas). The kernel threshold thus tracks the real spread, and
+solution (``scale_rounds`` solves in all, the first with the convex ``start_kernel`` (Huber) since the
+start may be far off and the scale is not known yet; ``variance_factor=False``: one solve with
+``kernel`` and the stated sigmas). The kernel threshold thus tracks the real spread, and
 the covariance, computed with the scaled sigmas, is the robust a-posteriori (variance-factor
 scaled) covariance of the data part; the priors keep their own sigmas, so a parameter that only
 the prior constrains keeps its prior sigma. The IRLS information ``sum w J^T J`` of a robust fit
@@ -81,6 +82,7 @@ class EstimatorConfig:
     time_offsets: bool = False
     sigma_time: float = 0.005
     kernel: RobustKernel = field(default_factory=lambda: RobustKernel("cauchy", 3.0))
+    start_kernel: RobustKernel = field(default_factory=lambda: RobustKernel("huber", 2.5))
     variance_factor: bool = True
     scale_rounds: int = 2
     scale_floor: float = 1.0
@@ -243,8 +245,10 @@ def estimate_extrinsics(
     before = _residuals(blocks, values, kt, calibrated, T_init, cfg.time_offsets, n_sc)
     e0 = float(_data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg).error(values))
     iterations = 0
-    for _ in range(cfg.scale_rounds):
-        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg)
+    for k in range(cfg.scale_rounds):
+        # convex Huber first (the start may be far off), the redescending kernel once scaled
+        kern = [cfg.start_kernel] * n_sc if k == 0 and cfg.variance_factor and cfg.scale_rounds > 1 else None
+        graph = _data_graph(prior_graph, blocks, kt, reference, calibrated, T_init, scale, cfg, kern)
         result, it = _solve(graph, values, cfg)
         iterations += it
         values = result
