@@ -16,10 +16,7 @@ output):
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +29,7 @@ from slam.config import SlamConfig
 from slam.export import (
     CloudRecord,
     PlaneRecord,
+    atomic_dir,
     make_segment_table,
     write_cloud_ply,
     write_planes_json,
@@ -82,9 +80,7 @@ def run_slam(
     runner.finish()
     res = runner.result(batch=cfg.backend.final_batch)
 
-    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir(parents=True)
-    try:
+    with atomic_dir(out) as tmp:
         t0 = time.perf_counter()
         summary = _write_outputs(tmp, bag, rig, cfg, res, runner, progress, voxel)
         res.timings["export"] = time.perf_counter() - t0
@@ -93,21 +89,7 @@ def run_slam(
         summary["data_duration"] = t_end - t_start
         summary["realtime_factor"] = (t_end - t_start) / max(summary["timings"]["wall"], 1e-9)
         write_summary_json(tmp / "summary.json", summary)
-        _replace_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return summary
-
-
-def _replace_dir(tmp: Path, out: Path) -> None:
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-        os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
 
 
 def _plane_records(res: SlamResult, runner: SlamRunner, with_cov: bool) -> list[PlaneRecord]:
