@@ -122,6 +122,7 @@ def _plot(rows: list[dict[str, float]], path: Path) -> None:
                     ax.plot([r[x] for r in sel], [r[key] for r in sel], "o-", label=f"{lev:g} {unit}")
             ax.set_xlabel(f"{xlabel} of the tilted scanners")
             ax.set_ylabel(label)
+            ax.set_yscale("log")  # a diverged run is 1000x the others
             ax.legend(title="other error", fontsize=8)
     fig.suptitle("SLAM error versus calibration error")
     fig.tight_layout()
