@@ -10,9 +10,6 @@ replaces ``out_dir`` when complete.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +18,7 @@ import numpy as np
 from backpack_slam.rig import matrix_to_rpy
 from calibration.calibrate import Calibration
 from calibration.observability import PARAMETERS
+from slam.export import atomic_dir
 
 
 def _stats(r: np.ndarray) -> dict[str, float]:
@@ -144,21 +142,9 @@ def _plots(cal: Calibration, out: Path, d: dict[str, Any]) -> None:
 def write_report(cal: Calibration, out_dir: str | Path) -> Path:
     """Write the report folder (see the module docstring); returns its path."""
     out = Path(out_dir)
-    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir(parents=True)
-    try:
+    with atomic_dir(out) as tmp:
         d = summary_dict(cal)
         (tmp / "calibration.json").write_text(json.dumps(d, indent=2, default=float))
         (tmp / "report.md").write_text(_markdown(d))
         _plots(cal, tmp, d)
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
