@@ -225,6 +225,15 @@ class Backend:
                                                          cfg.imu))
         return i
 
+    def add_velocity_prior(self, knot: int, velocity_world: ArrayLike, sigma: float) -> None:
+        """A prior (3,) [m/s] on a knot's velocity, e.g. zero while the operator stands still
+        (IMU configurations only)."""
+        if self.config.imu is None:
+            raise ValueError("add_velocity_prior: the back end was configured without an IMU")
+        i = self._check_knot(knot)
+        v = np.asarray(velocity_world, dtype=float).reshape(3)
+        self._add_factor(gtsam.PriorFactorVector(V(i), v, gtsam.noiseModel.Isotropic.Sigma(3, float(sigma))))
+
     def add_plane(self, plane_id: int, normal_world: ArrayLike, offset: float,
                   horizontal: bool = False, vertical: bool = False,
                   anchor: ArrayLike | None = None) -> None:
@@ -545,6 +554,18 @@ class Backend:
         if self.config.imu is None:
             raise ValueError("velocities: the back end was configured without an IMU")
         return np.array([self._values.atVector(V(i)) for i in range(len(self._times))])
+
+    def velocity(self, knot: int) -> FloatArray:
+        """World-frame velocity (3,) [m/s] of one knot (IMU configurations only)."""
+        if self.config.imu is None:
+            raise ValueError("velocity: the back end was configured without an IMU")
+        return np.asarray(self._values.atVector(V(self._check_knot(knot))))
+
+    def bias(self, knot: int) -> FloatArray:
+        """IMU bias (6,) of one knot: accelerometer (m/s^2) then gyroscope (rad/s)."""
+        if self.config.imu is None:
+            raise ValueError("bias: the back end was configured without an IMU")
+        return np.asarray(self._values.atConstantBias(B(self._check_knot(knot))).vector())
 
     def biases(self) -> FloatArray:
         """IMU biases (K, 6): accelerometer (m/s^2) then gyroscope (rad/s) per knot."""

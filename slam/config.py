@@ -74,6 +74,31 @@ class BackEndConfig(StrictModel):
     batch_iterations: int = Field(10, ge=1)
 
 
+class ImuSection(StrictModel):
+    """Use of the bag's IMU (``sensor_msgs/Imu``, in the body frame): gtsam preintegration
+    factors between knots and IMU-predicted knots in the front end. The noise is the IMU's
+    datasheet values; the defaults are a consumer MEMS part (Bosch BMI088 / Xsens MTi-3 class)."""
+
+    use: Literal["auto", "on", "off"] = Field("auto", description="auto: when the bag has the topic")
+    topic: str = "/imu"
+    accel_noise: float = Field(0.02, gt=0, description="accelerometer white noise (m/s^2/sqrt(Hz))")
+    gyro_noise: float = Field(0.003, gt=0, description="gyroscope white noise (rad/s/sqrt(Hz))")
+    accel_bias_walk: float = Field(1e-3, gt=0, description="accelerometer bias random walk (m/s^3/sqrt(Hz))")
+    gyro_bias_walk: float = Field(1e-4, gt=0, description="gyroscope bias random walk (rad/s^2/sqrt(Hz))")
+    accel_bias_prior: float = Field(0.05, gt=0, description="sigma of the initial accelerometer bias (m/s^2)")
+    gyro_bias_prior: float = Field(0.005, gt=0, description="sigma of the initial gyroscope bias (rad/s)")
+    gravity: float = Field(9.80665, gt=0, description="m/s^2")
+    integration_sigma: float = Field(
+        2e-3, gt=0,
+        description="position integration noise (m/sqrt(s)): the knots' linear interpolation misses ~0.5 mm of the gait bob")
+    motion_prior: bool = Field(False, description="keep the constant-velocity prior beside the IMU factors")
+    rate: float = Field(200.0, gt=0, description="IMU sample rate (Hz): turns densities into per-sample noise")
+    zupt: bool = Field(True, description="zero-velocity updates where the IMU says the operator stands still")
+    zupt_window: float = Field(0.5, gt=0, description="s of samples the stance test looks at")
+    zupt_threshold: float = Field(8.0, gt=0, description="stance test threshold (6 +- 0.35 at rest over 0.5 s at 200 Hz)")
+    zupt_sigma: float = Field(0.005, gt=0, description="m/s, sigma of a zero-velocity update")
+
+
 class OutputConfig(StrictModel):
     cloud: bool = True
     voxel: float = Field(0.0, ge=0, description="voxel size of cloud.ply (m), 0 = every point")
@@ -86,6 +111,7 @@ class SlamConfig(StrictModel):
     trajectory: TrajectoryConfig = Field(default_factory=TrajectoryConfig)
     frontend: FrontEndConfig = Field(default_factory=FrontEndConfig)
     backend: BackEndConfig = Field(default_factory=BackEndConfig)
+    imu: ImuSection = Field(default_factory=ImuSection)
     output: OutputConfig = Field(default_factory=OutputConfig)
 
 

@@ -60,8 +60,9 @@ from slam.frontend.planemap import (
     classify,
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
+from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
-from slam.motion import MotionPriorConfig
+from slam.motion import ImuConfig, MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -112,8 +113,9 @@ class _Timer:
 class SlamRunner:
     """Online front end + incremental back end over a time-ordered stream of scanlines."""
 
-    def __init__(self, rig: Rig, cfg: SlamConfig) -> None:
+    def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
         self.cfg = cfg
+        self.imu = imu
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
         self._scanner_index = {n: i for i, n in enumerate(self.scanner_names)}
@@ -141,6 +143,20 @@ class SlamRunner:
             )
         )
         dt = 1.0 / cfg.trajectory.knot_rate
+        ic = cfg.imu
+        self.imu_config = (
+            ImuConfig(
+                accel_noise_density=ic.accel_noise,
+                gyro_noise_density=ic.gyro_noise,
+                accel_bias_rw=ic.accel_bias_walk,
+                gyro_bias_rw=ic.gyro_bias_walk,
+                bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
+                gravity=ic.gravity,
+                integration_sigma=ic.integration_sigma,
+            )
+            if imu is not None
+            else None
+        )
         self.backend = Backend(
             BackendConfig(
                 kernel=RobustKernel(be.robust, be.robust_k),
@@ -151,11 +167,15 @@ class SlamRunner:
                 lm_relative_tolerance=1e-4,
                 horizontal_sigma=np.radians(be.horizontal_prior_deg),
                 vertical_sigma=np.radians(be.vertical_prior_deg),
+                imu=self.imu_config,
+                use_motion_prior=imu is None or ic.motion_prior,
             )
         )
         self.dt = dt
         self.t0: float | None = None
         self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
+        self._V = np.zeros((1024, 3))  # ... and velocities (world frame, with an IMU)
+        self._bias = np.zeros(6)  # latest IMU bias estimate (accelerometer, gyroscope)
         self._n_knots = 0
         self._pending: list[_Pending] = []
         self._recent: list[_Pending] = []  # ready scans within the tracking window
@@ -177,6 +197,9 @@ class SlamRunner:
             "skipped_scans": 0,
             "planes_rejected": 0,
             "isam2_rebuilds": 0,
+            "isam2_fallbacks": 0,
+            "imu_used": int(imu is not None),
+            "zero_velocity_updates": 0,
         }
         self._since_update = 0
 
@@ -185,17 +208,55 @@ class SlamRunner:
         assert self.t0 is not None
         return self.t0 + k * self.dt
 
-    def _append_knot(self, T: FloatArray) -> int:
+    def _grow(self) -> None:
         if self._n_knots == self._T.shape[0]:
             self._T = np.concatenate((self._T, np.zeros_like(self._T)))
+            self._V = np.concatenate((self._V, np.zeros_like(self._V)))
+
+    def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
+        self._grow()
         k = self._n_knots
         self._T[k] = T
+        self._V[k] = 0.0 if v is None else v
         self._n_knots += 1
         if k > 0:
             self._odometer += float(np.linalg.norm(T[:3, 3] - self._T[k - 1, :3, 3]))
         self._odo_at_knot.append(self._odometer)
-        self.backend.add_pose(self._knot_time(k), T)
+        self.backend.add_pose(self._knot_time(k), T, velocity_world=None if self.imu is None else self._V[k])
+        if self.imu is not None and k > 0:
+            a, g, dt = self.imu.interval(self._knot_time(k - 1), self._knot_time(k))
+            self.backend.add_imu(k - 1, a, g, dt)
+        if self.imu is not None and self._at_rest(self._knot_time(k), T[2, :3]):
+            self.backend.add_velocity_prior(k, np.zeros(3), self.cfg.imu.zupt_sigma)
+            self.stats["zero_velocity_updates"] += 1
         return k
+
+    def _at_rest(self, t: float, up_body: FloatArray) -> bool:
+        """Whether the IMU says the operator stands still at ``t``; ``up_body`` is world z in the
+        body frame from the current pose estimate (the knot's third rotation row)."""
+        ic = self.cfg.imu
+        if self.imu is None or not ic.zupt:
+            return False
+        root_rate = np.sqrt(ic.rate)
+        return is_stationary(self.imu, t, ic.zupt_window, ic.accel_noise * root_rate, ic.gyro_noise * root_rate,
+                             ic.gravity, ic.zupt_threshold, up_body)
+
+    def _initial_pose(self, t0: float) -> FloatArray:
+        """The first knot: the origin, levelled by the mean specific force of the IMU's first
+        0.2 s when there is one (world z up along gravity), heading zero either way."""
+        T = np.eye(4)
+        if self.imu is None:
+            return T
+        near = (self.imu.times >= t0 - 0.1) & (self.imu.times <= t0 + 0.1)
+        if not near.any():
+            return T
+        f = self.imu.accel[near].mean(axis=0)
+        u = f / max(float(np.linalg.norm(f)), 1e-9)
+        axis = np.cross(u, [0.0, 0.0, 1.0])
+        s, c = float(np.linalg.norm(axis)), float(u[2])
+        if s > 1e-12:
+            T[:3, :3] = se3_exp(np.concatenate((axis / s * np.arctan2(s, c), np.zeros(3))))[:3, :3]
+        return T
 
     def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
         assert self.t0 is not None
@@ -228,7 +289,7 @@ class SlamRunner:
         self.stats["scans"] += 1
         if self.t0 is None:
             self.t0 = line.stamp
-            self._append_knot(np.eye(4))
+            self._append_knot(self._initial_pose(line.stamp))
         if line.n_valid < 2 or line.stamp < self.t0:
             self.stats["skipped_scans"] += 1
             return
@@ -263,13 +324,18 @@ class SlamRunner:
         t_start = _time.perf_counter()
         k_new = self._n_knots
         t_new = self._knot_time(k_new)
-        if k_new >= 2:
+        v_pred = None
+        if self.imu is not None and self.imu_config is not None:
+            T_pred, v_pred = predict_navstate(
+                self.imu_config, self._T[k_new - 1], self._V[k_new - 1], self._bias, self.imu,
+                self._knot_time(k_new - 1), t_new,
+            )
+        elif k_new >= 2:
             T_pred = predict_constant_velocity(self._T[k_new - 2], self._T[k_new - 1])
         else:
             T_pred = self._T[k_new - 1].copy()
         # mirror the prediction so that placing points can use it
-        if self._n_knots == self._T.shape[0]:
-            self._T = np.concatenate((self._T, np.zeros_like(self._T)))
+        self._grow()
         self._T[k_new] = T_pred
         self._n_knots += 1
         ready = [p for p in self._pending if p.t_end <= t_new]
@@ -277,7 +343,7 @@ class SlamRunner:
         T_new = self._track(ready, k_new, T_pred)
         self._n_knots -= 1
         t = self._timer.add("tracking", t_start)
-        self._append_knot(T_new)
+        self._append_knot(T_new, v_pred)
         self._associate_and_observe(ready)
         t = self._timer.add("association", t)
         self._create_planes(t_new)
@@ -523,14 +589,23 @@ class SlamRunner:
             self.backend.update()
         except ValueError:
             # an iSAM2 step can fail numerically (indeterminate system) where the same graph
-            # relinearised from scratch factors fine: rebuild once, fail for real the second time
+            # relinearised from scratch factors fine: rebuild once; if that fails too, take a
+            # damped Levenberg-Marquardt step over the whole graph (iSAM2 restarts from its result)
             self.stats["isam2_rebuilds"] += 1
-            self.backend.update()
+            try:
+                self.backend.update()
+            except ValueError:
+                self.stats["isam2_fallbacks"] += 1
+                self.backend.batch_optimize(5, graduated=False)
         self.stats["updates"] += 1
         # refresh the recent knots and the recently seen planes
         k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
         for k in range(k0, self._n_knots):
             self._T[k] = self.backend.pose(k)
+            if self.imu is not None:
+                self._V[k] = self.backend.velocity(k)
+        if self.imu is not None:
+            self._bias = self.backend.bias(self._n_knots - 1)
         now = self._knot_time(self._n_knots - 1)
         for pl in self.pmap.planes:
             if pl.active and now - pl.last_seen_time < 5.0:

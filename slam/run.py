@@ -37,8 +37,10 @@ from slam.export import (
     write_summary_json,
     write_trajectory_tum,
 )
+from slam.imu_feed import ImuSamples
 from slam.interpolation import interpolate_trajectory
-from slam.io.bag import read_scans
+from slam.io.bag import read_imu, read_scans, topics
+from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
 from slam.rerun_map import MapOptions, SegmentLines, write_map_rrd
 
@@ -55,6 +57,35 @@ def bag_time_range(path: str | Path) -> tuple[float, float]:
         return r.start_time * 1e-9, r.end_time * 1e-9
 
 
+IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
+
+
+def load_imu(bag: str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> ImuSamples | None:
+    """The bag's IMU samples for the run (``cfg.imu.use``: auto = when the bag has the topic and it
+    covers the scans); None when the run goes without. Errors name the bag and the topic."""
+    ic = cfg.imu
+    if ic.use == "off":
+        return None
+    if ic.topic not in topics(bag):
+        if ic.use == "on":
+            raise input_error(bag, "has no IMU messages (imu.use is 'on')", ic.topic)
+        return None
+    series = read_imu(bag, ic.topic)
+    if series.frame_id not in IMU_FRAMES:
+        raise input_error(bag, f"IMU frame '{series.frame_id}' is not the body frame ({', '.join(IMU_FRAMES[1:])})",
+                          ic.topic)
+    try:
+        samples = ImuSamples(series.times, series.linear_acceleration, series.angular_velocity)
+    except ValueError as e:
+        raise input_error(bag, str(e), ic.topic) from None
+    if not samples.covers(t_start, t_end - 0.05):
+        if ic.use == "on":
+            raise input_error(bag, f"IMU samples do not cover the scans ({t_start:.2f}-{t_end:.2f} s) without gaps",
+                              ic.topic)
+        return None
+    return samples
+
+
 def run_slam(
     bag: str | Path,
     rig: Rig,
@@ -68,8 +99,15 @@ def run_slam(
     out = Path(out_dir)
     scans = read_scans(bag, rig=rig)  # checks the bag and its topics before anything is written
     t_start, t_end = bag_time_range(bag)
-    runner = SlamRunner(rig, cfg)
-    bar = tqdm(total=round(t_end - t_start, 2), unit="s", desc="slam", disable=not progress, leave=False)
+    imu = load_imu(bag, cfg, t_start, t_end)
+    runner = SlamRunner(rig, cfg, imu)
+    bar = tqdm(
+        total=round(t_end - t_start, 2),
+        desc="slam",
+        disable=not progress,
+        leave=False,
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of data [{elapsed}<{remaining}]",
+    )
     last = t_start
     for line in scans:
         runner.add_scan(line)
@@ -230,6 +268,10 @@ def _write_outputs(
             "planes_merged": st["planes_merged"],
             "observation_blocks": st["observation_blocks"],
             "isam2_updates": st["updates"],
+            "isam2_rebuilds": st["isam2_rebuilds"],
+            "isam2_fallbacks": st["isam2_fallbacks"],
+            "imu_used": st["imu_used"],
+            "zero_velocity_updates": st["zero_velocity_updates"],
             "cloud_points": n_cloud,
         },
         "batch": st.get("batch"),

@@ -1,0 +1,112 @@
+"""IMU samples for the pipeline: slicing them into knot intervals and predicting the next knot.
+
+The IMU frame is the body frame (the simulator's ``/imu`` and the usual backpack set-up; a
+different ``frame_id`` is an input error). Samples are held from their stamp to the next one
+(zero-order hold), so the samples of an interval ``[t_a, t_b)`` are the one at or before ``t_a``
+(clipped to start at ``t_a``) and every later one before ``t_b`` (the last clipped to ``t_b``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from slam.motion import ImuConfig, preintegrate
+
+FloatArray = NDArray[np.float64]
+
+MAX_GAP = 0.05  # s: a longer hole in the IMU stream inside a knot interval is an input error
+
+
+@dataclass(frozen=True, eq=False)
+class ImuSamples:
+    """Body-frame IMU samples: ``times`` (N,) s increasing, ``accel`` (N, 3) specific force
+    m/s^2, ``gyro`` (N, 3) rad/s."""
+
+    times: FloatArray
+    accel: FloatArray
+    gyro: FloatArray
+
+    def __post_init__(self) -> None:
+        n = self.times.shape[0]
+        if self.accel.shape != (n, 3) or self.gyro.shape != (n, 3):
+            raise ValueError(f"imu: need times (N,), accel (N,3), gyro (N,3); got {self.times.shape}, "
+                             f"{self.accel.shape}, {self.gyro.shape}")
+        if n < 2 or np.any(np.diff(self.times) <= 0):
+            raise ValueError("imu: need at least two samples with increasing stamps")
+        if not (np.all(np.isfinite(self.accel)) and np.all(np.isfinite(self.gyro))):
+            raise ValueError("imu: samples must be finite")
+
+    def covers(self, t_start: float, t_end: float) -> bool:
+        """Whether the samples span ``[t_start, t_end]`` without a gap longer than ``MAX_GAP``."""
+        if self.times[0] > t_start or self.times[-1] + MAX_GAP < t_end:
+            return False
+        i0 = max(int(np.searchsorted(self.times, t_start, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(self.times, t_end, side="left"))
+        return bool(np.all(np.diff(self.times[i0 : i1 + 1]) <= MAX_GAP))
+
+    def interval(self, t_a: float, t_b: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(accel (M, 3), gyro (M, 3), dt (M,)) of the zero-order-held samples in ``[t_a, t_b)``."""
+        if not t_b > t_a:
+            raise ValueError(f"imu interval: need t_b > t_a, got [{t_a}, {t_b}]")
+        i0 = max(int(np.searchsorted(self.times, t_a, side="right")) - 1, 0)
+        i1 = max(int(np.searchsorted(self.times, t_b, side="left")), i0 + 1)
+        idx = np.arange(i0, i1)
+        start = np.maximum(self.times[idx], t_a)
+        nxt = np.append(self.times[idx[1:]], t_b)
+        end = np.minimum(nxt, t_b)
+        dt = end - start
+        if self.times[i0] > t_a + MAX_GAP or np.any(dt > MAX_GAP):
+            raise ValueError(f"imu: no samples for {MAX_GAP * 1e3:.0f} ms or more within [{t_a:.3f}, {t_b:.3f}] s")
+        keep = dt > 0
+        return self.accel[idx[keep]], self.gyro[idx[keep]], dt[keep]
+
+
+def predict_navstate(
+    config: ImuConfig,
+    T_world_body: FloatArray,
+    velocity_world: FloatArray,
+    bias: FloatArray,
+    samples: ImuSamples,
+    t_a: float,
+    t_b: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Pose (4, 4) and velocity (3,) at ``t_b`` (world frame) from the state at ``t_a`` by
+    integrating the IMU with ``bias`` (6,: accelerometer then gyroscope)."""
+    a, g, dt = samples.interval(t_a, t_b)
+    pim = preintegrate(config.params(), gtsam.imuBias.ConstantBias(bias[:3], bias[3:]), a, g, dt)
+    state = gtsam.NavState(gtsam.Pose3(T_world_body), np.asarray(velocity_world, dtype=float))
+    out = pim.predict(state, gtsam.imuBias.ConstantBias(bias[:3], bias[3:]))
+    return np.asarray(out.pose().matrix()), np.asarray(out.velocity())
+
+
+def shoe_statistic(samples: ImuSamples, t_a: float, t_b: float, accel_sigma: float, gyro_sigma: float,
+                   gravity: float, up_body: FloatArray | None = None) -> float:
+    """The SHOE stance statistic (Skog et al., 2010) of the samples in ``[t_a, t_b]``: the mean
+    over samples of ``|f - g u|^2 / accel_sigma^2 + |w|^2 / gyro_sigma^2``, about 6 (its degrees
+    of freedom) for a body at rest, far larger when walking. ``u`` is the world's up direction in
+    the body frame, ``up_body`` when the orientation is known (then a smooth acceleration, which
+    the mean direction would take for a tilt, counts as motion), else the mean specific-force
+    direction. ``accel_sigma``/``gyro_sigma`` are per-sample noise (m/s^2, rad/s). NaN when the
+    window holds fewer than three samples."""
+    i0 = int(np.searchsorted(samples.times, t_a, side="left"))
+    i1 = int(np.searchsorted(samples.times, t_b, side="right"))
+    if i1 - i0 < 3:
+        return float("nan")
+    f = samples.accel[i0:i1]
+    w = samples.gyro[i0:i1]
+    m = f.mean(axis=0) if up_body is None else np.asarray(up_body, dtype=float)
+    u = m / max(float(np.linalg.norm(m)), 1e-9)
+    ra = f - gravity * u
+    return float(np.mean(np.einsum("ij,ij->i", ra, ra) / accel_sigma**2 + np.einsum("ij,ij->i", w, w) / gyro_sigma**2))
+
+
+def is_stationary(samples: ImuSamples, t: float, window: float, accel_sigma: float, gyro_sigma: float,
+                  gravity: float, threshold: float, up_body: FloatArray | None = None) -> bool:
+    """Whether the body is at rest around ``t`` (SHOE statistic over ``t +- window/2`` below
+    ``threshold``)."""
+    s = shoe_statistic(samples, t - 0.5 * window, t + 0.5 * window, accel_sigma, gyro_sigma, gravity, up_body)
+    return bool(s < threshold)
