@@ -9,10 +9,27 @@
    the *initial* rig (:mod:`calibration.estimator`).
 4. Update the rig; repeat from 1 until the extrinsics move less than ``tol_rot`` / ``tol_trans``
    (the associations improve with the calibration) or ``max_rounds`` is reached.
+
+Coarse to fine (``CalibrationOptions.initial_uncertainty``): with a rig several degrees and
+centimetres off, the tight association gates of the SLAM front end reject the tilted scanners'
+segments, the pool turns them into thousands of spurious planes and iSAM2 fails. A round therefore
+runs SLAM with gates loosened to the rig's *current* uncertainty (:func:`loosened_slam_config`:
+angle and lever-arm gates, pose gate, endpoint cap, coplanarity and merge tolerances), so that the
+tilted scanners' segments associate with the planes the reference scanner sees instead of seeding
+spurious planes (the robust kernel of the back end limits how far their wrong geometry pulls the
+trajectory).
+Round 1 starts from ``initial_uncertainty`` (rad, m); every round's uncertainty is the
+extrinsic change the previous round made times ``shrink`` (never more than before); once it is
+below the tight default gates the plain SLAM configuration is used. A loosened round's batch is
+one convex (Huber) solve capped at ``coarse_iterations`` without the variance-factor rounds (it
+only has to bring the rig closer); the last round (the reported estimate and covariance) always
+runs with the plain configuration and the full estimator.
 """
 
 from __future__ import annotations
 
+import math
+import time as _time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -29,7 +46,7 @@ from segmentation import Scanline
 from slam.config import SlamConfig
 from slam.interpolation import se3_log
 from slam.motion import MotionPriorConfig
-from slam.pipeline import SlamResult, run_stream
+from slam.pipeline import SlamResult, SlamRunner
 
 FloatArray = NDArray[np.float64]
 ScanSource = Callable[[Rig], Iterable[Scanline]]
@@ -44,6 +61,20 @@ class CalibrationOptions:
     tol_rot: float = float(np.radians(0.005))
     tol_trans: float = 0.0002
     unobservable_ratio: float = 0.5
+    initial_uncertainty: tuple[float, float] | None = None
+    shrink: float = 0.1
+    coarse_iterations: int = 20
+
+    def __post_init__(self) -> None:
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds: must be >= 1, got {self.max_rounds}")
+        if self.coarse_iterations < 1:
+            raise ValueError(f"coarse_iterations: must be >= 1, got {self.coarse_iterations}")
+        if not 0.0 < self.shrink <= 1.0:
+            raise ValueError(f"shrink: must be in (0, 1], got {self.shrink}")
+        u = self.initial_uncertainty
+        if u is not None and not (len(u) == 2 and all(math.isfinite(x) and x >= 0 for x in u)):
+            raise ValueError(f"initial_uncertainty: must be (rotation rad, translation m) >= 0, got {u}")
 
 
 @dataclass
@@ -57,6 +88,9 @@ class RoundInfo:
     change_rot: float
     change_trans: float
     batch_seconds: float
+    gate_rot: float = 0.0
+    gate_trans: float = 0.0
+    slam_seconds: float = 0.0
 
 
 @dataclass
@@ -87,10 +121,64 @@ def motion_prior_of(cfg: SlamConfig) -> MotionPriorConfig:
     return MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt)
 
 
+def loosened_slam_config(cfg: SlamConfig, rot: float, trans: float) -> SlamConfig:
+    """``cfg`` with the front end's gates opened for a rig whose extrinsics may be off by ``rot``
+    [rad] and ``trans`` [m] (1 sigma): never tighter than ``cfg``. The angle and lever-arm tests
+    get ``rot``, the pose test ``trans``; coplanarity (plane creation) and merging tolerate what a
+    wrong extrinsic does to a segment 2 m away, so that one surface seen by several scanners
+    stays one plane; the tracking gates keep their absolute width (they are a multiple of the
+    tight ones)."""
+    fe = cfg.frontend
+    rot_deg = math.degrees(rot)
+    spread = trans + 2.0 * rot
+    factor = max(1.0, rot_deg / fe.sigma_rotation_deg, trans / fe.sigma_pose)
+    front = fe.model_copy(update={
+        "sigma_rotation_deg": max(fe.sigma_rotation_deg, rot_deg),
+        "sigma_lever_deg": max(fe.sigma_lever_deg, rot_deg),
+        "sigma_pose": max(fe.sigma_pose, trans),
+        "coplanar_distance": max(fe.coplanar_distance, spread),
+        "merge_distance": max(fe.merge_distance, spread),
+        "merge_angle_deg": max(fe.merge_angle_deg, 2.0 * rot_deg),
+        "tracking_loosen": max(1.0, fe.tracking_loosen / factor),
+    })
+    return cfg.model_copy(update={"frontend": front})
+
+
+def is_loosened(cfg: SlamConfig, rot: float, trans: float) -> bool:
+    """Whether ``rot``/``trans`` open any gate of ``cfg`` (else the plain configuration runs)."""
+    fe = cfg.frontend
+    return math.degrees(rot) > fe.sigma_rotation_deg or trans > fe.sigma_pose
+
+
+def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
+             uncertainty: tuple[float, float] | None = None) -> SlamResult:
+    """SLAM for calibration (:func:`slam_config_for_calibration`), with the gates loosened for an
+    extrinsic ``uncertainty`` (rad, m) if given."""
+    cfg = slam_config_for_calibration(slam_cfg)
+    loose = uncertainty is not None and is_loosened(cfg, *uncertainty)
+    if loose:
+        assert uncertainty is not None
+        rot, trans = uncertainty
+        cfg = loosened_slam_config(cfg, rot, trans)
+    runner = SlamRunner(rig, cfg)
+    if loose:
+        assert uncertainty is not None
+        # the endpoint cap is not a configuration key: a wrong extrinsic moves a segment's ends
+        cap = runner.gates.max_endpoint_distance + 3.0 * uncertainty[1]
+        runner.gates = replace(runner.gates, max_endpoint_distance=cap)
+        runner.loose = runner.gates.loosened(cfg.frontend.tracking_loosen)
+    for line in scans:
+        runner.add_scan(line)
+    runner.finish()
+    return runner.result(batch=False)
+
+
 def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamConfig,
-                    est: EstimatorConfig) -> tuple[BatchResult, SlamResult, int]:
-    """One round (steps 1-3) with the current ``rig``; priors around ``initial``."""
-    res = run_stream(scans(rig), rig, slam_config_for_calibration(slam_cfg))
+                    est: EstimatorConfig, uncertainty: tuple[float, float] | None = None
+                    ) -> tuple[BatchResult, SlamResult, int]:
+    """One round (steps 1-3) with the current ``rig``; priors around ``initial``; SLAM gates for
+    an extrinsic ``uncertainty`` (rad, m; None: the plain configuration)."""
+    res = run_slam(scans(rig), rig, slam_cfg, uncertainty)
     obs = collect_observations(scans(rig), rig, res.segment_rows)
     planes = {int(j): (n, float(d)) for j, n, d in
               zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True)}
@@ -115,20 +203,33 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
     rounds: list[RoundInfo] = []
     converged = False
     batch: BatchResult | None = None
+    unc = opt.initial_uncertainty
     for k in range(opt.max_rounds):
-        batch, res, n_obs = calibrate_round(scans, current, rig, slam_cfg, est)
+        last = k == opt.max_rounds - 1
+        gate = None if unc is None or (last and k > 0) else unc
+        t_round = _time.perf_counter()
+        loose = gate is not None and is_loosened(slam_config_for_calibration(slam_cfg), *gate)
+        # a loosened round only has to bring the rig closer: one convex (Huber) solve, capped
+        est_k = est if not loose else replace(est, variance_factor=False, kernel=est.start_kernel,
+                                              max_iterations=min(est.max_iterations, opt.coarse_iterations))
+        batch, res, n_obs = calibrate_round(scans, current, rig, slam_cfg, est_k, gate)
         d_rot, d_tr = 0.0, 0.0
         for s in batch.scanners:
             xi = se3_log(np.linalg.inv(s.T_initial) @ s.T_body_scanner)
             d_rot = max(d_rot, float(np.linalg.norm(xi[:3])))
             d_tr = max(d_tr, float(np.linalg.norm(s.T_body_scanner[:3, 3] - s.T_initial[:3, 3])))
+        g_rot, g_tr = gate if loose and gate is not None else (0.0, 0.0)
         rounds.append(RoundInfo(k + 1, len(res.plane_ids), int((res.segment_rows["plane_id"] >= 0).sum()),
-                                n_obs, d_rot, d_tr, batch.seconds))
+                                n_obs, d_rot, d_tr, batch.seconds, g_rot, g_tr,
+                                _time.perf_counter() - t_round - batch.seconds))
         current = _rig_of(current, batch, rig.name)
         if progress is not None:
+            gates = f", gates {np.degrees(g_rot):.2f} deg / {g_tr * 1e3:.1f} mm" if loose else ""
             progress(f"round {k + 1}: {len(res.plane_ids)} planes, {n_obs} points, change "
-                     f"{np.degrees(d_rot):.4f} deg / {d_tr * 1e3:.3f} mm")
-        if d_rot < opt.tol_rot and d_tr < opt.tol_trans:
+                     f"{np.degrees(d_rot):.4f} deg / {d_tr * 1e3:.3f} mm{gates}")
+        if unc is not None:
+            unc = (min(unc[0], opt.shrink * d_rot), min(unc[1], opt.shrink * d_tr))
+        if d_rot < opt.tol_rot and d_tr < opt.tol_trans and not loose:
             converged = True
             break
     assert batch is not None

@@ -248,3 +248,66 @@ def test_robust_scale_is_the_mad_sigma() -> None:
     e[:2000] += 50.0  # 10 % gross outliers barely move it
     assert robust_scale(e) == pytest.approx(2.0 * 1.15, rel=0.1)
     assert robust_scale(np.zeros(0)) == 0.0
+
+
+# ---------------------------------------------------------------- coarse to fine (large initial error)
+def test_loosened_slam_config_opens_the_gates_and_never_tightens() -> None:
+    from calibration.calibrate import is_loosened, loosened_slam_config
+    from slam.config import SlamConfig
+
+    cfg = SlamConfig()
+    fe = cfg.frontend
+    wide = loosened_slam_config(cfg, np.radians(3.0), 0.05).frontend
+    assert wide.sigma_rotation_deg == pytest.approx(3.0) and wide.sigma_lever_deg == pytest.approx(3.0)
+    assert wide.sigma_pose == pytest.approx(0.05)
+    assert wide.coplanar_distance > fe.coplanar_distance and wide.merge_distance > fe.merge_distance
+    assert 1.0 <= wide.tracking_loosen < fe.tracking_loosen  # tracking gates keep their absolute width
+    tiny = loosened_slam_config(cfg, np.radians(0.01), 0.0001).frontend
+    assert tiny.model_dump() == {**fe.model_dump(), "tracking_loosen": fe.tracking_loosen}
+    assert is_loosened(cfg, np.radians(3.0), 0.05) and not is_loosened(cfg, np.radians(0.01), 0.0001)
+
+
+def test_calibration_options_reject_bad_schedules() -> None:
+    from calibration.calibrate import CalibrationOptions
+
+    with pytest.raises(ValueError, match="initial_uncertainty"):
+        CalibrationOptions(initial_uncertainty=(-1.0, 0.05))
+    with pytest.raises(ValueError, match="shrink"):
+        CalibrationOptions(shrink=0.0)
+    with pytest.raises(ValueError, match="max_rounds"):
+        CalibrationOptions(max_rounds=0)
+
+
+@pytest.fixture(scope="module")
+def short_calibration_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from backpack_slam.config import configs_dir
+    from simulation.run import load_simulation_config, simulate
+
+    out = tmp_path_factory.mktemp("calib") / "run.bag"
+    cfg = load_simulation_config(configs_dir() / "simulation" / "calibration.yaml")
+    simulate(cfg.world, cfg.rig, duration=3.0, out=out, config=cfg, progress=False)
+    return out
+
+
+def test_loosened_slam_keeps_a_badly_calibrated_rig_on_few_planes(short_calibration_bag: Path) -> None:
+    """With the tilted scanners ~3 deg / 5 cm off, the plain gates leave many of their segments
+    unassociated (spurious planes); gates opened for that uncertainty associate them with the
+    planes the reference scanner sees."""
+    from calibration.calibrate import run_slam
+    from slam.config import SlamConfig
+    from slam.io.bag import read_scans
+
+    true = load_rig(short_calibration_bag.with_suffix(".gt") / "rig.yaml")
+    T = {s.name: s.T_body_scanner.matrix() @ se3_exp(np.r_[np.radians([2.5, -2.5, 2.5]), [0.04, -0.04, 0.04]])
+         for s in true.scanners if s.name != true.reference}
+    bad = updated_rig(true, {n: (m, None) for n, m in T.items()})
+    plain = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig())
+    loose = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig(), (np.radians(3.0), 0.05))
+
+    def tilted_share(res: object) -> float:
+        rows = res.segment_rows  # type: ignore[attr-defined]
+        tilted = rows["scanner"] != 0
+        return float(np.mean(rows["plane_id"][tilted] >= 0))
+
+    assert tilted_share(loose) > tilted_share(plain) + 0.1, (tilted_share(loose), tilted_share(plain))
+    assert len(loose.plane_ids) < len(plain.plane_ids)
