@@ -35,6 +35,11 @@ is still optimistic when many residuals sit in the kernel's down-weighted range,
 of the covariance graph get the M-estimator sandwich correction of
 :func:`robust_variance_factor` on top (with the thresholds divided by it: same weights).
 
+Per-point factors cannot see errors shared by many points (the trajectory model between two
+knots, a line fit's errors-in-variables, one scan's timing): with ``cluster_covariance`` the
+batch also reports the cluster-robust sandwich covariance of :func:`cluster_covariances`, with the
+blocks of one knot interval as a cluster (``ScannerEstimate.covariance_cluster``).
+
 Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal covariances of
 ``E(s)`` (6x6, gtsam tangent order: rotation then translation, right perturbation of
 ``T_body_scanner``) and ``D(s)`` come from ``gtsam.Marginals`` at the solution of the last
@@ -90,6 +95,7 @@ class EstimatorConfig:
     plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
     pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
     min_plane_points: int = 6
+    cluster_covariance: bool = True
     max_iterations: int = 50
     relative_tolerance: float = 1e-9
 
@@ -110,7 +116,9 @@ class ScannerEstimate:
     covariance (None for the reference), the time offset correction [s] and its sigma (None when
     not estimated), unwhitened point-to-plane residuals [m] before/after, and ``scale``: the
     robust spread of the whitened residuals that multiplied the point sigmas (variance factor
-    ``scale**2``) and ``sandwich``, the M-estimator correction on top of it (module docstring)."""
+    ``scale**2``) and ``sandwich``, the M-estimator correction on top of it (module docstring);
+    ``covariance_cluster`` the cluster-robust alternative of :func:`cluster_covariances` (None for
+    the reference or when not computed)."""
 
     index: int
     name: str
@@ -125,6 +133,7 @@ class ScannerEstimate:
     n_points: int
     scale: float = 1.0
     sandwich: float = 1.0
+    covariance_cluster: FloatArray | None = None
 
 
 @dataclass
@@ -257,6 +266,7 @@ def estimate_extrinsics(
         res_k = _residuals(blocks, result, kt, calibrated, T_init, cfg.time_offsets, n_sc)
         scale = np.array([max(cfg.scale_floor, robust_scale(res_k[i] / sig[i]))
                           for i, sig in enumerate(_sigmas(blocks, n_sc))])
+    solved = graph
     sandwich = np.ones(n_sc)
     if cfg.variance_factor:  # the covariance with the scale of the final residuals
         res_k = _residuals(blocks, result, kt, calibrated, T_init, cfg.time_offsets, n_sc)
@@ -271,6 +281,14 @@ def estimate_extrinsics(
         marginals = gtsam.Marginals(graph, result)
     except RuntimeError as err:
         raise _solve_error(err) from None
+    clustered: dict[int, FloatArray] = {}
+    if cfg.cluster_covariance and calibrated:
+        try:
+            clustered = cluster_covariances(solved, result, prior_graph.size(), [b.knot for b in blocks],
+                                            [E(s) for s in calibrated])
+            clustered = dict(zip(calibrated, clustered.values(), strict=True))
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            clustered = {}
     T_final = [np.asarray(T_init[s], dtype=float) if s not in calibrated
                else np.asarray(result.atPose3(E(s)).matrix()) for s in range(n_sc)]
     after = _residuals(blocks, result, kt, calibrated, T_final, cfg.time_offsets, n_sc)
@@ -286,11 +304,83 @@ def estimate_extrinsics(
         scanners.append(ScannerEstimate(
             s, names[s], s == reference, np.asarray(T_init[s], dtype=float), T_final[s],
             None if cov is None else 0.5 * (cov + cov.T), dt, dt_sig, before[s], after[s],
-            int(np.sum(obs.scanner == s)), float(scale[s]), float(sandwich[s])))
+            int(np.sum(obs.scanner == s)), float(scale[s]), float(sandwich[s]), clustered.get(s)))
     poses = np.array([result.atPose3(X(i)).matrix() for i in range(kt.size)])
     return BatchResult(scanners, poses, np.asarray(used_planes, dtype=np.int64), e0,
                        float(graph.error(result)), iterations,
                        _time.perf_counter() - t_wall, len(blocks), prior_sig)
+
+
+_DIMS = {"x": 6, "e": 6, "p": 3, "d": 1}
+
+
+def cluster_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_prior: int,
+                        clusters: list[int], keys: list[int]) -> dict[int, FloatArray]:
+    """Cluster-robust sandwich covariance ``H^-1 (sum_c g_c g_c^T + H_prior) H^-1`` of the
+    variables ``keys`` (gtsam keys of X/E/P/D variables) at ``values``.
+
+    ``graph``'s first ``n_prior`` factors are priors (pose, plane, extrinsic, motion: their
+    information enters the middle term as modelled, so a parameter only a prior constrains keeps
+    its prior sigma); every later factor ``i`` is a data block belonging to the cluster
+    ``clusters[i - n_prior]`` (here: its knot interval). ``H`` is the (robustly weighted) Gauss-Newton
+    information of the whole graph and ``g_c`` the gradient of cluster ``c``'s whitened residuals:
+    errors shared within a cluster (the trajectory model between two knots, errors-in-variables of
+    one scan) add up instead of averaging out, and the spread of the actual residuals replaces the
+    stated sigmas; the outer products get the small-sample factor ``G / (G - 1)`` of G clusters.
+    Returns key -> 6x6 (tangent order of the variable)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    lin = graph.linearize(values)
+    col: dict[int, int] = {}
+    n_col = 0
+    for k in values.keys():
+        col[int(k)] = n_col
+        n_col += _DIMS[chr(gtsam.Symbol(k).chr())]
+    rows, cols, vals, rhs, row_cluster = [], [], [], [], []
+    n_row = 0
+    for i in range(lin.size()):
+        f = lin.at(i)
+        if f is None:
+            continue
+        A, b = f.jacobian()
+        A = np.asarray(A, dtype=float)
+        m = A.shape[0]
+        c0 = 0
+        for k in f.keys():
+            dk = _DIMS[chr(gtsam.Symbol(k).chr())]
+            blk = A[:, c0:c0 + dk]
+            r, c = np.nonzero(blk)
+            rows.append(r + n_row)
+            cols.append(c + col[int(k)])
+            vals.append(blk[r, c])
+            c0 += dk
+        rhs.append(np.asarray(b, dtype=float).ravel())
+        row_cluster.append(np.full(m, -1 if i < n_prior else clusters[i - n_prior], dtype=np.int64))
+        n_row += m
+    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_row, n_col))
+    b_all = np.concatenate(rhs)
+    lab = np.concatenate(row_cluster)
+    H = (J.T @ J).tocsc()
+    sel = np.concatenate([np.arange(col[int(k)], col[int(k)] + _DIMS[chr(gtsam.Symbol(k).chr())]) for k in keys])
+    rhs_e = np.zeros((n_col, sel.size))
+    rhs_e[sel, np.arange(sel.size)] = 1.0
+    X = splu(H).solve(rhs_e)  # columns of H^-1 for the wanted variables
+    U = np.asarray(J @ X)
+    data = lab >= 0
+    _, inv = np.unique(lab[data], return_inverse=True)
+    S = np.zeros((int(inv.max()) + 1 if inv.size else 0, sel.size))
+    np.add.at(S, inv, U[data] * b_all[data, None])
+    Up = U[~data]
+    g = S.shape[0]
+    cov = S.T @ S * (g / max(g - 1, 1)) + Up.T @ Up  # small-sample factor G / (G - 1)
+    out, o = {}, 0
+    for k in keys:
+        dk = _DIMS[chr(gtsam.Symbol(k).chr())]
+        c = cov[o:o + dk, o:o + dk]
+        out[int(k)] = 0.5 * (c + c.T)
+        o += dk
+    return out
 
 
 def robust_scale(e: FloatArray) -> float:

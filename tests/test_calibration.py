@@ -311,3 +311,32 @@ def test_loosened_slam_keeps_a_badly_calibrated_rig_on_few_planes(short_calibrat
 
     assert tilted_share(loose) > tilted_share(plain) + 0.1, (tilted_share(loose), tilted_share(plain))
     assert len(loose.plane_ids) < len(plain.plane_ids)
+
+
+def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() -> None:
+    """White noise at the stated sigma: the cluster-robust sigmas agree with the marginal ones
+    (within the spread of 30 clusters). The same noise plus an error shared by all points of a
+    (knot interval, scanner) (trajectory-model-like): the marginal sigmas do not see it, the
+    cluster-robust ones grow."""
+    kt, kp = walking_knots(duration=1.5)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS, beams=41)
+    T_ws = interpolate_trajectory(kt, kp, obs.times) @ np.stack([SCANNERS[s] for s in obs.scanner])
+    n_scanner = np.einsum("nji,nj->ni", T_ws[:, :3, :3], BOX_PLANES[obs.plane_id, :3])
+    rng = np.random.default_rng(21)
+    white = rng.normal(0.0, 0.003, len(obs))
+    group = np.searchsorted(kt, obs.times) * 3 + obs.scanner
+    shared = rng.normal(0.0, 0.004, int(group.max()) + 1)[group]
+    cfg = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
+    ratios = []
+    for off in (white, white + shared):
+        o = PointObservations(obs.scanner, obs.plane_id, obs.points_scanner + off[:, None] * n_scanner,
+                              obs.times, obs.sigmas)
+        res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), o, list(SCANNERS), 0, config=cfg)
+        r = []
+        for s in res.scanners[1:]:
+            assert s.covariance is not None and s.covariance_cluster is not None
+            assert np.all(np.linalg.eigvalsh(s.covariance_cluster) > 0)
+            r.append(np.sqrt(np.diag(s.covariance_cluster) / np.diag(s.covariance)))
+        ratios.append(float(np.median(r)))
+    assert 0.5 < ratios[0] < 1.3, ratios
+    assert ratios[1] > 1.25 * ratios[0], ratios
