@@ -77,10 +77,8 @@ def timed_scanner_plane_factor(
         He[:, :3] = np.cross(pts, m_s)
         He[:, 3:] = m_s
         H[3] = He * f
-        # the point in the body frame at its beam time: p_b itself (T_k maps it to the world)
-        xi = gtsam.Pose3.Logmap(T_a.between(T_b))
-        g_xi = np.cross(p_b, m_k) @ xi[:3] + m_k @ xi[3:]
-        H[4] = (g_xi / interval)[:, None] * f
+        assert t.dres_dalpha is not None
+        H[4] = (t.dres_dalpha / interval)[:, None] * f
         return sw * e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n),

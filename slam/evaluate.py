@@ -3,7 +3,7 @@
 Metrics (each defined where it is computed):
 
 - ATE (evo APE, translation part) of the estimated ``T_world_body`` against the ground truth
-  interpolated (SE(3) geodesic) at the estimate's times, three ways:
+  interpolated (rotation geodesic, position linear) at the estimate's times, three ways:
   ``unaligned`` (as written: the run's world frame taken as the ground truth's),
   ``start_aligned`` (the estimate moved rigidly so that its first pose is the true first pose:
   the SLAM's datum is the start pose, so this is the error accumulated since the start) and

@@ -4,8 +4,9 @@ A block holds the N points that the body saw on one plane ``P(j)`` between two c
 trajectory knots ``X(i)``, ``X(i+1)``. Point k was measured at its own beam time, which maps onto
 the trajectory by its fraction ``alpha_k`` in [0, 1] (see :mod:`slam.interpolation`)::
 
-    T_k = T_i Exp(alpha_k Log(T_i^-1 T_{i+1}))          pose of the body at the beam time
-    e_k = (n . (T_k p_k) + d) / sigma_k                  whitened signed point-to-plane distance
+    R_k = R_i Exp(alpha_k Log(R_i^T R_{i+1}))            body rotation at the beam time
+    t_k = t_i + alpha_k (t_{i+1} - t_i)                  body position at the beam time
+    e_k = (n . (R_k p_k + t_k) + d) / sigma_k            whitened signed point-to-plane distance
 
 with the plane ``n . x + d = 0`` in the world frame (``gtsam.OrientedPlane3``) and ``p_k`` the
 point in the body frame at its beam time (scanner extrinsic already applied). Variants:
@@ -15,15 +16,16 @@ point in the body frame at its beam time (scanner extrinsic already applied). Va
   variable ``E(s)``: keys ``(X(i)[, X(i+1)], P(j), E(s))`` (for calibration).
 
 Jacobians are analytic and exact (no small-motion approximation): with right perturbations of
-both poses, ``D = T_i^-1 T_{i+1}``, ``xi = Log(D)``, ``Jr`` the SE(3) right Jacobian and
-``g_k = d e_k / d(right perturbation of T_k)``::
+both poses (gtsam's ``Pose3`` retract: ``R Exp(w)``, ``t + R v``), ``D = R_i^T R_{i+1}``,
+``phi = Log(D)``, ``Jr`` the SO(3) right Jacobian, ``m_k = R_k^T n`` and
+``g_k = p_k x m_k`` (the derivative wrt a right rotation perturbation at the beam time)::
 
-    H_{i+1} = alpha_k g_k Jr(alpha_k xi) Jr(xi)^-1
-    H_i     = d e_k / d(perturbation of T_i at fixed Exp(alpha_k xi)) - H_{i+1} Ad(D^-1)
-    H_plane = [ (T_k p_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
+    H_{i+1} = [ alpha_k g_k^T Jr(alpha_k phi) Jr(phi)^-1 ,  alpha_k n^T R_{i+1} ]
+    H_i     = [ (Exp(alpha_k phi) g_k)^T - H_{i+1,rot} D^T , (1 - alpha_k) n^T R_i ]
+    H_plane = [ (R_k p_k + t_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
 
-All per-point work is vectorised numpy: the interpolated poses all lie on one geodesic, so the
-per-point exponentials and Jacobians are scalar functions of ``alpha_k`` times shared 3x3
+All per-point work is vectorised numpy: the interpolated rotations all lie on one geodesic, so
+the per-point exponentials and Jacobians are scalar functions of ``alpha_k`` times shared 3x3
 matrices.
 
 Robustness (per point, wrong associations): a robust noise model on the block would weight
@@ -116,6 +118,7 @@ class PointPlaneTerms:
     H_b: FloatArray | None = None
     H_plane: FloatArray | None = None
     normal_beam: FloatArray | None = None
+    dres_dalpha: FloatArray | None = None  # d residual / d alpha (N,), for time offsets
 
 
 def point_plane_terms(
@@ -137,70 +140,71 @@ def point_plane_terms(
     n = plane.normal().point3()
     d0 = float(n @ ta) + plane.distance()
     m_a = Ra.T @ n  # plane normal in the body frame of knot i
+    Bn = plane.normal().basis()
     if T_b is None:
-        q = points_body
-    else:
-        assert alphas is not None
-        al = alphas
-        D = T_a.between(T_b)
-        xi = gtsam.Pose3.Logmap(D)
-        phi, rho = xi[:3], xi[3:]
-        A, B, C, Dc, F = exp_coefficients(al * np.linalg.norm(phi))
-        al2 = al * al
-        Aa, Ba2, Ca3 = A * al, B * al2, C * al2 * al
-        K = hat3(phi)
-        KK = K @ K
-        # q_k = Exp(alpha_k xi) p_k: rotation I + A a K + B a^2 K^2, translation V(a phi) a rho
-        Y = points_body @ np.concatenate([K.T, KK.T], axis=1)
-        q = points_body + Aa[:, None] * Y[:, :3] + Ba2[:, None] * Y[:, 3:]
-        q += al[:, None] * rho + Ba2[:, None] * (K @ rho) + Ca3[:, None] * (KK @ rho)
-    res = q @ m_a + d0
+        res = points_body @ m_a + d0
+        if not jacobians:
+            return PointPlaneTerms(res)
+        N = points_body.shape[0]
+        H_a = np.empty((N, 6))
+        H_a[:, :3] = points_body @ hat3(m_a)  # p x m_a
+        H_a[:, 3:] = m_a
+        H_plane = np.ones((N, 3))
+        H_plane[:, :2] = points_body @ (Ra.T @ Bn) + ta @ Bn  # (T p)^T B
+        return PointPlaneTerms(res, H_a, None, H_plane, np.broadcast_to(m_a, points_body.shape))
+
+    assert alphas is not None
+    al = alphas
+    Mb = T_b.matrix()
+    D = Ra.T @ Mb[:3, :3]
+    phi = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(D)))
+    dt_w = Mb[:3, 3] - ta  # position change over the interval (world)
+    dn = float(n @ dt_w)
+    A, B, C, _, _ = exp_coefficients(al * np.linalg.norm(phi))
+    al2 = al * al
+    Aa, Ba2 = A * al, B * al2
+    K = hat3(phi)
+    KK = K @ K
+    # q_k = Exp(alpha_k phi) p_k (rotation only); the position moves linearly
+    Y = points_body @ np.concatenate([K.T, KK.T], axis=1)
+    q = points_body + Aa[:, None] * Y[:, :3] + Ba2[:, None] * Y[:, 3:]
+    res = q @ m_a + d0 + al * dn
     if not jacobians:
         return PointPlaneTerms(res)
 
     N = q.shape[0]
-    H_a = np.empty((N, 6))
-    H_a[:, :3] = q @ hat3(m_a)  # q x m_a
-    H_a[:, 3:] = m_a
-    H_plane = np.ones((N, 3))
-    Bn = plane.normal().basis()
-    H_plane[:, :2] = q @ (Ra.T @ Bn) + ta @ Bn  # (T_k p_k)^T B
-    if T_b is None:
-        return PointPlaneTerms(res, H_a, None, H_plane, np.broadcast_to(m_a, q.shape))
-
-    # plane normal in the body frame at each beam time: m_k = R_delta^T m_a = m_a - A a c1 + B a^2 c2
+    # plane normal in the body frame at each beam time: m_k = Exp(a phi)^T m_a
     c1 = K @ m_a
     c2 = K @ c1
     m_k = m_a - Aa[:, None] * c1 + Ba2[:, None] * c2
-    # a_k = p_k x m_k (m_k is linear in shared vectors, so one matmul)
-    Z = points_body @ np.concatenate([hat3(m_a), hat3(c1), hat3(c2)], axis=1)
-    a = Z[:, :3] - Aa[:, None] * Z[:, 3:6] + Ba2[:, None] * Z[:, 6:]
-    # g_k Jr(alpha xi) = [a J + m Q, m J], J = I - B a K + C a^2 K^2 (right Jacobian of SO(3))
-    Ba, Ca2 = B * al, C * al2
-    W = a @ np.concatenate([K.T, KK.T], axis=1)
-    aJ = a + Ba[:, None] * W[:, :3] + Ca2[:, None] * W[:, 3:]
-    P = hat3(rho)
-    KP, PK = K @ P, P @ K
-    KPK = KP @ K
-    mats = np.concatenate([K.T, KK.T, P, KP + PK, KPK, KK @ P + P @ KK, KPK @ K + K @ KPK], axis=1)
-    Mm = m_k @ mats
-    mJ = m_k + Ba[:, None] * Mm[:, :3] + Ca2[:, None] * Mm[:, 3:6]
-    al3 = al2 * al
-    mQ = (
-        (-0.5 * al)[:, None] * Mm[:, 6:9]
-        + (C * al2)[:, None] * Mm[:, 9:12]
-        + ((3.0 * Dc - C) * al3)[:, None] * Mm[:, 12:15]
-        - (Dc * al3)[:, None] * Mm[:, 15:18]
-        + (F * al2 * al2)[:, None] * Mm[:, 18:21]
-    )
-    u = np.empty((N, 6))
-    u[:, :3] = aJ + mQ
-    u[:, 3:] = mJ
-    u *= al[:, None]
-    Jinv = gtsam.Pose3.LogmapDerivative(D)
-    H_b = u @ Jinv
-    H_a -= u @ (Jinv @ D.inverse().AdjointMap())
-    return PointPlaneTerms(res, H_a, H_b, H_plane, m_k)
+    g = np.cross(points_body, m_k)  # d res / d(right rotation perturbation at the beam time)
+    # H_b(rot) = a g^T Jr(a phi) Jr(phi)^-1; H_a(rot) = (Exp(a phi) g)^T - H_b(rot) D^T
+    W = g @ np.concatenate([K, KK], axis=1)
+    gJ = g - (B * al)[:, None] * W[:, :3] + (C * al2)[:, None] * W[:, 3:]
+    u = (al[:, None] * gJ) @ _so3_right_jacobian_inverse(phi)
+    V = g @ np.concatenate([K.T, KK.T], axis=1)
+    Eg = g + Aa[:, None] * V[:, :3] + Ba2[:, None] * V[:, 3:]
+    H_a = np.empty((N, 6))
+    H_b = np.empty((N, 6))
+    H_a[:, :3] = Eg - u @ D.T
+    H_b[:, :3] = u
+    H_a[:, 3:] = (1.0 - al)[:, None] * m_a
+    H_b[:, 3:] = al[:, None] * (m_a @ D)
+    H_plane = np.ones((N, 3))
+    H_plane[:, :2] = q @ (Ra.T @ Bn) + (ta @ Bn) + al[:, None] * (dt_w @ Bn)[None, :]
+    dres_dalpha = g @ phi + dn
+    return PointPlaneTerms(res, H_a, H_b, H_plane, m_k, dres_dalpha)
+
+
+def _so3_right_jacobian_inverse(phi: FloatArray) -> FloatArray:
+    """``Jr(phi)^-1`` (3, 3) of SO(3): ``I + K/2 + (1/t^2 - (1 + cos t) / (2 t sin t)) K^2``."""
+    t = float(np.linalg.norm(phi))
+    K = hat3(phi)
+    if t < 1e-4:
+        c = 1.0 / 12.0 + t * t / 720.0
+    else:
+        c = 1.0 / (t * t) - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
 
 
 def _check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, two_poses: bool,

@@ -61,7 +61,7 @@ from slam.frontend.planemap import (
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
+from slam.interpolation import interpolate_poses, se3_exp, so3_exp, so3_log
 from slam.motion import ImuConfig, MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
@@ -271,11 +271,14 @@ class SlamRunner:
     def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """Points (m, 3) body frame at their times -> world frame with the current knots."""
         idx, alpha = self._fractions(times)
-        # one twist per knot interval involved (few), one exponential per point
+        # one rotation vector per knot interval involved (few), one exponential per point
         uniq, inv = np.unique(idx, return_inverse=True)
-        xi = se3_log(se3_inverse(self._T[uniq]) @ self._T[uniq + 1])
-        T = self._T[idx] @ se3_exp(alpha[:, None] * xi[inv])
-        return np.einsum("mij,mj->mi", T[:, :3, :3], points_body) + T[:, :3, 3]
+        R0 = self._T[uniq, :3, :3]
+        phi = so3_log(np.swapaxes(R0, 1, 2) @ self._T[uniq + 1, :3, :3])
+        R = self._T[idx, :3, :3] @ so3_exp(alpha[:, None] * phi[inv])
+        p0 = self._T[idx, :3, 3]
+        t = p0 + alpha[:, None] * (self._T[idx + 1, :3, 3] - p0)
+        return np.einsum("mij,mj->mi", R, points_body) + t
 
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:

@@ -56,13 +56,15 @@ def test_constant_offset_unaligned_vs_aligned() -> None:
     T_est[:, :3, 3] += [0.03, 0.04, 0.0]
     r = trajectory_errors(t_est, T_est, t_gt, T_gt)
     ate = r.ate
-    assert ate["unaligned"].rmse == pytest.approx(0.05, abs=1e-9)
-    assert ate["unaligned"].max == pytest.approx(0.05, abs=1e-9)
-    assert ate["start_aligned"].rmse < 1e-9
-    assert ate["se3_aligned"].rmse < 1e-9
-    assert r.rpe_1m is not None and r.rpe_1m.max < 1e-9
+    # the ground truth is interpolated linearly in position between its 200 Hz samples: a chord of
+    # the screw, < 1e-6 m off it
+    assert ate["unaligned"].rmse == pytest.approx(0.05, abs=1e-6)
+    assert ate["unaligned"].max == pytest.approx(0.05, abs=1e-6)
+    assert ate["start_aligned"].rmse < 1e-6
+    assert ate["se3_aligned"].rmse < 1e-6
+    assert r.rpe_1m is not None and r.rpe_1m.max < 1e-6
     assert r.path_length == pytest.approx(1.2 * 29.0 * np.hypot(1, 0.01 / 1.2), rel=1e-3)
-    np.testing.assert_allclose(r.T_align_start[:3, 3], [-0.03, -0.04, 0.0], atol=1e-9)
+    np.testing.assert_allclose(r.T_align_start[:3, 3], [-0.03, -0.04, 0.0], atol=1e-6)
 
 
 def test_yaw_drift_per_100m() -> None:

@@ -177,7 +177,7 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
     """From rest, 4 s of walking (3.6 m) along a corridor with no visible end: without the IMU the
     planes cannot tell how far the operator went (the estimate ends metres off); with the bag's
     IMU and a zero-velocity update while standing, most of the distance is recovered (measured:
-    0.74 m short of 3.60 m with 20 Hz knots, see docs/bench_slam.md)."""
+    0.37 m short of 3.60 m: what 1 s of standing tells a consumer IMU about its bias)."""
     with_imu = run_slam(corridor_imu.bag, rig, _fast(), tmp_path / "imu", progress=False)
     assert with_imu["counts"]["imu_used"] == 1
     assert with_imu["counts"]["zero_velocity_updates"] >= 10  # the first second standing
@@ -187,7 +187,7 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
     assert without["counts"]["imu_used"] == 0
     err_off, _ = _final_along_error(tmp_path / "off", corridor_imu.gt)
     assert walked > 3.0
-    assert err_imu < 0.3 * walked, f"along-corridor error with the IMU {err_imu:.3f} m of {walked:.2f} m"
+    assert err_imu < 0.15 * walked, f"along-corridor error with the IMU {err_imu:.3f} m of {walked:.2f} m"
     assert err_off > 2 * err_imu, f"without the IMU {err_off:.3f} m, with {err_imu:.3f} m"
 
 
