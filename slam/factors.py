@@ -24,9 +24,8 @@ both poses (gtsam's ``Pose3`` retract: ``R Exp(w)``, ``t + R v``), ``D = R_i^T R
     H_i     = [ (Exp(alpha_k phi) g_k)^T - H_{i+1,rot} D^T , (1 - alpha_k) n^T R_i ]
     H_plane = [ (R_k p_k + t_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
 
-All per-point work is vectorised numpy: the interpolated rotations all lie on one geodesic, so
-the per-point exponentials and Jacobians are scalar functions of ``alpha_k`` times shared 3x3
-matrices.
+The two-pose terms run in a compiled loop (:mod:`slam.factor_kernels`): a block holds few
+points, for which numpy's per-call overhead would dominate.
 
 Robustness (per point, wrong associations): a robust noise model on the block would weight
 the whole block by its total error, so the kernel is applied inside the factor, point by point,
@@ -53,7 +52,8 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam.interpolation import exp_coefficients, hat3
+from slam.factor_kernels import two_pose_terms
+from slam.interpolation import hat3
 
 FloatArray = NDArray[np.float64]
 KernelName = Literal["none", "huber", "cauchy"]
@@ -154,57 +154,14 @@ def point_plane_terms(
         return PointPlaneTerms(res, H_a, None, H_plane, np.broadcast_to(m_a, points_body.shape))
 
     assert alphas is not None
-    al = alphas
     Mb = T_b.matrix()
-    D = Ra.T @ Mb[:3, :3]
-    phi = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(D)))
-    dt_w = Mb[:3, 3] - ta  # position change over the interval (world)
-    dn = float(n @ dt_w)
-    A, B, C, _, _ = exp_coefficients(al * np.linalg.norm(phi))
-    al2 = al * al
-    Aa, Ba2 = A * al, B * al2
-    K = hat3(phi)
-    KK = K @ K
-    # q_k = Exp(alpha_k phi) p_k (rotation only); the position moves linearly
-    Y = points_body @ np.concatenate([K.T, KK.T], axis=1)
-    q = points_body + Aa[:, None] * Y[:, :3] + Ba2[:, None] * Y[:, 3:]
-    res = q @ m_a + d0 + al * dn
+    res, H_a, H_b, H_plane, m_k, dra = two_pose_terms(
+        Ra, ta, Mb[:3, :3], Mb[:3, 3], n, float(plane.distance()), Bn,
+        np.ascontiguousarray(points_body, dtype=float), np.ascontiguousarray(alphas, dtype=float), jacobians,
+    )
     if not jacobians:
         return PointPlaneTerms(res)
-
-    N = q.shape[0]
-    # plane normal in the body frame at each beam time: m_k = Exp(a phi)^T m_a
-    c1 = K @ m_a
-    c2 = K @ c1
-    m_k = m_a - Aa[:, None] * c1 + Ba2[:, None] * c2
-    g = np.cross(points_body, m_k)  # d res / d(right rotation perturbation at the beam time)
-    # H_b(rot) = a g^T Jr(a phi) Jr(phi)^-1; H_a(rot) = (Exp(a phi) g)^T - H_b(rot) D^T
-    W = g @ np.concatenate([K, KK], axis=1)
-    gJ = g - (B * al)[:, None] * W[:, :3] + (C * al2)[:, None] * W[:, 3:]
-    u = (al[:, None] * gJ) @ _so3_right_jacobian_inverse(phi)
-    V = g @ np.concatenate([K.T, KK.T], axis=1)
-    Eg = g + Aa[:, None] * V[:, :3] + Ba2[:, None] * V[:, 3:]
-    H_a = np.empty((N, 6))
-    H_b = np.empty((N, 6))
-    H_a[:, :3] = Eg - u @ D.T
-    H_b[:, :3] = u
-    H_a[:, 3:] = (1.0 - al)[:, None] * m_a
-    H_b[:, 3:] = al[:, None] * (m_a @ D)
-    H_plane = np.ones((N, 3))
-    H_plane[:, :2] = q @ (Ra.T @ Bn) + (ta @ Bn) + al[:, None] * (dt_w @ Bn)[None, :]
-    dres_dalpha = g @ phi + dn
-    return PointPlaneTerms(res, H_a, H_b, H_plane, m_k, dres_dalpha)
-
-
-def _so3_right_jacobian_inverse(phi: FloatArray) -> FloatArray:
-    """``Jr(phi)^-1`` (3, 3) of SO(3): ``I + K/2 + (1/t^2 - (1 + cos t) / (2 t sin t)) K^2``."""
-    t = float(np.linalg.norm(phi))
-    K = hat3(phi)
-    if t < 1e-4:
-        c = 1.0 / 12.0 + t * t / 720.0
-    else:
-        c = 1.0 / (t * t) - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t))
-    return np.eye(3) + 0.5 * K + c * (K @ K)
+    return PointPlaneTerms(res, H_a, H_b, H_plane, m_k, dra)
 
 
 def _check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, two_poses: bool,

@@ -1,0 +1,111 @@
+"""Compiled (numba) kernel of the two-pose point-on-plane terms of :mod:`slam.factors`.
+
+The same formulas as ``point_plane_terms`` (see the module docstring of :mod:`slam.factors`),
+one loop over the points: a block holds few points (two virtual points per segment), for which
+numpy's per-call overhead is most of the cost; the back end evaluates blocks tens of thousands
+of times per run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@nb.njit(cache=True)
+def _coefficients(t: float) -> tuple[float, float, float]:
+    """``sin t / t``, ``(1 - cos t) / t^2``, ``(t - sin t) / t^3`` without cancellation."""
+    if t < 1e-3:
+        t2 = t * t
+        return 1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, 1.0 / 6.0 - t2 / 120.0
+    s, c = math.sin(t), math.cos(t)
+    return s / t, (1.0 - c) / (t * t), (t - s) / (t * t * t)
+
+
+@nb.njit(cache=True)
+def _hat(v: FloatArray) -> FloatArray:
+    K = np.zeros((3, 3))
+    K[0, 1], K[0, 2] = -v[2], v[1]
+    K[1, 0], K[1, 2] = v[2], -v[0]
+    K[2, 0], K[2, 1] = -v[1], v[0]
+    return K
+
+
+@nb.njit(cache=True)
+def _log_so3(R: FloatArray) -> FloatArray:
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    c = min(1.0, max(-1.0, 0.5 * (tr - 1.0)))
+    theta = math.acos(c)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-4:
+        return (0.5 + theta * theta / 12.0) * w
+    return (theta / (2.0 * math.sin(theta))) * w
+
+
+@nb.njit(cache=True)
+def two_pose_terms(
+    Ra: FloatArray, ta: FloatArray, Rb: FloatArray, tb: FloatArray, n: FloatArray, dist: float,
+    Bn: FloatArray, P: FloatArray, al: FloatArray, jacobians: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """(residuals (N,), H_a (N, 6), H_b (N, 6), H_plane (N, 3), m_k (N, 3), d res/d alpha (N,)) of
+    body points ``P`` at fractions ``al`` between poses (Ra, ta), (Rb, tb) against the plane
+    ``n . x + dist = 0`` (``Bn`` its normal's tangent basis, 3 x 2). Without ``jacobians`` only
+    the residuals are filled."""
+    N = P.shape[0]
+    m_a = Ra.T @ n
+    d0 = n[0] * ta[0] + n[1] * ta[1] + n[2] * ta[2] + dist
+    D = Ra.T @ Rb
+    phi = _log_so3(D)
+    th = math.sqrt(phi[0] ** 2 + phi[1] ** 2 + phi[2] ** 2)
+    dtw = tb - ta
+    dn = n[0] * dtw[0] + n[1] * dtw[1] + n[2] * dtw[2]
+    K = _hat(phi)
+    KK = K @ K
+    # Jr(phi)^-1
+    if th < 1e-4:
+        ci = 1.0 / 12.0 + th * th / 720.0
+    else:
+        ci = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+    Jinv = np.eye(3) + 0.5 * K + ci * KK
+    RaTB = Ra.T @ Bn
+    taB = ta @ Bn
+    dtB = dtw @ Bn
+    res = np.empty(N)
+    Ha = np.zeros((N, 6))
+    Hb = np.zeros((N, 6))
+    Hp = np.ones((N, 3))
+    mk = np.zeros((N, 3))
+    dra = np.zeros(N)
+    mD = m_a @ D
+    for k in range(N):
+        a = al[k]
+        A, B, C = _coefficients(a * th)
+        Aa, Ba2 = A * a, B * a * a
+        E = np.eye(3) + Aa * K + Ba2 * KK  # Exp(a phi)
+        p = P[k]
+        q = E @ p
+        res[k] = q[0] * m_a[0] + q[1] * m_a[1] + q[2] * m_a[2] + d0 + a * dn
+        if not jacobians:
+            continue
+        m = E.T @ m_a
+        mk[k] = m
+        g = np.array([p[1] * m[2] - p[2] * m[1], p[2] * m[0] - p[0] * m[2], p[0] * m[1] - p[1] * m[0]])
+        Jr = np.eye(3) - (B * a) * K + (C * a * a) * KK  # Jr(a phi)
+        u = a * (g @ Jr) @ Jinv
+        Eg = E @ g
+        uDt = u @ D.T
+        for j in range(3):
+            Ha[k, j] = Eg[j] - uDt[j]
+            Hb[k, j] = u[j]
+            Ha[k, 3 + j] = (1.0 - a) * m_a[j]
+            Hb[k, 3 + j] = a * mD[j]
+        qB = q @ RaTB
+        Hp[k, 0] = qB[0] + taB[0] + a * dtB[0]
+        Hp[k, 1] = qB[1] + taB[1] + a * dtB[1]
+        dra[k] = g[0] * phi[0] + g[1] * phi[1] + g[2] * phi[2] + dn
+    return res, Ha, Hb, Hp, mk, dra
