@@ -78,13 +78,13 @@ def _bag(cache: Path, duration: float, seed: int) -> tuple[Path, Path]:
     from simulation.run import gt_dir_for, simulate
 
     cache.mkdir(parents=True, exist_ok=True)
-    bag = cache / f"office_{duration:g}s_seed{seed}.bag"
+    bag = cache / f"office_imu_{duration:g}s_seed{seed}.bag"
     gt = gt_dir_for(bag)
     if bag.is_file() and (gt / "meta.json").is_file():
         print(f"reusing {bag}", flush=True)
         return bag, gt
     print(f"simulating {duration:g} s in the office world -> {bag}", flush=True)
-    sim = simulate("office", "itc_backpack", duration=duration, seed=seed, out=bag, fmt="ros1", progress=True)
+    sim = simulate("office", "itc_backpack", duration=duration, seed=seed, out=bag, fmt="ros1", imu=True, progress=True)
     print(f"  {sim.n_rays / 1e6:.1f} M rays in {sim.wall_time:.1f} s", flush=True)
     return sim.bag, sim.gt
 
