@@ -493,19 +493,25 @@ class Backend:
 
     def _levenberg_marquardt(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                              max_iterations: int | None) -> tuple[gtsam.Values, int]:
-        """Gauss-Newton with step halving (a step that raises the error is halved, up to ten
-        times), stopping when the relative decrease falls below ``lm_relative_tolerance``.
+        """Gauss-Newton (lightly damped) with step halving (a step that raises the error is
+        halved, up to ten times), stopping when the relative decrease falls below ``lm_relative_tolerance``.
 
         Driven from Python: gtsam's own optimizers spend ~2 s per iteration outside the factors
         on a 400-knot graph of CustomFactors where ``linearize`` + ``optimize`` + ``error`` take
-        0.6 s (scripts/bench_backend.py); the steps are the same. A singular linear system falls
+        0.6 s (docs/bench_slam.md); the steps are the same. A singular linear system falls
         back to gtsam's Levenberg-Marquardt, whose damping copes with it."""
         n_max = max_iterations or self.config.lm_max_iterations
+        damping = [(int(k), int(d)) for k, d in values.dims().items()]
         try:
             err = graph.error(values)
             it = 0
             for it in range(1, n_max + 1):
-                delta = graph.linearize(values).optimize()
+                lin = graph.linearize(values)
+                # a whisper of Levenberg damping (1e-8 on the whitened Hessian's diagonal) keeps a
+                # direction no factor observes (a plane seen edge-on) from making the system singular
+                for k, d in damping:
+                    lin.add(gtsam.JacobianFactor(k, 1e-4 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                delta = lin.optimize()
                 step = 1.0
                 for _ in range(10):
                     trial = values.retract(delta if step == 1.0 else delta.scale(step))
