@@ -91,7 +91,7 @@ def main() -> None:
     opts = CalibrationOptions(estimator=EstimatorConfig(time_offsets=args.time_offsets), max_rounds=args.rounds,
                               initial_uncertainty=unc)
     t0 = time.perf_counter()
-    cal = calibrate_bag(bag, rig0, SlamConfig(), opts, progress=print)
+    cal = calibrate_bag(bag, rig0, SlamConfig(), opts, progress=lambda m: print(m, flush=True))
     wall = time.perf_counter() - t0
     write_rig(args.out / "calibrated.yaml", cal.rig)
     (args.out / "rounds.json").write_text(json.dumps({
