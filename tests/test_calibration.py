@@ -340,3 +340,12 @@ def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() ->
         ratios.append(float(np.median(r)))
     assert 0.5 < ratios[0] < 1.3, ratios
     assert ratios[1] > 1.25 * ratios[0], ratios
+
+
+def test_cli_rejects_a_negative_coarse_uncertainty(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o.yaml"
+    assert main(["calibrate", str(tmp_path / "none.bag"), "--rig", "itc_backpack", "--out", str(out),
+                 "--coarse", "-1", "50"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "--coarse" in err[0]
+    assert not out.exists()

@@ -29,6 +29,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--rounds", type=int, default=3, help="maximum SLAM + batch rounds (default 3)")
     p.add_argument("--sigma-rot", type=float, default=5.0, metavar="DEG", help="prior sigma of the rotations (deg)")
     p.add_argument("--sigma-trans", type=float, default=0.10, metavar="M", help="prior sigma of the translations (m)")
+    p.add_argument("--coarse", nargs=2, type=float, default=None, metavar=("DEG", "MM"),
+                   help="the initial rig may be off by up to DEG degrees and MM millimetres: start with "
+                        "association gates that wide and tighten them round by round (coarse to fine)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     return p
 
@@ -52,10 +55,16 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
     est = EstimatorConfig(sigma_rot=math.radians(args.sigma_rot), sigma_trans=args.sigma_trans,
                           time_offsets=args.time_offsets)
+    coarse = None
+    if args.coarse is not None:
+        if min(args.coarse) < 0:
+            raise ValueError(f"--coarse {args.coarse[0]:g} {args.coarse[1]:g}: must be >= 0")
+        coarse = (math.radians(args.coarse[0]), args.coarse[1] / 1000.0)
     say = None if args.quiet else print
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnobservableWarning)  # printed below, once
-        cal = calibrate_bag(args.bag, rig, cfg, CalibrationOptions(estimator=est, max_rounds=args.rounds), say)
+        cal = calibrate_bag(args.bag, rig, cfg, CalibrationOptions(
+            estimator=est, max_rounds=args.rounds, initial_uncertainty=coarse), say)
     write_rig(args.out, cal.rig, header=f"calibrated by backpack-slam calibrate from {args.bag}\n"
                                          f"initial rig: {args.rig}")
     for w in cal.warnings:
