@@ -507,10 +507,10 @@ class Backend:
             it = 0
             for it in range(1, n_max + 1):
                 lin = graph.linearize(values)
-                # a whisper of Levenberg damping (1e-8 on the whitened Hessian's diagonal) keeps a
+                # a whisper of Levenberg damping (1e-4 on the whitened Hessian's diagonal) keeps a
                 # direction no factor observes (a plane seen edge-on) from making the system singular
                 for k, d in damping:
-                    lin.add(gtsam.JacobianFactor(k, 1e-4 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                    lin.add(gtsam.JacobianFactor(k, 1e-2 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
                 delta = lin.optimize()
                 step = 1.0
                 for _ in range(10):
