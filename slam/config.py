@@ -92,7 +92,6 @@ class ImuSection(StrictModel):
         2e-3, gt=0,
         description="position integration noise (m/sqrt(s)): the knots' linear interpolation misses ~0.5 mm of the gait bob")
     motion_prior: bool = Field(False, description="keep the constant-velocity prior beside the IMU factors")
-    rate: float = Field(200.0, gt=0, description="IMU sample rate (Hz): turns densities into per-sample noise")
     zupt: bool = Field(True, description="zero-velocity updates where the IMU says the operator stands still")
     zupt_window: float = Field(0.5, gt=0, description="s of samples the stance test looks at")
     zupt_threshold: float = Field(8.0, gt=0, description="stance test threshold (6 +- 0.35 at rest over 0.5 s at 200 Hz)")

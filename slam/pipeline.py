@@ -116,6 +116,7 @@ class SlamRunner:
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
         self.cfg = cfg
         self.imu = imu
+        self._imu_rate = 1.0 / float(np.median(np.diff(imu.times))) if imu is not None else 0.0
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
         self._scanner_index = {n: i for i, n in enumerate(self.scanner_names)}
@@ -237,7 +238,7 @@ class SlamRunner:
         ic = self.cfg.imu
         if self.imu is None or not ic.zupt:
             return False
-        root_rate = np.sqrt(ic.rate)
+        root_rate = np.sqrt(self._imu_rate)  # densities -> per-sample noise
         return is_stationary(self.imu, t, ic.zupt_window, ic.accel_noise * root_rate, ic.gyro_noise * root_rate,
                              ic.gravity, ic.zupt_threshold, up_body)
 
