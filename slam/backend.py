@@ -7,7 +7,7 @@ Inputs are plain numpy (independent of the front end's records)::
     be.add_plane(7, normal_world, offset)             # n . x + offset = 0, world frame
     b = be.add_observations(i - 1, 7, points_body, alphas, sigmas)   # one block
     be.update()                                       # iSAM2 step(s) while reading
-    be.batch_optimize()                               # final Levenberg-Marquardt
+    be.batch_optimize()                               # final batch (damped Gauss-Newton)
     be.poses(); be.planes(); be.T_world_body(times); be.plane_covariance(7)
 
 Variables (gtsam keys): ``X(i)`` body pose ``T_world_body`` at knot i, ``P(j)`` plane with id j
@@ -81,7 +81,10 @@ class BackendConfig:
         the horizontal-plane priors level the map, yet finite so the system stays well conditioned.
     horizontal_sigma: sigma [rad] of the floor/ceiling horizontality priors.
     relinearize_threshold, relinearize_skip: iSAM2 relinearisation settings.
-    lm_max_iterations, lm_relative_tolerance: final Levenberg-Marquardt (per stage).
+    plane_relinearize_factor: iSAM2 relinearisation threshold of planes, as a multiple of
+        ``relinearize_threshold`` (the poses').
+    lm_max_iterations, lm_relative_tolerance: the final batch's iterations and stopping rule
+        (relative error decrease), per stage.
     robust_schedule: kernel-threshold multipliers of the stages that precede the nominal one in
         :meth:`Backend.batch_optimize` (graduated robustness: a redescending kernel at 3 sigma
         from an initial guess that is centimetres off would treat every point as an outlier).
@@ -467,7 +470,7 @@ class Backend:
 
     def batch_optimize(self, max_iterations: int | None = None,
                        graduated: bool = True) -> OptimizeSummary:
-        """Levenberg-Marquardt over every factor from the current estimate; with ``graduated``
+        """A batch solve (:meth:`_solve_batch`) over every factor from the current estimate; with ``graduated``
         (and a robust kernel) first with the kernel threshold scaled by each
         ``config.robust_schedule`` multiplier, then nominal. iSAM2 is rebuilt from the result at
         the next :meth:`update`."""
@@ -484,14 +487,14 @@ class Backend:
             if scale != 1.0:
                 k = RobustKernel(kernel.name, kernel.threshold * scale)
                 g = self._graph(kernel=k)
-            values, it = self._levenberg_marquardt(g, values, max_iterations)
+            values, it = self._solve_batch(g, values, max_iterations)
             iterations += it
         self._values.update(values)
         self._invalidate_isam()
         return OptimizeSummary(float(e0), float(graph.error(values)), iterations,
                                _time.perf_counter() - t0)
 
-    def _levenberg_marquardt(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+    def _solve_batch(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                              max_iterations: int | None) -> tuple[gtsam.Values, int]:
         """Gauss-Newton (lightly damped) with step halving (a step that raises the error is
         halved, up to ten times), stopping when the relative decrease falls below ``lm_relative_tolerance``.

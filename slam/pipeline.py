@@ -22,7 +22,7 @@ rate); knot ``k+1`` is processed once every segment whose beams end before
 5. every ``update_every`` knots the back end takes an iSAM2 step and the
    front end copies the new estimates in.
 
-At the end a Levenberg-Marquardt batch over everything gives the final
+At the end a batch solve over everything gives the final
 trajectory and planes.
 """
 
@@ -61,7 +61,7 @@ from slam.frontend.planemap import (
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.interpolation import interpolate_poses, se3_exp, so3_exp, so3_log
+from slam.interpolation import interpolate_poses, so3_exp, so3_log
 from slam.motion import ImuConfig, MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
@@ -256,7 +256,7 @@ class SlamRunner:
         axis = np.cross(u, [0.0, 0.0, 1.0])
         s, c = float(np.linalg.norm(axis)), float(u[2])
         if s > 1e-12:
-            T[:3, :3] = se3_exp(np.concatenate((axis / s * np.arctan2(s, c), np.zeros(3))))[:3, :3]
+            T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
         return T
 
     def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
@@ -594,7 +594,7 @@ class SlamRunner:
         except ValueError:
             # an iSAM2 step can fail numerically (indeterminate system) where the same graph
             # relinearised from scratch factors fine: rebuild once; if that fails too, take a
-            # damped Levenberg-Marquardt step over the whole graph (iSAM2 restarts from its result)
+            # few batch iterations over the whole graph (iSAM2 restarts from its result)
             self.stats["isam2_rebuilds"] += 1
             try:
                 self.backend.update()
