@@ -22,8 +22,10 @@ Round 1 starts from ``initial_uncertainty`` (rad, m); every round's uncertainty 
 extrinsic change the previous round made times ``shrink`` (never more than before); once it is
 below the tight default gates the plain SLAM configuration is used. A loosened round's batch is
 one convex (Huber) solve capped at ``coarse_iterations`` without the variance-factor rounds (it
-only has to bring the rig closer); the last round (the reported estimate and covariance) always
-runs with the plain configuration and the full estimator.
+only has to bring the rig closer), on the first ``coarse_duration`` seconds of the recording if
+set (the SLAM's cost grows faster than linearly with the recording's length); the last round
+(the reported estimate and covariance) always runs on the whole recording with the plain
+configuration and the full estimator.
 """
 
 from __future__ import annotations
@@ -64,12 +66,16 @@ class CalibrationOptions:
     initial_uncertainty: tuple[float, float] | None = None
     shrink: float = 0.1
     coarse_iterations: int = 20
+    coarse_duration: float | None = None
 
     def __post_init__(self) -> None:
         if self.max_rounds < 1:
             raise ValueError(f"max_rounds: must be >= 1, got {self.max_rounds}")
         if self.coarse_iterations < 1:
             raise ValueError(f"coarse_iterations: must be >= 1, got {self.coarse_iterations}")
+        if self.coarse_duration is not None and not (math.isfinite(self.coarse_duration)
+                                                     and self.coarse_duration > 0):
+            raise ValueError(f"coarse_duration: must be > 0 s, got {self.coarse_duration}")
         if not 0.0 < self.shrink <= 1.0:
             raise ValueError(f"shrink: must be in (0, 1], got {self.shrink}")
         u = self.initial_uncertainty
@@ -91,6 +97,7 @@ class RoundInfo:
     gate_rot: float = 0.0
     gate_trans: float = 0.0
     slam_seconds: float = 0.0
+    duration: float | None = None  # seconds of the recording used (None: all)
 
 
 @dataclass
@@ -212,7 +219,9 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
         # a loosened round only has to bring the rig closer: one convex (Huber) solve, capped
         est_k = est if not loose else replace(est, variance_factor=False, kernel=est.start_kernel,
                                               max_iterations=min(est.max_iterations, opt.coarse_iterations))
-        batch, res, n_obs = calibrate_round(scans, current, rig, slam_cfg, est_k, gate)
+        dur = opt.coarse_duration if loose else None
+        source = scans if dur is None else _first_seconds(scans, dur)
+        batch, res, n_obs = calibrate_round(source, current, rig, slam_cfg, est_k, gate)
         d_rot, d_tr = 0.0, 0.0
         for s in batch.scanners:
             xi = se3_log(np.linalg.inv(s.T_initial) @ s.T_body_scanner)
@@ -221,12 +230,16 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
         g_rot, g_tr = gate if loose and gate is not None else (0.0, 0.0)
         rounds.append(RoundInfo(k + 1, len(res.plane_ids), int((res.segment_rows["plane_id"] >= 0).sum()),
                                 n_obs, d_rot, d_tr, batch.seconds, g_rot, g_tr,
-                                _time.perf_counter() - t_round - batch.seconds))
+                                _time.perf_counter() - t_round - batch.seconds, dur))
         current = _rig_of(current, batch, rig.name)
         if progress is not None:
             gates = f", gates {np.degrees(g_rot):.2f} deg / {g_tr * 1e3:.1f} mm" if loose else ""
+            gates += f", first {dur:g} s" if dur is not None else ""
+            info = rounds[-1]
             progress(f"round {k + 1}: {len(res.plane_ids)} planes, {n_obs} points, change "
-                     f"{np.degrees(d_rot):.4f} deg / {d_tr * 1e3:.3f} mm{gates}")
+                     f"{np.degrees(d_rot):.4f} deg / {d_tr * 1e3:.3f} mm{gates}; SLAM "
+                     f"{info.slam_seconds:.0f} s, batch {info.batch_seconds:.0f} s "
+                     f"({batch.iterations} iterations)")
         if unc is not None:
             unc = (min(unc[0], opt.shrink * d_rot), min(unc[1], opt.shrink * d_tr))
         if d_rot < opt.tol_rot and d_tr < opt.tol_trans and not loose:
@@ -242,6 +255,20 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
         sigmas.append(p)
         msgs.extend(warn_unobservable(p))
     return Calibration(current, rig, batch, sigmas, msgs, rounds, converged)
+
+
+def _first_seconds(scans: ScanSource, duration: float) -> ScanSource:
+    """``scans`` cut to the scanlines that start within ``duration`` s of the first one."""
+
+    def head(rig: Rig) -> Iterable[Scanline]:
+        t0 = None
+        for line in scans(rig):
+            t0 = line.stamp if t0 is None else t0
+            if line.stamp - t0 > duration:
+                return
+            yield line
+
+    return head
 
 
 def _rig_of(rig: Rig, batch: BatchResult, name: str) -> Rig:

@@ -40,7 +40,8 @@ knots, a line fit's errors-in-variables, one scan's timing): with ``cluster_cova
 batch also reports the cluster-robust sandwich covariance of :func:`cluster_covariances`, with the
 blocks of one knot interval as a cluster (``ScannerEstimate.covariance_cluster``).
 
-Solved by Levenberg-Marquardt from the SLAM trajectory and planes; the marginal covariances of
+Solved by a lightly damped Gauss-Newton with step halving (:func:`_solve`, the SLAM back end's
+batch scheme) from the SLAM trajectory and planes; the marginal covariances of
 ``E(s)`` (6x6, gtsam tangent order: rotation then translation, right perturbation of
 ``T_body_scanner``) and ``D(s)`` come from ``gtsam.Marginals`` at the solution of the last
 (scaled) graph.
@@ -448,7 +449,38 @@ def _solve_error(err: RuntimeError) -> ValueError:
 
 def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
            cfg: EstimatorConfig) -> tuple[gtsam.Values, int]:
-    """Levenberg-Marquardt from ``values``; gtsam failures become a ValueError."""
+    """Gauss-Newton (lightly damped) with step halving from ``values``, as the SLAM back end's
+    batch (``slam.backend.Backend._solve_batch``): a step that raises the (robust) error is halved
+    up to ten times; it stops when no step lowers the error or the relative decrease falls below
+    ``cfg.relative_tolerance``. Driven from Python because gtsam's Levenberg-Marquardt spends
+    most of its time outside the CustomFactors on graphs of this size (docs/calibration.md). A
+    singular system falls back to gtsam's Levenberg-Marquardt; its failures become a ValueError."""
+    damping = [(int(k), int(d)) for k, d in values.dims().items()]
+    try:
+        err = graph.error(values)
+        it = 0
+        for it in range(1, cfg.max_iterations + 1):
+            lin = graph.linearize(values)
+            # 1e-4 on the whitened Hessian's diagonal: a direction no factor observes stays regular
+            for k, d in damping:
+                lin.add(gtsam.JacobianFactor(k, 1e-2 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+            delta = lin.optimize()
+            step = 1.0
+            for _ in range(10):
+                trial = values.retract(delta if step == 1.0 else delta.scale(step))
+                new_err = graph.error(trial)
+                if new_err <= err:
+                    break
+                step *= 0.5
+            else:
+                return values, it  # no step lowers the error: converged
+            rel = (err - new_err) / max(err, 1e-300)
+            values, err = trial, new_err
+            if rel < cfg.relative_tolerance:
+                break
+        return values, it
+    except RuntimeError:
+        pass
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.max_iterations)
     params.setRelativeErrorTol(cfg.relative_tolerance)
@@ -456,8 +488,8 @@ def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     try:
         return opt.optimize(), int(opt.iterations())
-    except RuntimeError as err:
-        raise _solve_error(err) from None
+    except RuntimeError as err2:
+        raise _solve_error(err2) from None
 
 
 def _sigmas(blocks: list[_Block], n_sc: int) -> list[FloatArray]:

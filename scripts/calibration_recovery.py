@@ -8,10 +8,15 @@ scanners' true ``T_body_scanner`` by uniform draws within +-``--max-deg`` and +-
 parameter (seeded), runs :func:`calibration.calibrate.calibrate_bag` coarse to fine (the first
 round's SLAM gates opened for an extrinsic error of ``--coarse-deg`` / ``--coarse-mm``, by
 default the perturbation bounds; 0 0 = the plain schedule) and writes ``OUT/recovery.csv`` (per
-scanner and parameter: perturbation, recovered error, 1-sigma marginal and cluster-robust), ``OUT/rounds.json`` (per round:
-planes, points, change, gates, SLAM and batch seconds; the wall time), ``OUT/recovery.png``, the
-calibrated rig and the report folder; prints the wall time and whether every error lies within
-3 reported sigmas.
+scanner and parameter: perturbation, recovered error, 1-sigma marginal (``sigma``) and
+cluster-robust (``sigma_cluster``)), ``OUT/rounds.json`` (per round: planes, points, change, gates,
+SLAM and batch seconds; the wall time), ``OUT/recovery.png`` (results written atomically), the
+calibrated rig and the report folder; prints one line per round as it ends, the wall time and
+the error / sigma statistics.
+
+    python scripts/calibration_recovery.py --out docs/figures/calibration_recovery.csv --summarize RUN...
+
+collects several runs (seeds) into one CSV (``seed`` column) and figure (``.png`` next to it).
 """
 
 from __future__ import annotations
@@ -20,9 +25,12 @@ import argparse
 import csv
 import json
 import math
+import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +64,23 @@ def parameters(T: np.ndarray) -> np.ndarray:
     return np.array([*matrix_to_rpy(T[:3, :3]), *T[:3, 3]])
 
 
+def _atomic(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(tmp)`` then rename ``tmp`` to ``path``: an interrupted run leaves no half file."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _write_csv(path: Path, rows: list[dict[str, object]]) -> None:
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+    _atomic(path, write)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True)
@@ -70,7 +95,16 @@ def main() -> None:
                     help="rotation uncertainty of the initial rig for the first round's gates (default --max-deg)")
     ap.add_argument("--coarse-mm", type=float, default=None,
                     help="translation uncertainty of the initial rig (default --max-mm)")
+    ap.add_argument("--summarize", type=Path, nargs="+", default=None, metavar="RUN",
+                    help="no run: collect these runs' results into --out's CSV and figure "
+                         "(--out is then the CSV path; the figure gets the .png suffix)")
+    ap.add_argument("--coarse-seconds", type=float, default=None,
+                    help="loosened (coarse) rounds use only the first this many seconds of the "
+                         "recording (default: all); the last round always uses all of it")
     args = ap.parse_args()
+    if args.summarize:
+        summarize(args.summarize, args.out, args.out.with_suffix(".png"))
+        return
     from simulation.run import load_simulation_config, simulate
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -89,49 +123,44 @@ def main() -> None:
         raise SystemExit("--max-deg/--max-mm/--coarse-deg/--coarse-mm: must be >= 0; --rounds: >= 1")
     unc = (math.radians(c_deg), c_mm / 1e3) if c_deg > 0 or c_mm > 0 else None
     opts = CalibrationOptions(estimator=EstimatorConfig(time_offsets=args.time_offsets), max_rounds=args.rounds,
-                              initial_uncertainty=unc)
+                              initial_uncertainty=unc, coarse_duration=args.coarse_seconds)
     t0 = time.perf_counter()
     cal = calibrate_bag(bag, rig0, SlamConfig(), opts, progress=lambda m: print(m, flush=True))
     wall = time.perf_counter() - t0
     write_rig(args.out / "calibrated.yaml", cal.rig)
-    (args.out / "rounds.json").write_text(json.dumps({
+    text = json.dumps({
         "seed": args.seed, "max_deg": args.max_deg, "max_mm": args.max_mm, "coarse_deg": c_deg,
-        "coarse_mm": c_mm, "wall_seconds": wall, "converged": cal.converged,
-        "rounds": [asdict(r) for r in cal.rounds]}, indent=1))
+        "coarse_mm": c_mm, "coarse_seconds": args.coarse_seconds, "wall_seconds": wall, "converged": cal.converged,
+        "rounds": [asdict(r) for r in cal.rounds],
+        "scanners": {s.name: {"scale": s.scale, "sandwich": s.sandwich} for s in cal.batch.scanners}},
+        indent=1)
+    _atomic(args.out / "rounds.json", lambda tmp: tmp.write_text(text))
     write_report(cal, args.out / "report")
-    sig = {p.scanner: p.sigmas for p in cal.sigmas}
-    rows = []
+    rows: list[dict[str, Any]] = []
     for s in cal.batch.scanners:
         if s.reference:
             continue
         p_true = parameters(true.scanner(s.name).T_body_scanner.matrix())
         d0 = parameters(rig0.scanner(s.name).T_body_scanner.matrix()) - p_true
         d1 = parameters(s.T_body_scanner) - p_true
-        sc = (np.sqrt(np.diag(parameter_covariance(s.T_body_scanner, s.covariance_cluster)))
-              if s.covariance_cluster is not None else np.full(6, np.nan))
+        sm, sc = (np.sqrt(np.diag(parameter_covariance(s.T_body_scanner, c))) if c is not None
+                  else np.full(6, np.nan) for c in (s.covariance, s.covariance_cluster))
         for k, name in enumerate(PARAMETERS):
             f = math.degrees(1.0) if k < 3 else 1e3
             rows.append({"scanner": s.name, "parameter": name, "unit": "deg" if k < 3 else "mm",
-                         "perturbation": d0[k] * f, "error": d1[k] * f, "sigma": sig[s.name][k] * f,
+                         "perturbation": d0[k] * f, "error": d1[k] * f, "sigma": sm[k] * f,
                          "sigma_cluster": sc[k] * f})
-    with open(args.out / "recovery.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    _write_csv(args.out / "recovery.csv", rows)
     print(f"{'scanner':8s} {'param':6s} {'perturb':>10s} {'error':>10s} {'sigma':>9s} {'sig_cl':>9s}")
     for r in rows:
         print(f"{r['scanner']:8s} {r['parameter']:6s} {r['perturbation']:10.4f} {r['error']:10.4f} "
               f"{r['sigma']:9.4f} {r['sigma_cluster']:9.4f} {r['unit']}")
-    rot = max(abs(r["error"]) for r in rows if r["unit"] == "deg")
-    tr = max(abs(r["error"]) for r in rows if r["unit"] == "mm")
-    z = max(abs(r["error"]) / r["sigma"] for r in rows)
-    zc = max(abs(r["error"]) / r["sigma_cluster"] for r in rows)
-    rms = math.sqrt(sum((r["error"] / r["sigma"]) ** 2 for r in rows) / len(rows))
-    rms_c = math.sqrt(sum((r["error"] / r["sigma_cluster"]) ** 2 for r in rows) / len(rows))
-    print(f"max error: {rot:.4f} deg (goal < 0.05), {tr:.3f} mm (goal < 2); converged: {cal.converged}; "
-          f"max |error| / sigma {z:.2f} ({'covered' if z < 3 else 'NOT covered'} by 3 sigma); "
-          f"{wall:.0f} s")
-    print(f"error / sigma: RMS {rms:.2f}, max {z:.2f} (marginal); RMS {rms_c:.2f}, max {zc:.2f} (cluster-robust)")
+    st = _stats(rows)
+    print(f"max error: {st['rot']:.4f} deg (goal < 0.05), {st['trans']:.3f} mm (goal < 2); converged: "
+          f"{cal.converged}; max |error| / sigma {st['max_z']:.2f} "
+          f"({'covered' if st['max_z'] < 3 else 'NOT covered'} by 3 sigma); {wall:.0f} s")
+    print(f"error / sigma: RMS {st['rms_z']:.2f}, max {st['max_z']:.2f} (marginal); RMS {st['rms_zc']:.2f}, "
+          f"max {st['max_zc']:.2f} (cluster-robust)")
     for s in cal.batch.scanners:
         print(f"{s.name}: residual scale {s.scale:.2f}, sandwich factor {s.sandwich:.2f}, "
               f"RMS after {np.sqrt(np.mean(s.residuals_after**2)) * 1e3:.2f} mm, "
@@ -139,26 +168,82 @@ def main() -> None:
     _plot(rows, args.out / "recovery.png")
 
 
-def _plot(rows: list[dict[str, object]], path: Path) -> None:
+def _stats(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Worst rotation/translation error and the RMS / max of error / sigma (marginal, cluster)."""
+    z = np.array([float(r["error"]) / float(r["sigma"]) for r in rows])
+    zc = np.array([float(r["error"]) / float(r["sigma_cluster"]) for r in rows])
+    return {"rot": max(abs(float(r["error"])) for r in rows if r["unit"] == "deg"),
+            "trans": max(abs(float(r["error"])) for r in rows if r["unit"] == "mm"),
+            "rms_z": float(np.sqrt(np.mean(z**2))), "max_z": float(np.max(np.abs(z))),
+            "rms_zc": float(np.sqrt(np.mean(zc**2))), "max_zc": float(np.max(np.abs(zc))),
+            "n": float(z.size)}
+
+
+def summarize(runs: list[Path], csv_path: Path, fig_path: Path) -> None:
+    """Collect the runs' ``recovery.csv`` (one seed each, from ``rounds.json``) into one CSV with a
+    ``seed`` column and one figure; print per seed the worst errors, wall time per round and the
+    error / sigma statistics, then the pooled statistics."""
+    rows: list[dict[str, Any]] = []
+    for run in runs:
+        meta = json.loads((run / "rounds.json").read_text())
+        with open(run / "recovery.csv", newline="") as fh:
+            sel = [{"seed": meta["seed"], **{k: (v if k in ("scanner", "parameter", "unit") else float(v))
+                                            for k, v in r.items()}} for r in csv.DictReader(fh)]
+        st = _stats(sel)
+        per_round = ", ".join(f"{r['slam_seconds'] / 60:.1f}+{r['batch_seconds'] / 60:.1f}"
+                              for r in meta["rounds"])
+        print(f"seed {meta['seed']}: {st['rot']:.4f} deg, {st['trans']:.3f} mm; wall "
+              f"{meta['wall_seconds'] / 60:.1f} min (SLAM+batch per round, min: {per_round}); "
+              f"error/sigma RMS {st['rms_z']:.2f} max {st['max_z']:.2f} (marginal), "
+              f"RMS {st['rms_zc']:.2f} max {st['max_zc']:.2f} (cluster-robust)")
+        rows.extend(sel)
+    st = _stats(rows)
+    print(f"pooled ({int(st['n'])} parameters): error/sigma RMS {st['rms_z']:.2f} max {st['max_z']:.2f} "
+          f"(marginal), RMS {st['rms_zc']:.2f} max {st['max_zc']:.2f} (cluster-robust)")
+    _write_csv(csv_path, rows)
+    _plot(rows, fig_path)
+
+
+def _plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """Per scanner and parameter (x), per seed (colour): |perturbation| (open), |recovered error|
+    (filled) and 3 reported sigmas (marginal: bar, cluster-robust: dash) on a log axis; the goal
+    as a red line."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    seeds = sorted({r.get("seed", 0) for r in rows})
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, unit, goal in ((axes[0], "deg", 0.05), (axes[1], "mm", 2.0)):
         sel = [r for r in rows if r["unit"] == unit]
-        labels = [f"{r['scanner']}\n{r['parameter']}" for r in sel]
-        err = np.array([float(str(r["error"])) for r in sel])
-        sig = np.array([float(str(r["sigma"])) for r in sel])
-        ax.bar(labels, np.abs(err), yerr=3 * sig, capsize=4)
+        labels = list(dict.fromkeys(f"{r['scanner']}\n{r['parameter']}" for r in sel))
+        for i, seed in enumerate(seeds):
+            rs = [r for r in sel if r.get("seed", 0) == seed]
+            x = np.array([labels.index(f"{r['scanner']}\n{r['parameter']}") for r in rs])
+            x = x + (i - (len(seeds) - 1) / 2) * 0.22
+            c = f"C{i}"
+            f = np.array([[abs(float(r[k])) for k in ("perturbation", "error", "sigma", "sigma_cluster")]
+                          for r in rs])
+            ax.scatter(x, f[:, 0], facecolors="none", edgecolors=c, marker="o",
+                       label=f"seed {seed}: perturbation" if len(seeds) > 1 else "perturbation")
+            ax.scatter(x, f[:, 1], color=c, marker="o", zorder=3,
+                       label=f"seed {seed}: recovered error" if len(seeds) > 1 else "recovered error")
+            ax.vlines(x, f[:, 1], f[:, 0], colors=c, lw=0.5, alpha=0.5)
+            ax.scatter(x, 3 * f[:, 2], color=c, marker="_", s=120, lw=2,
+                       label="3 sigma marginal" if i == 0 else None)
+            ax.scatter(x, 3 * f[:, 3], color=c, marker="x", s=25, lw=1,
+                       label="3 sigma cluster-robust" if i == 0 else None)
         ax.axhline(goal, color="r", ls="--", label=f"goal {goal} {unit}")
-        ax.set_ylabel(f"|recovered - true| ({unit})")
-        ax.legend()
-        ax.tick_params(axis="x", labelsize=7)
-    fig.suptitle("calibration recovery (3-sigma bars)")
+        ax.set_yscale("log")
+        ax.set_xticks(range(len(labels)), labels, fontsize=7)
+        ax.set_ylabel(f"|value - true| ({unit})")
+        ax.grid(axis="y", which="both", alpha=0.3)
+    axes[1].legend(fontsize=6, loc="upper right", ncol=1)
+    fig.suptitle("calibration recovery: perturbation vs recovered error")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png"))
+    plt.close(fig)
 
 
 if __name__ == "__main__":

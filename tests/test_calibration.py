@@ -276,6 +276,18 @@ def test_calibration_options_reject_bad_schedules() -> None:
         CalibrationOptions(shrink=0.0)
     with pytest.raises(ValueError, match="max_rounds"):
         CalibrationOptions(max_rounds=0)
+    with pytest.raises(ValueError, match="coarse_duration"):
+        CalibrationOptions(coarse_duration=0.0)
+
+
+def test_coarse_rounds_read_only_the_first_seconds() -> None:
+    from calibration.calibrate import _first_seconds
+    from segmentation import Scanline
+
+    lines = [Scanline.from_ranges(np.ones(5), np.linspace(-1.0, 1.0, 5), 100.0 + 0.5 * k, time_increment=0.01)
+             for k in range(10)]
+    head = _first_seconds(lambda rig: iter(lines), 2.0)
+    assert [ln.stamp for ln in head(None)] == [100.0, 100.5, 101.0, 101.5, 102.0]  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
