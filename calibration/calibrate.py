@@ -22,7 +22,10 @@ Round 1 starts from ``initial_uncertainty`` (rad, m); every round's uncertainty 
 extrinsic change the previous round made times ``shrink`` (never more than before); once it is
 below the tight default gates the plain SLAM configuration is used. A loosened round's batch is
 one convex (Huber) solve capped at ``coarse_iterations`` without the variance-factor rounds (it
-only has to bring the rig closer), on the first ``coarse_duration`` seconds of the recording if
+only has to bring the rig closer), without the points whose plane lies within ~26 deg of their
+scanner's scan plane (``coarse_grazing_cos``: wrong associations of the loosened SLAM, e.g. the
+horizontal reference scanner's segments on spurious horizontal planes, which pulled the tilted
+scanners' common z by ~0.3 m), on the first ``coarse_duration`` seconds of the recording if
 set (the SLAM's cost grows faster than linearly with the recording's length); the last round
 (the reported estimate and covariance) always runs on the whole recording with the plain
 configuration and the full estimator.
@@ -67,6 +70,7 @@ class CalibrationOptions:
     shrink: float = 0.1
     coarse_iterations: int = 20
     coarse_duration: float | None = None
+    coarse_grazing_cos: float | None = 0.9
 
     def __post_init__(self) -> None:
         if self.max_rounds < 1:
@@ -199,9 +203,11 @@ def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamCon
 
 def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
               options: CalibrationOptions | None = None,
-              progress: Callable[[str], None] | None = None) -> Calibration:
+              progress: Callable[[str], None] | None = None,
+              on_round: Callable[[RoundInfo, Rig], None] | None = None) -> Calibration:
     """Calibrate ``rig``'s non-reference scanners from the recording ``scans(rig)`` yields
-    (a fresh time-ordered scan iterator per call, e.g. ``lambda r: read_scans(bag, rig=r)``)."""
+    (a fresh time-ordered scan iterator per call, e.g. ``lambda r: read_scans(bag, rig=r)``);
+    ``on_round`` gets every round's numbers and the rig it produced."""
     opt = options or CalibrationOptions()
     est = opt.estimator
     if est.motion == MotionPriorConfig():
@@ -218,7 +224,8 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
         loose = gate is not None and is_loosened(slam_config_for_calibration(slam_cfg), *gate)
         # a loosened round only has to bring the rig closer: one convex (Huber) solve, capped
         est_k = est if not loose else replace(est, variance_factor=False, kernel=est.start_kernel,
-                                              max_iterations=min(est.max_iterations, opt.coarse_iterations))
+                                              max_iterations=min(est.max_iterations, opt.coarse_iterations),
+                                              grazing_cos=opt.coarse_grazing_cos)
         dur = opt.coarse_duration if loose else None
         source = scans if dur is None else _first_seconds(scans, dur)
         batch, res, n_obs = calibrate_round(source, current, rig, slam_cfg, est_k, gate)
@@ -240,6 +247,8 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
                      f"{np.degrees(d_rot):.4f} deg / {d_tr * 1e3:.3f} mm{gates}; SLAM "
                      f"{info.slam_seconds:.0f} s, batch {info.batch_seconds:.0f} s "
                      f"({batch.iterations} iterations)")
+        if on_round is not None:
+            on_round(rounds[-1], current)
         if unc is not None:
             unc = (min(unc[0], opt.shrink * d_rot), min(unc[1], opt.shrink * d_tr))
         if d_rot < opt.tol_rot and d_tr < opt.tol_trans and not loose:
@@ -280,9 +289,10 @@ def _rig_of(rig: Rig, batch: BatchResult, name: str) -> Rig:
 
 def calibrate_bag(bag: str | Path, rig: Rig, slam_cfg: SlamConfig,
                   options: CalibrationOptions | None = None,
-                  progress: Callable[[str], None] | None = None) -> Calibration:
+                  progress: Callable[[str], None] | None = None,
+                  on_round: Callable[[RoundInfo, Rig], None] | None = None) -> Calibration:
     """:func:`calibrate` on a ROS bag (the rig's scanner topics)."""
     from slam.io.bag import read_scans
 
     read_scans(bag, rig=rig)  # checks the bag and its topics before the work starts
-    return calibrate(lambda r: read_scans(bag, rig=r), rig, slam_cfg, options, progress)
+    return calibrate(lambda r: read_scans(bag, rig=r), rig, slam_cfg, options, progress, on_round)

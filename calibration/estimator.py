@@ -38,7 +38,9 @@ of the covariance graph get the M-estimator sandwich correction of
 Per-point factors cannot see errors shared by many points (the trajectory model between two
 knots, a line fit's errors-in-variables, one scan's timing): with ``cluster_covariance`` the
 batch also reports the cluster-robust sandwich covariance of :func:`cluster_covariances`, with the
-blocks of one knot interval as a cluster (``ScannerEstimate.covariance_cluster``).
+blocks of ``cluster_knots[0]`` consecutive knot intervals (default one) as a cluster
+(``ScannerEstimate.covariance_cluster``; every window of ``cluster_knots`` in
+``ScannerEstimate.covariance_clusters``).
 
 Solved by a lightly damped Gauss-Newton with step halving (:func:`_solve`, the SLAM back end's
 batch scheme) from the SLAM trajectory and planes; the marginal covariances of
@@ -68,7 +70,7 @@ from slam.factors import (
     robust_weights,
     scanner_point_plane_factor,
 )
-from slam.interpolation import knot_fractions
+from slam.interpolation import interpolate_trajectory, knot_fractions
 from slam.motion import (
     MotionPriorConfig,
     constant_velocity_factor,
@@ -97,6 +99,8 @@ class EstimatorConfig:
     pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
     min_plane_points: int = 6
     cluster_covariance: bool = True
+    cluster_knots: tuple[int, ...] = (1,)
+    grazing_cos: float | None = None
     max_iterations: int = 50
     relative_tolerance: float = 1e-9
 
@@ -105,6 +109,10 @@ class EstimatorConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: must be > 0, got {v}")
+        if self.grazing_cos is not None and not 0.0 < self.grazing_cos <= 1.0:
+            raise ValueError(f"grazing_cos: must be in (0, 1], got {self.grazing_cos}")
+        if not self.cluster_knots or min(self.cluster_knots) < 1:
+            raise ValueError(f"cluster_knots: knot intervals per cluster, each >= 1, got {self.cluster_knots}")
         if self.max_iterations < 1 or self.min_plane_points < 1 or self.scale_rounds < 1:
             raise ValueError("max_iterations, min_plane_points and scale_rounds: must be >= 1")
         if not (np.isfinite(self.scale_floor) and self.scale_floor > 0):
@@ -135,6 +143,7 @@ class ScannerEstimate:
     scale: float = 1.0
     sandwich: float = 1.0
     covariance_cluster: FloatArray | None = None
+    covariance_clusters: dict[int, FloatArray] = field(default_factory=dict)
 
 
 @dataclass
@@ -188,6 +197,20 @@ def _blocks(kt: FloatArray, obs: PointObservations) -> list[_Block]:
     return out
 
 
+def _grazing(kt: FloatArray, T_world_body: FloatArray, planes: dict[int, tuple[FloatArray, float]],
+             obs: PointObservations, T_bs: list[FloatArray], cos_max: float) -> NDArray[np.bool_]:
+    """Points whose plane is nearly parallel to their scanner's scan plane at the initial
+    estimate: ``|n_scanner . z| > cos_max``. A 2D scanner cannot see such a surface (its scan
+    line would lie in it), so the association is wrong: e.g. a horizontal scanner's wall
+    segment put on a floor-like spurious plane by SLAM with a rig degrees off."""
+    T = interpolate_trajectory(kt, np.asarray(T_world_body, dtype=float), obs.times)
+    R_bs = np.stack([np.asarray(t, dtype=float)[:3, :3] for t in T_bs])[obs.scanner]
+    n_w = np.array([planes[int(j)][0] for j in obs.plane_id], dtype=float)
+    n_b = np.einsum("nji,nj->ni", T[:, :3, :3], n_w)  # R_wb^T n
+    z_s = np.einsum("nji,nj->ni", R_bs, n_b)[:, 2]  # (R_bs^T n_b) . z
+    return np.asarray(np.abs(z_s) > cos_max)
+
+
 def estimate_extrinsics(
     knot_times: FloatArray,
     T_world_body: FloatArray,
@@ -215,6 +238,8 @@ def estimate_extrinsics(
         raise ValueError(f"reference: scanner index {reference} outside [0, {n_sc})")
     inside = (obs.times >= kt[0]) & (obs.times <= kt[-1]) & np.isin(obs.plane_id, list(planes))
     obs = obs.select(inside)
+    if cfg.grazing_cos is not None and len(obs):
+        obs = obs.select(~_grazing(kt, T_world_body, planes, obs, T_init, cfg.grazing_cos))
     counts = {int(j): int(c) for j, c in zip(*np.unique(obs.plane_id, return_counts=True), strict=True)}
     obs = obs.select(np.array([counts[int(j)] >= cfg.min_plane_points for j in obs.plane_id], dtype=bool))
     if len(obs) == 0:
@@ -282,12 +307,14 @@ def estimate_extrinsics(
         marginals = gtsam.Marginals(graph, result)
     except RuntimeError as err:
         raise _solve_error(err) from None
-    clustered: dict[int, FloatArray] = {}
+    clustered: dict[int, dict[int, FloatArray]] = {}  # scanner -> window -> covariance
     if cfg.cluster_covariance and calibrated:
         try:
-            clustered = cluster_covariances(solved, result, prior_graph.size(), [b.knot for b in blocks],
-                                            [E(s) for s in calibrated])
-            clustered = dict(zip(calibrated, clustered.values(), strict=True))
+            knots = np.array([b.knot for b in blocks])
+            per_window = _cluster_covariances(solved, result, prior_graph.size(),
+                                              [knots // w for w in cfg.cluster_knots], [E(s) for s in calibrated])
+            clustered = {s: {w: c[E(s)] for w, c in zip(cfg.cluster_knots, per_window, strict=True)}
+                         for s in calibrated}
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             clustered = {}
     T_final = [np.asarray(T_init[s], dtype=float) if s not in calibrated
@@ -305,7 +332,8 @@ def estimate_extrinsics(
         scanners.append(ScannerEstimate(
             s, names[s], s == reference, np.asarray(T_init[s], dtype=float), T_final[s],
             None if cov is None else 0.5 * (cov + cov.T), dt, dt_sig, before[s], after[s],
-            int(np.sum(obs.scanner == s)), float(scale[s]), float(sandwich[s]), clustered.get(s)))
+            int(np.sum(obs.scanner == s)), float(scale[s]), float(sandwich[s]),
+            clustered[s][cfg.cluster_knots[0]] if s in clustered else None, clustered.get(s, {})))
     poses = np.array([result.atPose3(X(i)).matrix() for i in range(kt.size)])
     return BatchResult(scanners, poses, np.asarray(used_planes, dtype=np.int64), e0,
                        float(graph.error(result)), iterations,
@@ -329,6 +357,12 @@ def cluster_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     one scan) add up instead of averaging out, and the spread of the actual residuals replaces the
     stated sigmas; the outer products get the small-sample factor ``G / (G - 1)`` of G clusters.
     Returns key -> 6x6 (tangent order of the variable)."""
+    return _cluster_covariances(graph, values, n_prior, [np.asarray(clusters)], keys)[0]
+
+
+def _cluster_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_prior: int,
+                         labelings: list[NDArray[np.int64]], keys: list[int]) -> list[dict[int, FloatArray]]:
+    """:func:`cluster_covariances` for several clusterings of the data blocks at once."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
@@ -357,31 +391,35 @@ def cluster_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             vals.append(blk[r, c])
             c0 += dk
         rhs.append(np.asarray(b, dtype=float).ravel())
-        row_cluster.append(np.full(m, -1 if i < n_prior else clusters[i - n_prior], dtype=np.int64))
+        row_cluster.append(np.full(m, -1 if i < n_prior else i - n_prior, dtype=np.int64))
         n_row += m
     J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_row, n_col))
     b_all = np.concatenate(rhs)
-    lab = np.concatenate(row_cluster)
+    block = np.concatenate(row_cluster)
     H = (J.T @ J).tocsc()
     sel = np.concatenate([np.arange(col[int(k)], col[int(k)] + _DIMS[chr(gtsam.Symbol(k).chr())]) for k in keys])
     rhs_e = np.zeros((n_col, sel.size))
     rhs_e[sel, np.arange(sel.size)] = 1.0
     X = splu(H).solve(rhs_e)  # columns of H^-1 for the wanted variables
     U = np.asarray(J @ X)
-    data = lab >= 0
-    _, inv = np.unique(lab[data], return_inverse=True)
-    S = np.zeros((int(inv.max()) + 1 if inv.size else 0, sel.size))
-    np.add.at(S, inv, U[data] * b_all[data, None])
+    data = block >= 0
+    Ub = U[data] * b_all[data, None]
     Up = U[~data]
-    g = S.shape[0]
-    cov = S.T @ S * (g / max(g - 1, 1)) + Up.T @ Up  # small-sample factor G / (G - 1)
-    out, o = {}, 0
-    for k in keys:
-        dk = _DIMS[chr(gtsam.Symbol(k).chr())]
-        c = cov[o:o + dk, o:o + dk]
-        out[int(k)] = 0.5 * (c + c.T)
-        o += dk
-    return out
+    result = []
+    for labels in labelings:
+        _, inv = np.unique(np.asarray(labels)[block[data]], return_inverse=True)
+        S = np.zeros((int(inv.max()) + 1 if inv.size else 0, sel.size))
+        np.add.at(S, inv, Ub)
+        g = S.shape[0]
+        cov = S.T @ S * (g / max(g - 1, 1)) + Up.T @ Up  # small-sample factor G / (G - 1)
+        out, o = {}, 0
+        for k in keys:
+            dk = _DIMS[chr(gtsam.Symbol(k).chr())]
+            c = cov[o:o + dk, o:o + dk]
+            out[int(k)] = 0.5 * (c + c.T)
+            o += dk
+        result.append(out)
+    return result
 
 
 def robust_scale(e: FloatArray) -> float:

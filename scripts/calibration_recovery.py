@@ -36,7 +36,7 @@ import numpy as np
 
 from backpack_slam.config import configs_dir
 from backpack_slam.rig import Rig, matrix_to_rpy
-from calibration.calibrate import CalibrationOptions, calibrate_bag
+from calibration.calibrate import CalibrationOptions, RoundInfo, calibrate_bag
 from calibration.estimator import EstimatorConfig
 from calibration.observability import PARAMETERS, parameter_covariance
 from calibration.report import write_report
@@ -74,7 +74,7 @@ def _atomic(path: Path, write: Callable[[Path], object]) -> None:
 def _write_csv(path: Path, rows: list[dict[str, object]]) -> None:
     def write(tmp: Path) -> None:
         with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)), restval="nan")
             w.writeheader()
             w.writerows(rows)
 
@@ -95,6 +95,9 @@ def main() -> None:
                     help="rotation uncertainty of the initial rig for the first round's gates (default --max-deg)")
     ap.add_argument("--coarse-mm", type=float, default=None,
                     help="translation uncertainty of the initial rig (default --max-mm)")
+    ap.add_argument("--cluster-knots", type=int, nargs="+", default=[1],
+                    help="knot intervals per cluster of the cluster-robust covariance; the first is "
+                         "sigma_cluster, the others extra columns sigma_cluster_<N>k (default 1)")
     ap.add_argument("--summarize", type=Path, nargs="+", default=None, metavar="RUN",
                     help="no run: collect these runs' results into --out's CSV and figure "
                          "(--out is then the CSV path; the figure gets the .png suffix)")
@@ -122,10 +125,22 @@ def main() -> None:
     if min(c_deg, c_mm, args.max_deg, args.max_mm) < 0 or args.rounds < 1:
         raise SystemExit("--max-deg/--max-mm/--coarse-deg/--coarse-mm: must be >= 0; --rounds: >= 1")
     unc = (math.radians(c_deg), c_mm / 1e3) if c_deg > 0 or c_mm > 0 else None
-    opts = CalibrationOptions(estimator=EstimatorConfig(time_offsets=args.time_offsets), max_rounds=args.rounds,
+    windows = tuple(args.cluster_knots)
+    est = EstimatorConfig(time_offsets=args.time_offsets, cluster_knots=windows)
+    opts = CalibrationOptions(estimator=est, max_rounds=args.rounds,
                               initial_uncertainty=unc, coarse_duration=args.coarse_seconds)
     t0 = time.perf_counter()
-    cal = calibrate_bag(bag, rig0, SlamConfig(), opts, progress=lambda m: print(m, flush=True))
+    def on_round(info: RoundInfo, rig: Rig) -> None:  # the error against the truth after each round
+        worst = []
+        for s in rig.scanners:
+            if s.name != true.reference:
+                d = parameters(s.T_body_scanner.matrix()) - parameters(true.scanner(s.name).T_body_scanner.matrix())
+                worst.append(f"{s.name} {np.degrees(np.abs(d[:3]).max()):.4f} deg / "
+                             f"{np.abs(d[3:]).max() * 1e3:.2f} mm (xyz {np.round(d[3:] * 1e3, 2).tolist()})")
+        write_rig(args.out / f"round{info.round}.yaml", rig)
+        print(f"  after round {info.round}: " + "; ".join(worst), flush=True)
+
+    cal = calibrate_bag(bag, rig0, SlamConfig(), opts, progress=lambda m: print(m, flush=True), on_round=on_round)
     wall = time.perf_counter() - t0
     write_rig(args.out / "calibrated.yaml", cal.rig)
     text = json.dumps({
@@ -143,13 +158,15 @@ def main() -> None:
         p_true = parameters(true.scanner(s.name).T_body_scanner.matrix())
         d0 = parameters(rig0.scanner(s.name).T_body_scanner.matrix()) - p_true
         d1 = parameters(s.T_body_scanner) - p_true
-        sm, sc = (np.sqrt(np.diag(parameter_covariance(s.T_body_scanner, c))) if c is not None
-                  else np.full(6, np.nan) for c in (s.covariance, s.covariance_cluster))
+        covs = {"sigma": s.covariance, "sigma_cluster": s.covariance_cluster,
+                **{f"sigma_cluster_{w}k": c for w, c in s.covariance_clusters.items() if w != windows[0]}}
+        sig = {n: np.sqrt(np.diag(parameter_covariance(s.T_body_scanner, c))) if c is not None
+               else np.full(6, np.nan) for n, c in covs.items()}
         for k, name in enumerate(PARAMETERS):
             f = math.degrees(1.0) if k < 3 else 1e3
             rows.append({"scanner": s.name, "parameter": name, "unit": "deg" if k < 3 else "mm",
-                         "perturbation": d0[k] * f, "error": d1[k] * f, "sigma": sm[k] * f,
-                         "sigma_cluster": sc[k] * f})
+                         "perturbation": d0[k] * f, "error": d1[k] * f,
+                         **{n: v[k] * f for n, v in sig.items()}})
     _write_csv(args.out / "recovery.csv", rows)
     print(f"{'scanner':8s} {'param':6s} {'perturb':>10s} {'error':>10s} {'sigma':>9s} {'sig_cl':>9s}")
     for r in rows:
@@ -159,8 +176,7 @@ def main() -> None:
     print(f"max error: {st['rot']:.4f} deg (goal < 0.05), {st['trans']:.3f} mm (goal < 2); converged: "
           f"{cal.converged}; max |error| / sigma {st['max_z']:.2f} "
           f"({'covered' if st['max_z'] < 3 else 'NOT covered'} by 3 sigma); {wall:.0f} s")
-    print(f"error / sigma: RMS {st['rms_z']:.2f}, max {st['max_z']:.2f} (marginal); RMS {st['rms_zc']:.2f}, "
-          f"max {st['max_zc']:.2f} (cluster-robust)")
+    print("error / sigma: " + _z_text(rows))
     for s in cal.batch.scanners:
         print(f"{s.name}: residual scale {s.scale:.2f}, sandwich factor {s.sandwich:.2f}, "
               f"RMS after {np.sqrt(np.mean(s.residuals_after**2)) * 1e3:.2f} mm, "
@@ -179,6 +195,15 @@ def _stats(rows: list[dict[str, Any]]) -> dict[str, float]:
             "n": float(z.size)}
 
 
+def _z_text(rows: list[dict[str, Any]]) -> str:
+    """RMS and max of |error| / sigma for every sigma column (marginal, cluster-robust, windows)."""
+    out = []
+    for col in (k for k in rows[0] if k.startswith("sigma")):
+        z = np.array([float(r["error"]) / float(r[col]) for r in rows])
+        out.append(f"{col} RMS {np.sqrt(np.mean(z**2)):.2f} max {np.max(np.abs(z)):.2f}")
+    return "; ".join(out)
+
+
 def summarize(runs: list[Path], csv_path: Path, fig_path: Path) -> None:
     """Collect the runs' ``recovery.csv`` (one seed each, from ``rounds.json``) into one CSV with a
     ``seed`` column and one figure; print per seed the worst errors, wall time per round and the
@@ -194,12 +219,12 @@ def summarize(runs: list[Path], csv_path: Path, fig_path: Path) -> None:
                               for r in meta["rounds"])
         print(f"seed {meta['seed']}: {st['rot']:.4f} deg, {st['trans']:.3f} mm; wall "
               f"{meta['wall_seconds'] / 60:.1f} min (SLAM+batch per round, min: {per_round}); "
-              f"error/sigma RMS {st['rms_z']:.2f} max {st['max_z']:.2f} (marginal), "
-              f"RMS {st['rms_zc']:.2f} max {st['max_zc']:.2f} (cluster-robust)")
+              f"error/sigma: {_z_text(sel)}")
         rows.extend(sel)
     st = _stats(rows)
-    print(f"pooled ({int(st['n'])} parameters): error/sigma RMS {st['rms_z']:.2f} max {st['max_z']:.2f} "
-          f"(marginal), RMS {st['rms_zc']:.2f} max {st['max_zc']:.2f} (cluster-robust)")
+    common = ["error"] + [k for k in rows[0] if k.startswith("sigma")
+                          and all(k in r and np.isfinite(float(r[k])) for r in rows)]
+    print(f"pooled ({int(st['n'])} parameters): error/sigma: {_z_text([{k: r[k] for k in common} for r in rows])}")
     _write_csv(csv_path, rows)
     _plot(rows, fig_path)
 
@@ -239,9 +264,10 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
         ax.set_xticks(range(len(labels)), labels, fontsize=7)
         ax.set_ylabel(f"|value - true| ({unit})")
         ax.grid(axis="y", which="both", alpha=0.3)
-    axes[1].legend(fontsize=6, loc="upper right", ncol=1)
+    handles, labels = axes[1].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=min(len(labels), 4), frameon=False)
     fig.suptitle("calibration recovery: perturbation vs recovered error")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.06 * (1 + (len(labels) - 1) // 4), 1.0, 1.0))
     _atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png"))
     plt.close(fig)
 

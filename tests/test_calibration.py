@@ -105,6 +105,25 @@ def test_recovers_time_offset() -> None:
         assert rot < 0.02 and tr < 2e-3
 
 
+def test_grazing_associations_are_dropped() -> None:
+    """The horizontal reference scanner's points put on the floor (a wrong association: its scan
+    plane is parallel to the floor) are dropped with ``grazing_cos``, the true ones kept."""
+    kt, kp = walking_knots(duration=0.5)
+    obs = scan_points(kt, kp, BOX_PLANES, SCANNERS, beams=31)
+    ref = np.flatnonzero(obs.scanner == 0)[:40]
+    wrong = PointObservations(obs.scanner[ref], np.zeros(ref.size, dtype=np.int64), obs.points_scanner[ref],
+                              obs.times[ref], obs.sigmas[ref])
+    both = PointObservations.concatenate([obs, wrong])
+    cfg = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0),
+                          cluster_covariance=False)
+    n_ref = int(np.sum(obs.scanner == 0))
+    kept = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), both, list(SCANNERS), 0,
+                               config=replace(cfg, grazing_cos=0.9))
+    assert [s.n_points for s in kept.scanners] == [int(np.sum(obs.scanner == s)) for s in range(3)]
+    plain = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), both, list(SCANNERS), 0, config=cfg)
+    assert plain.scanners[0].n_points == n_ref + ref.size
+
+
 def test_time_offset_factor_jacobians_match_numerical() -> None:
     import gtsam
     from gtsam.symbol_shorthand import D, E, P, X
@@ -338,7 +357,8 @@ def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() ->
     white = rng.normal(0.0, 0.003, len(obs))
     group = np.searchsorted(kt, obs.times) * 3 + obs.scanner
     shared = rng.normal(0.0, 0.004, int(group.max()) + 1)[group]
-    cfg = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
+    cfg = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0),
+                          cluster_knots=(1, 3))
     ratios = []
     for off in (white, white + shared):
         o = PointObservations(obs.scanner, obs.plane_id, obs.points_scanner + off[:, None] * n_scanner,
@@ -348,10 +368,14 @@ def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() ->
         for s in res.scanners[1:]:
             assert s.covariance is not None and s.covariance_cluster is not None
             assert np.all(np.linalg.eigvalsh(s.covariance_cluster) > 0)
+            assert set(s.covariance_clusters) == {1, 3}
+            np.testing.assert_allclose(s.covariance_clusters[1], s.covariance_cluster)
             r.append(np.sqrt(np.diag(s.covariance_cluster) / np.diag(s.covariance)))
         ratios.append(float(np.median(r)))
     assert 0.5 < ratios[0] < 1.3, ratios
     assert ratios[1] > 1.25 * ratios[0], ratios
+    with pytest.raises(ValueError, match="cluster_knots"):
+        EstimatorConfig(cluster_knots=(0,))
 
 
 def test_cli_rejects_a_negative_coarse_uncertainty(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
