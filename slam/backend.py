@@ -36,6 +36,7 @@ optimisation rebuilds iSAM2 from the current estimate at the next ``update()``.
 from __future__ import annotations
 
 import time as _time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -176,6 +177,7 @@ class Backend:
         self._marginals: gtsam.Marginals | None = None
         self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
         self._links: list[tuple[int, int, int]] = []  # (keep, drop, factor id) plane equality ties
+        self._parallels: list[tuple[int, int, int, float]] = []  # (host, plane, factor id, sigma) parallelism ties
         self._anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
 
     # ----------------------------------------------------------------- variables
@@ -216,7 +218,9 @@ class Backend:
             else:
                 v = np.asarray(velocity_world, dtype=float).reshape(3)
             self._values.insert(V(i), v)
-            self._values.insert(B(i), gtsam.imuBias.ConstantBias())
+            # a new bias starts at the last estimate: the preintegration is linearised there
+            self._values.insert(B(i), self._values.atConstantBias(B(i - 1)) if i >= 1
+                                else gtsam.imuBias.ConstantBias())
             if i == 0:
                 self._add_factor(gtsam.PriorFactorVector(
                     V(0), v, gtsam.noiseModel.Isotropic.Sigma(3, cfg.imu.velocity_prior_sigma)))
@@ -379,6 +383,7 @@ class Backend:
                     self._plane_priors[keep] = self._add_factor(
                         horizontal_plane_prior(P(keep), n, self.config.horizontal_sigma))
         del self._plane_blocks[drop]
+        self._rekey_parallels(drop, keep)
         self._values.erase(P(drop))
         self._invalidate_isam()
         return len(moved)
@@ -397,6 +402,37 @@ class Backend:
         fid = self._add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], error))
         self._links.append((keep, drop, fid))
         return fid
+
+    def add_parallel(self, host_id: int, plane_id: int, sigma_angle: float) -> int:
+        """Keep plane ``plane_id`` parallel to ``host_id`` (same facing), offsets free: a door set
+        into its wall, a board on it. Survives merges (re-keyed onto the surviving plane).
+        Returns the factor id."""
+        a, b = self._check_plane(host_id), self._check_plane(plane_id)
+        if a == b:
+            raise ValueError(f"add_parallel: cannot tie plane {a} to itself")
+        fid = self._parallel_factor(a, b, sigma_angle)
+        self._parallels.append((a, b, fid, float(sigma_angle)))
+        return fid
+
+    def _parallel_factor(self, a: int, b: int, sigma_angle: float) -> int:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, 1e3]))
+        error = _plane_equality(self._anchors[a], self._anchors[b])
+        return self._add_factor(gtsam.CustomFactor(noise, [P(a), P(b)], error))
+
+    def _rekey_parallels(self, drop: int, keep: int | None) -> None:
+        """Move the parallelism ties of plane ``drop`` onto ``keep`` (None: remove them)."""
+        out = []
+        for a, b, fid, sigma in self._parallels:
+            if drop not in (a, b):
+                out.append((a, b, fid, sigma))
+                continue
+            self._records.pop(fid, None)
+            if keep is None:
+                continue
+            na, nb = (keep if a == drop else a), (keep if b == drop else b)
+            if na != nb:
+                out.append((na, nb, self._parallel_factor(na, nb, sigma), sigma))
+        self._parallels = out
 
     def fold_links(self) -> dict[int, int]:
         """Turn every :meth:`link_planes` tie into a real merge (blocks re-keyed onto the surviving
@@ -429,6 +465,10 @@ class Backend:
             self.remove_observations(bid)
         if j in self._plane_priors:
             self._remove_factor(self._plane_priors.pop(j))
+        for a, b, fid, _ in self._parallels:
+            if j in (a, b) and fid in self._records:
+                self._remove_factor(fid)
+        self._rekey_parallels(j, None)
         del self._plane_blocks[j]
         self._values.erase(P(j))
         self._invalidate_isam()
@@ -494,8 +534,43 @@ class Backend:
         return OptimizeSummary(float(e0), float(graph.error(values)), iterations,
                                _time.perf_counter() - t0)
 
+    def window_optimize(self, first_knot: int, max_iterations: int = 4) -> OptimizeSummary:
+        """A fixed-lag step: solve (:meth:`_solve_batch`) for the knots from ``first_knot`` on
+        (poses, velocities, biases) and every plane they observe, with every factor touching them;
+        older variables those factors reach are held at their estimates. The full problem is
+        left to a final :meth:`batch_optimize` (loop closures reach the old knots there)."""
+        t0 = _time.perf_counter()
+        first = max(0, min(int(first_knot), len(self._times) - 1))
+        active: set[int] = set()
+        for k in range(first, len(self._times)):
+            for sym in (X, V, B):
+                key = int(sym(k))
+                if self._values.exists(key):
+                    active.add(key)
+        for blk in self._blocks.values():
+            if blk.knot >= first - 1:
+                active.add(int(P(blk.plane_id)))
+        graph = gtsam.NonlinearFactorGraph()
+        used: set[int] = set()
+        for rec in self._records.values():
+            if any(k in active for k in rec.keys):
+                graph.add(rec.factor)
+                used.update(rec.keys)
+        values = gtsam.Values()
+        for k in used:
+            _copy_value(values, self._values, k)
+        fixed = sorted(used - active)
+        e0 = graph.error(values)
+        values, it = self._solve_batch(graph, values, max_iterations, fixed=fixed)
+        for k in active & used:
+            _copy_value(self._values, values, k, update=True)
+        self._pending, self._pending_removals = [], []
+        self._invalidate_isam()
+        return OptimizeSummary(float(e0), float(graph.error(values)), it, _time.perf_counter() - t0)
+
     def _solve_batch(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                             max_iterations: int | None) -> tuple[gtsam.Values, int]:
+                     max_iterations: int | None,
+                     fixed: Sequence[int] = ()) -> tuple[gtsam.Values, int]:
         """Gauss-Newton (lightly damped) with step halving (a step that raises the error is
         halved, up to ten times), stopping when the relative decrease falls below ``lm_relative_tolerance``.
 
@@ -504,7 +579,9 @@ class Backend:
         0.6 s (docs/bench_slam.md); the steps are the same. A singular linear system falls
         back to gtsam's Levenberg-Marquardt, whose damping copes with it."""
         n_max = max_iterations or self.config.lm_max_iterations
-        damping = [(int(k), int(d)) for k, d in values.dims().items()]
+        hold = set(int(k) for k in fixed)
+        # held variables get a stiff "damping" that keeps their step at zero
+        damping = [(int(k), int(d), 1e6 if int(k) in hold else 1e-2) for k, d in values.dims().items()]
         try:
             err = graph.error(values)
             it = 0
@@ -512,8 +589,8 @@ class Backend:
                 lin = graph.linearize(values)
                 # a whisper of Levenberg damping (1e-4 on the whitened Hessian's diagonal) keeps a
                 # direction no factor observes (a plane seen edge-on) from making the system singular
-                for k, d in damping:
-                    lin.add(gtsam.JacobianFactor(k, 1e-2 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                for k, d, w in damping:
+                    lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
                 delta = lin.optimize()
                 step = 1.0
                 for _ in range(10):
@@ -838,19 +915,23 @@ def _as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(R), M[:3, 3])
 
 
-def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int) -> None:
-    if dst.exists(key):
+def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = False) -> None:
+    """Copy variable ``key`` from ``src`` into ``dst``: insert it if absent; overwrite it only
+    with ``update``."""
+    exists = dst.exists(key)
+    if exists and not update:
         return
+    put = dst.update if exists else dst.insert
     sym = gtsam.Symbol(key)
     c = chr(sym.chr()).lower()
     if c in "xe":
-        dst.insert(key, src.atPose3(key))
+        put(key, src.atPose3(key))
     elif c == "p":
-        dst.insert(key, src.atOrientedPlane3(key))
+        put(key, src.atOrientedPlane3(key))
     elif c == "v":
-        dst.insert(key, src.atVector(key))
+        put(key, src.atVector(key))
     elif c == "b":
-        dst.insert(key, src.atConstantBias(key))
+        put(key, src.atConstantBias(key))
     else:
         raise ValueError(f"unknown variable {sym.string()}")
 

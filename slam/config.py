@@ -39,6 +39,10 @@ class FrontEndConfig(StrictModel):
     """Association gates and plane creation."""
 
     point_sigma: float = Field(0.003, gt=0, description="range noise of one point (m)")
+    model_sigma: float = Field(
+        0.001, ge=0,
+        description="m, added in quadrature to every virtual point: errors that do not average out over a "
+        "segment (trajectory between knots, calibration, surface flatness)")
     sigma_pose: float = Field(0.004, gt=0, description="pose uncertainty at a segment for association (m)")
     sigma_rotation_deg: float = Field(0.3, gt=0, description="rotation uncertainty in the angle test (deg)")
     sigma_lever_deg: float = Field(0.05, gt=0, description="rotation uncertainty times range in the distance test (deg)")
@@ -47,13 +51,23 @@ class FrontEndConfig(StrictModel):
     tracking_iterations: int = Field(3, ge=0)
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
     extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
-    min_support: int = Field(3, ge=2)
+    min_support: int = Field(6, ge=2, description="segments a new plane needs")
+    min_scans: int = Field(4, ge=2, description="distinct scans among a new plane's segments")
     min_spread: float = Field(0.04, gt=0)
-    coplanar_distance: float = Field(0.012, gt=0)
+    coplanar_distance: float = Field(
+        0.006, gt=0,
+        description="m, a new plane's members: fitted line within this (raw samples within this + 3 point_sigma); "
+        "below the 1-2 cm of doors and boards so that they do not join their wall")
     pool_window: float = Field(1.0, gt=0, description="s an unassociated segment waits for a plane")
     min_segment_points: int = Field(10, ge=2)
     merge_angle_deg: float = Field(1.5, gt=0)
-    merge_distance: float = Field(0.015, gt=0)
+    parallel_max_offset: float = Field(
+        0.05, ge=0, description="m, a new plane this close to an established one and within parallel_max_angle_deg "
+        "of it is tied parallel to it (doors, boards); 0 = never")
+    parallel_max_angle_deg: float = Field(
+        6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off")
+    parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
+    merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift since seen)")
     vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
 
 
@@ -70,6 +84,10 @@ class BackEndConfig(StrictModel):
     update_every: int = Field(10, ge=1, description="knots between iSAM2 updates")
     relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
     relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
+    solver: Literal["isam2", "window"] = Field(
+        "isam2", description="incremental estimation: iSAM2, or a fixed-lag window solved to convergence (slower)")
+    window_seconds: float = Field(10.0, gt=0, description="s of knots the window solver re-estimates")
+    window_iterations: int = Field(4, ge=1, description="Gauss-Newton iterations per window solve")
     final_batch: bool = True
     batch_iterations: int = Field(10, ge=1)
 

@@ -49,6 +49,7 @@ from slam.frontend.plane_init import (
     PlaneInitParams,
     PooledSegment,
     SegmentPool,
+    on_plane,
     tilt_sigma,
 )
 from slam.frontend.planemap import (
@@ -70,6 +71,11 @@ TRACK_WINDOW = 6  # knot intervals refined together by tracking
 FIRST_PRIOR_SIGMAS = np.array([np.radians(0.2)] * 3 + [0.01] * 3)  # oldest knot of the window
 MAX_TILT_SIGMA = np.radians(1.0)  # a new plane's worst tilt must be observed at least this well
 CV_SIGMAS = np.array([0.006] * 3 + [0.002] * 3)  # change of the body twist per knot interval (rad, m)
+# translation directions observed by planes within ~3 deg of parallel only are left to the IMU
+DEGENERATE_RATIO = float(np.sin(np.radians(3.0)) ** 2)
+HOST_MIN_SEGMENTS = 50  # segments of a plane before new planes are tied parallel to it
+# with an IMU: relative pose of one knot interval against the IMU-predicted one (rad, m)
+IMU_INCREMENT_SIGMAS = np.array([np.radians(0.05)] * 3 + [0.001] * 3)
 
 
 @dataclass
@@ -137,8 +143,10 @@ class SlamRunner:
         self.pool = SegmentPool(
             PlaneInitParams(
                 min_support=fe.min_support,
+                min_scans=fe.min_scans,
                 min_spread=fe.min_spread,
                 coplanar_distance=fe.coplanar_distance,
+                sample_distance=fe.coplanar_distance + 3.0 * fe.point_sigma,
                 window=fe.pool_window,
                 vertical_walls=cfg.backend.vertical_walls,
             )
@@ -197,6 +205,7 @@ class SlamRunner:
             "updates": 0,
             "skipped_scans": 0,
             "planes_rejected": 0,
+            "planes_parallel": 0,
             "isam2_rebuilds": 0,
             "isam2_fallbacks": 0,
             "imu_used": int(imu is not None),
@@ -303,7 +312,9 @@ class SlamRunner:
             self.stats["skipped_scans"] += 1
             return
         t = self._timer.add("segmentation", t_start)
-        segs = scan_segments(line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s])
+        segs = scan_segments(
+            line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s], self.cfg.frontend.model_sigma
+        )
         if segs.n_segments:
             self.stats["segments"] += segs.n_segments
             self._pending.append(
@@ -422,6 +433,8 @@ class SlamRunner:
                 FIRST_PRIOR_SIGMAS,
                 CV_SIGMAS,
                 iterations=fe.tracking_iterations,
+                increment_sigmas=IMU_INCREMENT_SIGMAS if self.imu is not None else None,
+                degenerate_ratio=DEGENERATE_RATIO if self.imu is not None else None,
             )
             self._T[k0 : k_new + 1] = window
         return self._T[k_new].copy()
@@ -460,6 +473,7 @@ class SlamRunner:
                         direction=d / max(float(np.linalg.norm(d)), 1e-9),
                         endpoints=e_world,
                         samples=samples,
+                        line=v_world,
                         scan_normal=scan_normal,
                         origin=T_mid[:3, 3].copy(),
                     )
@@ -514,6 +528,14 @@ class SlamRunner:
             if not self._constrained(plane, by_serial, kind, vertical):
                 self.stats["planes_rejected"] += 1
                 continue
+            host = self._host_of(plane)
+            if host is not None:
+                # a door set into its wall or a board on it: parallel to the wall by construction;
+                # fitted alone, a patch a metre wide gets its heading wrong by up to a degree, and
+                # along a corridor that tilt is the only thing "observing" the walking direction
+                pts_new = np.vstack([m.samples for m in plane.members])
+                plane.normal = self.pmap.planes[host].normal.copy()
+                plane.d = -float(np.mean(pts_new @ plane.normal))
             pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
             anchor = np.vstack([m.samples for m in plane.members]).mean(axis=0)
             self.backend.add_plane(
@@ -524,6 +546,9 @@ class SlamRunner:
                 vertical=vertical,
                 anchor=anchor,
             )
+            if host is not None:
+                self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
+                self.stats["planes_parallel"] += 1
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
                 rec = by_serial.get(m.ref[0])
@@ -538,6 +563,26 @@ class SlamRunner:
             self.stats["planes_created"] += 1
             self.stats["associated"] += len(plane.members)
             self._adopt_pooled(pl.id, by_serial)
+
+    def _host_of(self, plane: NewPlane) -> int | None:
+        """The established plane a new one lies on, parallel and a few centimetres off (a door in
+        its wall, a board on it), or None. Established: ``HOST_MIN_SEGMENTS`` segments."""
+        fe = self.cfg.frontend
+        pts = np.vstack([m.samples for m in plane.members])
+        cos_max = np.cos(np.radians(fe.parallel_max_angle_deg))
+        best: tuple[float, int] | None = None
+        for pid in self.pmap.active_ids():
+            h = self.pmap.planes[int(pid)]
+            if h.n_segments < HOST_MIN_SEGMENTS or float(h.normal @ plane.normal) < cos_max:
+                continue
+            off = float(np.max(np.abs(pts @ h.normal + h.d)))
+            if off > fe.parallel_max_offset:
+                continue
+            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
+                continue
+            if best is None or off < best[0]:
+                best = (off, int(pid))
+        return None if best is None else best[1]
 
     def _constrained(self, plane: NewPlane, by_serial: dict[int, _Pending], kind: int, vertical: bool) -> bool:
         """Whether the members' observations (virtual points, as the back end will see them) fix
@@ -561,14 +606,13 @@ class SlamRunner:
 
     def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
         """Give a new plane the pooled segments that lie on it but were not among its seed group."""
-        fe = self.cfg.frontend
         pl = self.pmap.planes[pid]
         taken = []
         blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
         for m in self.pool.items:
             if abs(float(m.direction @ pl.normal)) > np.sin(np.radians(2.0)):
                 continue
-            if np.max(np.abs(m.samples @ pl.normal + pl.d)) > fe.coplanar_distance:
+            if not on_plane(m, pl.normal, pl.d, self.pool.params):
                 continue
             if not self.pmap.overlaps(pid, m.samples, self.gates.extent_margin_cells):
                 continue
@@ -589,6 +633,12 @@ class SlamRunner:
         self._since_update = 0
         if self._n_knots < 2:
             return
+        be = self.cfg.backend
+        if be.solver == "window":
+            first = self._n_knots - 1 - round(be.window_seconds / self.dt)
+            self.backend.window_optimize(first, be.window_iterations)
+            self._after_update()
+            return
         try:
             self.backend.update()
         except ValueError:
@@ -601,6 +651,9 @@ class SlamRunner:
             except ValueError:
                 self.stats["isam2_fallbacks"] += 1
                 self.backend.batch_optimize(5, graduated=False)
+        self._after_update()
+
+    def _after_update(self) -> None:
         self.stats["updates"] += 1
         # refresh the recent knots and the recently seen planes
         k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
@@ -631,11 +684,13 @@ class SlamRunner:
                     continue
                 since = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
                 tol = fe.merge_distance + fe.drift_rate * since
-                # offset difference measured at a's points: both planes through a's extent centre
-                centre = self.pmap.polygon(a.id)[:4].mean(axis=0)
-                if abs(float(b.normal @ centre + b.d)) > tol:
-                    continue
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
+                    continue
+                # the offset difference over the smaller plane's extent (where both are seen), so
+                # that a tilted plane (a door fitted with a bit of its wall) does not merge on the
+                # strength of its centre alone
+                small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
+                if self.pmap.max_distance_over(small.id, big.id) > tol:
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
                 self.backend.link_planes(keep.id, drop.id)

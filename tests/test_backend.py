@@ -271,3 +271,55 @@ def test_backend_input_errors() -> None:
         be.add_imu(0, np.zeros((1, 3)), np.zeros((1, 3)), [0.01])
     with pytest.raises(ValueError, match="datum"):
         BackendConfig(datum="start")  # type: ignore[arg-type]
+
+
+def test_window_optimize_solves_the_recent_knots_and_holds_the_old(clean_scene: Scene) -> None:
+    be = _build(clean_scene, BackendConfig(), seed=5)
+    be.batch_optimize()  # the whole problem solved ...
+    n = be.num_knots
+    first = n // 2
+    rng = np.random.default_rng(9)
+    old = be.poses()[:first].copy()
+    for k in range(first, n):  # ... then the recent half perturbed by centimetres
+        be._values.update(gtsam_key_x(k), gtsam_pose(perturb_pose(be.pose(k), rng, 0.03, 1.0 * DEG)))
+    s = be.window_optimize(first, max_iterations=10)
+    assert s.final_error < 1e-3 * s.initial_error
+    np.testing.assert_array_equal(be.poses()[:first], old)  # held
+    err = _pose_errors(clean_scene.knot_poses[first:], be.poses()[first:])
+    assert np.linalg.norm(err[:, 3:], axis=1).max() < 1e-3
+
+
+def test_parallel_tie_keeps_planes_parallel_and_survives_merges(clean_scene: Scene) -> None:
+    be = _build(clean_scene, BackendConfig(), seed=6)
+    ids = be.plane_ids()
+    a, b = ids[0], ids[1]  # two walls of the box, not parallel in truth
+    # a third plane near a, 2 cm off and 3 deg tilted, tied parallel to a
+    n_a, d_a = be.plane(a)
+    tilt = se3_exp(np.array([0.0, 0.0, 3.0 * DEG, 0.0, 0.0, 0.0]))[:3, :3]
+    be.add_plane(99, tilt @ n_a, d_a + 0.02)
+    be.add_parallel(a, 99, 0.01 * DEG)
+    with pytest.raises(ValueError, match="itself"):
+        be.add_parallel(a, a, 0.01 * DEG)
+    be.batch_optimize()
+    n1, _ = be.plane(a)
+    n2, _ = be.plane(99)
+    assert np.degrees(np.arccos(min(1.0, float(n1 @ n2)))) < 0.05
+    # merging the host away moves the tie onto the surviving plane; removing drops it
+    be.merge_planes(b, a)
+    assert all(a not in (p, q) for p, q, _, _ in be._parallels)
+    be.batch_optimize()
+    be.remove_plane(99)
+    assert not be._parallels
+    be.batch_optimize()
+
+
+def gtsam_key_x(k: int) -> int:
+    from gtsam.symbol_shorthand import X
+
+    return int(X(k))
+
+
+def gtsam_pose(T: np.ndarray):  # type: ignore[no-untyped-def]
+    import gtsam
+
+    return gtsam.Pose3(T)

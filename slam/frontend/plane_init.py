@@ -32,6 +32,7 @@ class PooledSegment:
     direction: FloatArray
     endpoints: FloatArray  # (2, 3)
     samples: FloatArray  # (m, 3) points, world frame
+    line: FloatArray  # (2, 3) the fitted line's two virtual points, world frame
     scan_normal: FloatArray  # (3,) normal of the scanner's scan plane, world frame
     origin: FloatArray  # (3,) the scanner's position when it saw the segment, world frame
 
@@ -40,7 +41,8 @@ class PooledSegment:
 class PlaneInitParams:
     min_support: int = 3
     min_scans: int = 2
-    coplanar_distance: float = 0.012  # m, every sample of a member within this of the plane
+    coplanar_distance: float = 0.006  # m, a member's fitted line (both virtual points) within this of the plane
+    sample_distance: float = 0.015  # m, and every one of its raw samples within this
     coplanar_angle: float = np.radians(2.0)
     min_spread: float = 0.04  # m, second principal standard deviation of the members' points
     min_angle_between: float = np.radians(10.0)  # non-parallel seed pair
@@ -168,7 +170,7 @@ class SegmentPool:
             s = items[i]
             if abs(float(s.direction[2])) > np.sin(p.horizontal_tolerance) or abs(float(s.direction @ n)) > np.sin(p.coplanar_angle):
                 continue
-            if np.max(np.abs(s.samples @ n + d)) > p.coplanar_distance:
+            if not on_plane(s, n, d, p):
                 continue
             if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle):
                 continue
@@ -185,7 +187,7 @@ class SegmentPool:
             n2 = -n2
         d2 = -float(n2 @ c)
         res = pts @ n2 + d2
-        if np.max(np.abs(res)) > p.coplanar_distance * 1.5:
+        if not _consistent(members, n2, d2, p):
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))), vertical_hypothesis=True)
 
@@ -202,7 +204,7 @@ class SegmentPool:
         members = []
         for i in cand[ok]:
             s = items[i]
-            if np.max(np.abs(s.samples @ n + d)) <= p.coplanar_distance:
+            if on_plane(s, n, d, p):
                 members.append(s)
         if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
             return None
@@ -213,9 +215,28 @@ class SegmentPool:
         if any(abs(float(s.scan_normal @ n2)) > np.cos(p.min_scan_plane_angle) for s in members):
             return None
         res = pts @ n2 + d2
-        if np.max(np.abs(res)) > p.coplanar_distance * 1.5:
+        if not _consistent(members, n2, d2, p):
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))))
+
+
+def _consistent(members: list[PooledSegment], n: FloatArray, d: float, p: PlaneInitParams) -> bool:
+    """Whether the refitted plane explains its members as noise: every fitted line within
+    ``coplanar_distance`` and their RMS within a third of it. A plane tilted through a door and
+    a bit of its wall (a 1-2 cm step) fits each line to a few millimetres, not to one."""
+    r = np.concatenate([s.line @ n + d for s in members])
+    if np.max(np.abs(r)) > p.coplanar_distance or np.sqrt(np.mean(r**2)) > p.coplanar_distance / 3.0:
+        return False
+    return all(np.max(np.abs(s.samples @ n + d)) <= p.sample_distance for s in members)
+
+
+def on_plane(s: PooledSegment, n: FloatArray, d: float, p: PlaneInitParams, slack: float = 1.0) -> bool:
+    """Whether a segment lies on the plane: its fitted line within ``coplanar_distance`` (tight:
+    the line's offset is known to a fraction of a millimetre, so that a door recessed 1-2 cm or a
+    board 1-2 cm proud does not join its wall) and each raw sample within ``sample_distance``."""
+    if np.max(np.abs(s.line @ n + d)) > p.coplanar_distance * slack:
+        return False
+    return bool(np.max(np.abs(s.samples @ n + d)) <= p.sample_distance * slack)
 
 
 def _facing(plane: NewPlane, origin: FloatArray) -> NewPlane:

@@ -127,9 +127,24 @@ class PlaneMap:
         if not pa.cells or not pb.cells:
             return False
         # cell centres of b, lifted to 3D on b and re-expressed in a's cells
-        cb = np.array(list(pb.cells), dtype=np.float64) + 0.5
-        pts = (cb[:, :1] * pb.u + cb[:, 1:] * pb.v) * self.cell_size - pb.d * pb.normal
-        return self.overlaps(a, pts, dilate)
+        return self.overlaps(a, self.cell_centres(b), dilate)
+
+    def cell_centres(self, pid: int) -> FloatArray:
+        """Centres (m, 3) of the plane's extent cells, lifted onto the plane (world frame)."""
+        p = self.planes[pid]
+        if not p.cells:
+            return np.empty((0, 3))
+        c = np.array(list(p.cells), dtype=np.float64) + 0.5
+        return (c[:, :1] * p.u + c[:, 1:] * p.v) * self.cell_size - p.d * p.normal
+
+    def max_distance_over(self, src: int, dst: int) -> float:
+        """Largest distance of plane ``dst`` from plane ``src`` over ``src``'s extent (m): the
+        offset difference of two planes where one of them was seen, tilt included."""
+        pts = self.cell_centres(src)
+        if pts.shape[0] == 0:
+            return float("inf")
+        q = self.planes[dst]
+        return float(np.max(np.abs(pts @ q.normal + q.d)))
 
     def polygon(self, pid: int) -> FloatArray:
         """The extent's bounding rectangle as a closed (5, 3) polygon on the plane (world frame)."""
@@ -146,9 +161,7 @@ class PlaneMap:
         """Fold plane ``drop`` into ``keep``: union of extents and counts; ``drop`` becomes inactive."""
         pk, pd = self.planes[keep], self.planes[drop]
         if pd.cells:
-            cd = np.array(list(pd.cells), dtype=np.float64) + 0.5
-            pts = (cd[:, :1] * pd.u + cd[:, 1:] * pd.v) * self.cell_size - pd.d * pd.normal
-            self.extend(keep, pts)
+            self.extend(keep, self.cell_centres(drop))
         pk.n_segments += pd.n_segments
         pk.last_seen_time = max(pk.last_seen_time, pd.last_seen_time)
         pk.last_seen_odometer = max(pk.last_seen_odometer, pd.last_seen_odometer)

@@ -90,6 +90,9 @@ def refine_window(
     iterations: int = 3,
     huber_k: float = 2.0,
     stay_sigmas: FloatArray | None = None,
+    increment_sigmas: FloatArray | None = None,
+    degenerate_ratio: float | None = None,
+    freeze_sigma: float = 1e-4,
 ) -> FloatArray:
     """Jointly refine a window of knots (W, 4, 4) against fixed planes (world frame).
 
@@ -100,7 +103,16 @@ def refine_window(
     constant-velocity prior with ``cv_sigmas`` (6,) on the change of the body
     twist, and every knot weakly by ``stay_sigmas`` (6,) to its given pose, so
     that directions the planes do not observe stay at the prediction instead
-    of drifting with the null space. Right perturbations; the Jacobians use the first-order split
+    of drifting with the null space. With ``increment_sigmas`` (6,) the motion prior holds each
+    interval's relative pose to the given one instead (an IMU-predicted window: the IMU knows
+    the motion over one interval far better than a constant-velocity model of a walking torso,
+    whose bob and sway would otherwise drag the window along directions no plane observes,
+    e.g. along a corridor). With ``degenerate_ratio`` the window's translation is frozen at the
+    given poses along world directions the planes hardly observe: eigenvectors of the points'
+    translation information ``sum n n^T / sigma^2`` whose eigenvalue is below that ratio of the
+    largest (degeneracy-aware solution remapping, Zhang, Kaess & Singh 2016). Otherwise a plane
+    whose heading is a fraction of a degree off, the only "observation" of the direction along a
+    corridor, would slide the window along it by decimetres. Right perturbations; the Jacobians use the first-order split
     ``(1 - alpha, alpha)`` of an interpolated pose's perturbation, exact
     enough for the few-centimetre corrections tracking makes.
     """
@@ -131,10 +143,29 @@ def refine_window(
         for k in range(1, W):
             A[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += np.diag(w_stay)
             b[6 * k : 6 * k + 6] += w_stay * se3_log(se3_inverse(T_given[k]) @ T[k])
+        if degenerate_ratio is not None:
+            M = (normals * (w / sigmas**2)[:, None]).T @ normals
+            lam, vec = np.linalg.eigh(M)
+            for ev in np.flatnonzero(lam < degenerate_ratio * max(float(lam[-1]), 1e-300)):
+                dw = vec[:, ev]
+                for k in range(W):
+                    db = T[k, :3, :3].T @ dw  # the direction in knot k's body frame
+                    sl = slice(6 * k + 3, 6 * k + 6)
+                    A[sl, sl] += np.outer(db, db) / freeze_sigma**2
+                    b[sl] += db * float(dw @ (T[k, :3, 3] - T_given[k, :3, 3])) / freeze_sigma**2
         e0 = se3_log(se3_inverse(T_first) @ T[0])
         A[:6, :6] += np.diag(w_first)
         b[:6] += w_first * e0
-        for k in range(1, W - 1):
+        if increment_sigmas is not None:
+            w_inc = 1.0 / increment_sigmas**2
+            for k in range(1, W):
+                e = se3_log(se3_inverse(se3_inverse(T_given[k - 1]) @ T_given[k]) @ (se3_inverse(T[k - 1]) @ T[k]))
+                # d e / d delta_k ~ I, d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
+                for i, ci in ((k - 1, -1.0), (k, 1.0)):
+                    b[6 * i : 6 * i + 6] += ci * w_inc * e
+                    for j, cj in ((k - 1, -1.0), (k, 1.0)):
+                        A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(w_inc)
+        for k in range(1, W - 1 if increment_sigmas is None else 1):
             e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
             idx = (k - 1, k, k + 1)
             coefs = (1.0, -2.0, 1.0)
