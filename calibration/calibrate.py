@@ -29,6 +29,10 @@ scanners' common z by ~0.3 m), on the first ``coarse_duration`` seconds of the r
 set (the SLAM's cost grows faster than linearly with the recording's length); the last round
 (the reported estimate and covariance) always runs on the whole recording with the plain
 configuration and the full estimator.
+
+The covariance written to the rig file and used for the observability warnings is the batch's
+cluster-robust one (``covariance="cluster"``, 1 s clusters; ``"marginal"``: the marginal one):
+on the 120 s pipeline runs it was the better calibrated of the two (docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -38,12 +42,13 @@ import time as _time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from backpack_slam.rig import Rig
-from calibration.estimator import BatchResult, EstimatorConfig, estimate_extrinsics
+from calibration.estimator import BatchResult, EstimatorConfig, ScannerEstimate, estimate_extrinsics
 from calibration.observability import ParameterSigmas, parameter_sigmas, warn_unobservable
 from calibration.observations import collect_observations
 from calibration.rig_io import updated_rig
@@ -71,6 +76,7 @@ class CalibrationOptions:
     coarse_iterations: int = 20
     coarse_duration: float | None = None
     coarse_grazing_cos: float | None = 0.9
+    covariance: Literal["cluster", "marginal"] = "cluster"
 
     def __post_init__(self) -> None:
         if self.max_rounds < 1:
@@ -80,6 +86,8 @@ class CalibrationOptions:
         if self.coarse_duration is not None and not (math.isfinite(self.coarse_duration)
                                                      and self.coarse_duration > 0):
             raise ValueError(f"coarse_duration: must be > 0 s, got {self.coarse_duration}")
+        if self.covariance not in ("cluster", "marginal"):
+            raise ValueError(f"covariance: expected 'cluster' or 'marginal', got {self.covariance!r}")
         if not 0.0 < self.shrink <= 1.0:
             raise ValueError(f"shrink: must be in (0, 1], got {self.shrink}")
         u = self.initial_uncertainty
@@ -238,7 +246,7 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
         rounds.append(RoundInfo(k + 1, len(res.plane_ids), int((res.segment_rows["plane_id"] >= 0).sum()),
                                 n_obs, d_rot, d_tr, batch.seconds, g_rot, g_tr,
                                 _time.perf_counter() - t_round - batch.seconds, dur))
-        current = _rig_of(current, batch, rig.name)
+        current = _rig_of(current, batch, rig.name, opt.covariance)
         if progress is not None:
             gates = f", gates {np.degrees(g_rot):.2f} deg / {g_tr * 1e3:.1f} mm" if loose else ""
             gates += f", first {dur:g} s" if dur is not None else ""
@@ -257,9 +265,10 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
     assert batch is not None
     sigmas, msgs = [], []
     for s in batch.scanners:
-        if s.covariance is None:
+        cov = reported_covariance(s, opt.covariance)
+        if cov is None:
             continue
-        p = parameter_sigmas(s.name, s.T_body_scanner, s.covariance, batch.prior_sigmas,
+        p = parameter_sigmas(s.name, s.T_body_scanner, cov, batch.prior_sigmas,
                              opt.unobservable_ratio)
         sigmas.append(p)
         msgs.extend(warn_unobservable(p))
@@ -280,8 +289,17 @@ def _first_seconds(scans: ScanSource, duration: float) -> ScanSource:
     return head
 
 
-def _rig_of(rig: Rig, batch: BatchResult, name: str) -> Rig:
-    ext = {s.name: (s.T_body_scanner, s.covariance) for s in batch.scanners if s.covariance is not None}
+def reported_covariance(s: ScannerEstimate, which: str = "cluster") -> FloatArray | None:
+    """The covariance written to the rig file and used for the observability warnings: the
+    cluster-robust one (``which="cluster"``, if the batch computed it) or the marginal one."""
+    if which == "cluster" and s.covariance_cluster is not None:
+        return s.covariance_cluster
+    return s.covariance
+
+
+def _rig_of(rig: Rig, batch: BatchResult, name: str, which: str = "cluster") -> Rig:
+    ext = {s.name: (s.T_body_scanner, reported_covariance(s, which)) for s in batch.scanners
+           if s.covariance is not None}
     offs = {s.name: rig.scanner(s.name).time_offset + s.time_offset
             for s in batch.scanners if s.time_offset_sigma is not None}
     return updated_rig(rig, ext, offs, name=name)

@@ -1,6 +1,7 @@
-"""Observability of the extrinsic parameters: marginal standard deviations against the prior.
+"""Observability of the extrinsic parameters: posterior standard deviations against the prior.
 
-The marginal covariance of ``E(s)`` is over gtsam's right-perturbation tangent of
+The covariance of ``E(s)`` (the cluster-robust one by default, see
+:func:`calibration.calibrate.reported_covariance`, else the marginal one) is over gtsam's right-perturbation tangent of
 ``T_body_scanner`` (rotation, then translation, both in the scanner frame). The rig file's
 parameters are roll, pitch, yaw (``R = Rz Ry Rx``) and the body-frame translation x, y, z, so
 both the posterior and the prior covariance are mapped to those six by the Jacobian of

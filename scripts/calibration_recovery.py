@@ -95,9 +95,10 @@ def main() -> None:
                     help="rotation uncertainty of the initial rig for the first round's gates (default --max-deg)")
     ap.add_argument("--coarse-mm", type=float, default=None,
                     help="translation uncertainty of the initial rig (default --max-mm)")
-    ap.add_argument("--cluster-knots", type=int, nargs="+", default=[1],
+    ap.add_argument("--cluster-knots", type=int, nargs="+", default=[20],
                     help="knot intervals per cluster of the cluster-robust covariance; the first is "
-                         "sigma_cluster, the others extra columns sigma_cluster_<N>k (default 1)")
+                         "sigma_cluster (the reported one), the others extra columns sigma_cluster_<N>k "
+                         "(default 20: 1 s)")
     ap.add_argument("--summarize", type=Path, nargs="+", default=None, metavar="RUN",
                     help="no run: collect these runs' results into --out's CSV and figure "
                          "(--out is then the CSV path; the figure gets the .png suffix)")

@@ -169,14 +169,19 @@ def test_straight_corridor_reports_translation_along_it_unobservable() -> None:
     kp = np.array([_pose(np.array([0.02 * np.sin(2 * np.pi * a), 0.0, 0.0]),
                          np.array([-2.0 + 1.2 * a, 0.1 * np.sin(a), 0.02 * np.sin(4 * np.pi * a)])) for a in t])
     obs = scan_points(t, kp, CORRIDOR, SCANNERS)
+    from calibration.calibrate import reported_covariance
+
     res = estimate_extrinsics(t, kp, _planes(CORRIDOR), obs, list(SCANNERS), 0)
     for s in res.scanners[1:]:
-        assert s.covariance is not None
-        p = parameter_sigmas(s.name, s.T_body_scanner, s.covariance, res.prior_sigmas)
-        assert "x" in p.unobservable, p
-        assert "z" not in p.unobservable and "roll" not in p.unobservable
-        with pytest.warns(UnobservableWarning, match=rf"scanner '{s.name}': parameter x "):
-            warn_unobservable(p)
+        assert s.covariance is not None and s.covariance_cluster is not None
+        assert reported_covariance(s) is s.covariance_cluster  # the default: cluster-robust
+        assert reported_covariance(s, "marginal") is s.covariance
+        for cov in (s.covariance, s.covariance_cluster):
+            p = parameter_sigmas(s.name, s.T_body_scanner, cov, res.prior_sigmas)
+            assert "x" in p.unobservable, p
+            assert "z" not in p.unobservable and "roll" not in p.unobservable
+            with pytest.warns(UnobservableWarning, match=rf"scanner '{s.name}': parameter x "):
+                warn_unobservable(p)
     # the box room constrains everything
     kt, kpb = walking_knots(duration=1.5)
     res = estimate_extrinsics(kt, kpb, _planes(BOX_PLANES), scan_points(kt, kpb, BOX_PLANES, SCANNERS),
@@ -297,6 +302,8 @@ def test_calibration_options_reject_bad_schedules() -> None:
         CalibrationOptions(max_rounds=0)
     with pytest.raises(ValueError, match="coarse_duration"):
         CalibrationOptions(coarse_duration=0.0)
+    with pytest.raises(ValueError, match="covariance"):
+        CalibrationOptions(covariance="sandwich")  # type: ignore[arg-type]
 
 
 def test_coarse_rounds_read_only_the_first_seconds() -> None:
@@ -370,6 +377,8 @@ def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() ->
             assert np.all(np.linalg.eigvalsh(s.covariance_cluster) > 0)
             assert set(s.covariance_clusters) == {1, 3}
             np.testing.assert_allclose(s.covariance_clusters[1], s.covariance_cluster)
+            # 30 knot intervals < min_clusters: the 3-interval window falls back to one interval
+            np.testing.assert_allclose(s.covariance_clusters[3], s.covariance_cluster)
             r.append(np.sqrt(np.diag(s.covariance_cluster) / np.diag(s.covariance)))
         ratios.append(float(np.median(r)))
     assert 0.5 < ratios[0] < 1.3, ratios
