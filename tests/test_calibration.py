@@ -329,8 +329,9 @@ def short_calibration_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_loosened_slam_keeps_a_badly_calibrated_rig_on_few_planes(short_calibration_bag: Path) -> None:
     """With the tilted scanners ~3 deg / 5 cm off, the plain gates leave many of their segments
-    unassociated (spurious planes); gates opened for that uncertainty associate them with the
-    planes the reference scanner sees."""
+    unassociated (plane creation, which now insists on a noise-consistent fit, no longer turns them
+    into spurious planes: it leaves them out); gates opened for that uncertainty associate them
+    with the planes the reference scanner sees."""
     from calibration.calibrate import run_slam
     from slam.config import SlamConfig
     from slam.io.bag import read_scans
@@ -348,7 +349,6 @@ def test_loosened_slam_keeps_a_badly_calibrated_rig_on_few_planes(short_calibrat
         return float(np.mean(rows["plane_id"][tilted] >= 0))
 
     assert tilted_share(loose) > tilted_share(plain) + 0.1, (tilted_share(loose), tilted_share(plain))
-    assert len(loose.plane_ids) < len(plain.plane_ids)
 
 
 def test_cluster_covariance_grows_with_errors_shared_within_a_knot_interval() -> None:
