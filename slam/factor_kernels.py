@@ -57,9 +57,12 @@ def two_pose_terms(
     ``n . x + dist = 0`` (``Bn`` its normal's tangent basis, 3 x 2). Without ``jacobians`` only
     the residuals are filled."""
     N = P.shape[0]
-    m_a = Ra.T @ n
+    RaT = np.ascontiguousarray(Ra.T)  # contiguous operands for numba's matmul
+    Rb = np.ascontiguousarray(Rb)
+    Bn = np.ascontiguousarray(Bn)
+    m_a = RaT @ n
     d0 = n[0] * ta[0] + n[1] * ta[1] + n[2] * ta[2] + dist
-    D = Ra.T @ Rb
+    D = RaT @ Rb
     phi = _log_so3(D)
     th = math.sqrt(phi[0] ** 2 + phi[1] ** 2 + phi[2] ** 2)
     dtw = tb - ta
@@ -72,7 +75,7 @@ def two_pose_terms(
     else:
         ci = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
     Jinv = np.eye(3) + 0.5 * K + ci * KK
-    RaTB = Ra.T @ Bn
+    RaTB = RaT @ Bn
     taB = ta @ Bn
     dtB = dtw @ Bn
     res = np.empty(N)
