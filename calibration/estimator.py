@@ -80,6 +80,7 @@ from slam.motion import (
     datum_prior,
     initial_velocity_factor,
 )
+from slam.solver import damped_gauss_newton
 
 FloatArray = NDArray[np.float64]
 
@@ -492,45 +493,11 @@ def _solve_error(err: RuntimeError) -> ValueError:
 
 def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
            cfg: EstimatorConfig) -> tuple[gtsam.Values, int]:
-    """Gauss-Newton (lightly damped) with step halving from ``values``, as the SLAM back end's
-    batch (``slam.backend.Backend._solve_batch``): a step that raises the (robust) error is halved
-    up to ten times; it stops when no step lowers the error or the relative decrease falls below
-    ``cfg.relative_tolerance``. Driven from Python because gtsam's Levenberg-Marquardt spends
-    most of its time outside the CustomFactors on graphs of this size (docs/calibration.md). A
-    singular system falls back to gtsam's Levenberg-Marquardt; its failures become a ValueError."""
-    damping = [(int(k), int(d)) for k, d in values.dims().items()]
+    """The SLAM back end's batch solver (:func:`slam.solver.damped_gauss_newton`: lightly damped
+    Gauss-Newton with step halving, Levenberg-Marquardt on a singular system); its failures
+    become a ValueError."""
     try:
-        err = graph.error(values)
-        it = 0
-        for it in range(1, cfg.max_iterations + 1):
-            lin = graph.linearize(values)
-            # 1e-4 on the whitened Hessian's diagonal: a direction no factor observes stays regular
-            for k, d in damping:
-                lin.add(gtsam.JacobianFactor(k, 1e-2 * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
-            delta = lin.optimize()
-            step = 1.0
-            for _ in range(10):
-                trial = values.retract(delta if step == 1.0 else delta.scale(step))
-                new_err = graph.error(trial)
-                if new_err <= err:
-                    break
-                step *= 0.5
-            else:
-                return values, it  # no step lowers the error: converged
-            rel = (err - new_err) / max(err, 1e-300)
-            values, err = trial, new_err
-            if rel < cfg.relative_tolerance:
-                break
-        return values, it
-    except RuntimeError:
-        pass
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.max_iterations)
-    params.setRelativeErrorTol(cfg.relative_tolerance)
-    params.setAbsoluteErrorTol(0.0)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    try:
-        return opt.optimize(), int(opt.iterations())
+        return damped_gauss_newton(graph, values, cfg.max_iterations, cfg.relative_tolerance)
     except RuntimeError as err2:
         raise _solve_error(err2) from None
 

@@ -64,6 +64,7 @@ from slam.motion import (
     initial_velocity_factor,
     preintegrate,
 )
+from slam.solver import damped_gauss_newton
 
 FloatArray = NDArray[np.float64]
 
@@ -571,54 +572,14 @@ class Backend:
     def _solve_batch(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      max_iterations: int | None,
                      fixed: Sequence[int] = ()) -> tuple[gtsam.Values, int]:
-        """Gauss-Newton (lightly damped) with step halving (a step that raises the error is
-        halved, up to ten times), stopping when the relative decrease falls below ``lm_relative_tolerance``.
-
-        Driven from Python: gtsam's own optimizers spend ~2 s per iteration outside the factors
-        on a 400-knot graph of CustomFactors where ``linearize`` + ``optimize`` + ``error`` take
-        0.6 s (docs/bench_slam.md); the steps are the same. A singular linear system falls
-        back to gtsam's Levenberg-Marquardt, whose damping copes with it."""
+        """:func:`slam.solver.damped_gauss_newton` with the configured iterations and tolerance;
+        a failure of its Levenberg-Marquardt fallback is a ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
-        hold = set(int(k) for k in fixed)
-        # held variables get a stiff "damping" that keeps their step at zero
-        damping = [(int(k), int(d), 1e6 if int(k) in hold else 1e-2) for k, d in values.dims().items()]
         try:
-            err = graph.error(values)
-            it = 0
-            for it in range(1, n_max + 1):
-                lin = graph.linearize(values)
-                # a whisper of Levenberg damping (1e-4 on the whitened Hessian's diagonal) keeps a
-                # direction no factor observes (a plane seen edge-on) from making the system singular
-                for k, d, w in damping:
-                    lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
-                delta = lin.optimize()
-                step = 1.0
-                for _ in range(10):
-                    trial = values.retract(delta if step == 1.0 else delta.scale(step))
-                    new_err = graph.error(trial)
-                    if new_err <= err:
-                        break
-                    step *= 0.5
-                else:
-                    return values, it  # no step lowers the error: converged
-                rel = (err - new_err) / max(err, 1e-300)
-                values, err = trial, new_err
-                if rel < self.config.lm_relative_tolerance:
-                    break
-            return values, it
-        except RuntimeError:
-            pass
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(n_max)
-        params.setRelativeErrorTol(self.config.lm_relative_tolerance)
-        params.setAbsoluteErrorTol(0.0)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        try:
-            result = opt.optimize()
+            return damped_gauss_newton(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
         except RuntimeError as err2:
             raise ValueError(f"batch optimisation failed ({_name_keys(str(err2))}); is every "
                              "variable constrained by its factors?") from None
-        return result, int(opt.iterations())
 
     def error(self) -> float:
         """Total graph error (0.5 sum of whitened squares, robust losses) at the current estimate."""

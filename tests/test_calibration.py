@@ -394,3 +394,12 @@ def test_cli_rejects_a_negative_coarse_uncertainty(tmp_path: Path, capsys: pytes
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "--coarse" in err[0]
     assert not out.exists()
+
+
+def test_cli_rejects_a_non_positive_coarse_duration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o.yaml"
+    assert main(["calibrate", str(tmp_path / "none.bag"), "--rig", "itc_backpack", "--out", str(out),
+                 "--coarse", "3", "50", "--coarse-seconds", "0"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "--coarse-seconds" in err[0]
+    assert not out.exists()

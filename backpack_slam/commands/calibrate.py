@@ -32,6 +32,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--coarse", nargs=2, type=float, default=None, metavar=("DEG", "MM"),
                    help="the initial rig may be off by up to DEG degrees and MM millimetres: start with "
                         "association gates that wide and tighten them round by round (coarse to fine)")
+    p.add_argument("--coarse-seconds", type=float, default=None, metavar="S",
+                   help="with --coarse: run the coarse rounds on the first S seconds of the recording only "
+                        "(faster; the last round always uses all of it)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     return p
 
@@ -60,11 +63,14 @@ def run(args: argparse.Namespace) -> int:
         if min(args.coarse) < 0:
             raise ValueError(f"--coarse {args.coarse[0]:g} {args.coarse[1]:g}: must be >= 0")
         coarse = (math.radians(args.coarse[0]), args.coarse[1] / 1000.0)
+    if args.coarse_seconds is not None and not (math.isfinite(args.coarse_seconds) and args.coarse_seconds > 0):
+        raise ValueError(f"--coarse-seconds {args.coarse_seconds:g}: must be > 0")
     say = None if args.quiet else print
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnobservableWarning)  # printed below, once
         cal = calibrate_bag(args.bag, rig, cfg, CalibrationOptions(
-            estimator=est, max_rounds=args.rounds, initial_uncertainty=coarse), say)
+            estimator=est, max_rounds=args.rounds, initial_uncertainty=coarse,
+            coarse_duration=args.coarse_seconds), say)
     write_rig(args.out, cal.rig, header=f"calibrated by backpack-slam calibrate from {args.bag}\n"
                                          f"initial rig: {args.rig}")
     for w in cal.warnings:
