@@ -427,7 +427,8 @@ class Backend:
             if drop not in (a, b):
                 out.append((a, b, fid, sigma))
                 continue
-            self._records.pop(fid, None)
+            if fid in self._records:
+                self._remove_factor(fid)
             if keep is None:
                 continue
             na, nb = (keep if a == drop else a), (keep if b == drop else b)
@@ -466,9 +467,6 @@ class Backend:
             self.remove_observations(bid)
         if j in self._plane_priors:
             self._remove_factor(self._plane_priors.pop(j))
-        for a, b, fid, _ in self._parallels:
-            if j in (a, b) and fid in self._records:
-                self._remove_factor(fid)
         self._rekey_parallels(j, None)
         del self._plane_blocks[j]
         self._values.erase(P(j))

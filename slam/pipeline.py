@@ -528,16 +528,16 @@ class SlamRunner:
             if not self._constrained(plane, by_serial, kind, vertical):
                 self.stats["planes_rejected"] += 1
                 continue
-            host = self._host_of(plane)
+            pts = np.vstack([m.samples for m in plane.members])
+            host = self._host_of(plane, pts)
             if host is not None:
                 # a door set into its wall or a board on it: parallel to the wall by construction;
                 # fitted alone, a patch a metre wide gets its heading wrong by up to a degree, and
                 # along a corridor that tilt is the only thing "observing" the walking direction
-                pts_new = np.vstack([m.samples for m in plane.members])
                 plane.normal = self.pmap.planes[host].normal.copy()
-                plane.d = -float(np.mean(pts_new @ plane.normal))
+                plane.d = -float(np.mean(pts @ plane.normal))
             pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
-            anchor = np.vstack([m.samples for m in plane.members]).mean(axis=0)
+            anchor = pts.mean(axis=0)
             self.backend.add_plane(
                 pl.id,
                 plane.normal,
@@ -564,11 +564,11 @@ class SlamRunner:
             self.stats["associated"] += len(plane.members)
             self._adopt_pooled(pl.id, by_serial)
 
-    def _host_of(self, plane: NewPlane) -> int | None:
-        """The established plane a new one lies on, parallel and a few centimetres off (a door in
-        its wall, a board on it), or None. Established: ``HOST_MIN_SEGMENTS`` segments."""
+    def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
+        """The established plane a new one (its members' points ``pts``, world frame) lies on,
+        parallel and a few centimetres off (a door in its wall, a board on it), or None.
+        Established: ``HOST_MIN_SEGMENTS`` segments."""
         fe = self.cfg.frontend
-        pts = np.vstack([m.samples for m in plane.members])
         cos_max = np.cos(np.radians(fe.parallel_max_angle_deg))
         best: tuple[float, int] | None = None
         for pid in self.pmap.active_ids():

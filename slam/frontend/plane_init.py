@@ -224,19 +224,19 @@ def _consistent(members: list[PooledSegment], n: FloatArray, d: float, p: PlaneI
     """Whether the refitted plane explains its members as noise: every fitted line within
     ``coplanar_distance`` and their RMS within a third of it. A plane tilted through a door and
     a bit of its wall (a 1-2 cm step) fits each line to a few millimetres, not to one."""
-    r = np.concatenate([s.line @ n + d for s in members])
-    if np.max(np.abs(r)) > p.coplanar_distance or np.sqrt(np.mean(r**2)) > p.coplanar_distance / 3.0:
+    if not all(on_plane(s, n, d, p) for s in members):
         return False
-    return all(np.max(np.abs(s.samples @ n + d)) <= p.sample_distance for s in members)
+    r = np.concatenate([s.line @ n + d for s in members])
+    return bool(np.sqrt(np.mean(r**2)) <= p.coplanar_distance / 3.0)
 
 
-def on_plane(s: PooledSegment, n: FloatArray, d: float, p: PlaneInitParams, slack: float = 1.0) -> bool:
+def on_plane(s: PooledSegment, n: FloatArray, d: float, p: PlaneInitParams) -> bool:
     """Whether a segment lies on the plane: its fitted line within ``coplanar_distance`` (tight:
     the line's offset is known to a fraction of a millimetre, so that a door recessed 1-2 cm or a
     board 1-2 cm proud does not join its wall) and each raw sample within ``sample_distance``."""
-    if np.max(np.abs(s.line @ n + d)) > p.coplanar_distance * slack:
+    if np.max(np.abs(s.line @ n + d)) > p.coplanar_distance:
         return False
-    return bool(np.max(np.abs(s.samples @ n + d)) <= p.sample_distance * slack)
+    return bool(np.max(np.abs(s.samples @ n + d)) <= p.sample_distance)
 
 
 def _facing(plane: NewPlane, origin: FloatArray) -> NewPlane:

@@ -156,23 +156,23 @@ def refine_window(
         e0 = se3_log(se3_inverse(T_first) @ T[0])
         A[:6, :6] += np.diag(w_first)
         b[:6] += w_first * e0
+        # motion prior: (residual, knots, coefficients of their perturbations, weights) per term
+        terms: list[tuple[FloatArray, tuple[int, ...], tuple[float, ...], FloatArray]] = []
         if increment_sigmas is not None:
             w_inc = 1.0 / increment_sigmas**2
             for k in range(1, W):
                 e = se3_log(se3_inverse(se3_inverse(T_given[k - 1]) @ T_given[k]) @ (se3_inverse(T[k - 1]) @ T[k]))
                 # d e / d delta_k ~ I, d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
-                for i, ci in ((k - 1, -1.0), (k, 1.0)):
-                    b[6 * i : 6 * i + 6] += ci * w_inc * e
-                    for j, cj in ((k - 1, -1.0), (k, 1.0)):
-                        A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(w_inc)
-        for k in range(1, W - 1 if increment_sigmas is None else 1):
-            e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
-            idx = (k - 1, k, k + 1)
-            coefs = (1.0, -2.0, 1.0)
+                terms.append((e, (k - 1, k), (-1.0, 1.0), w_inc))
+        else:
+            for k in range(1, W - 1):
+                e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
+                terms.append((e, (k - 1, k, k + 1), (1.0, -2.0, 1.0), w_cv))
+        for e, idx, coefs, wt in terms:
             for i, ci in zip(idx, coefs, strict=True):
-                b[6 * i : 6 * i + 6] += ci * w_cv * e
+                b[6 * i : 6 * i + 6] += ci * wt * e
                 for j, cj in zip(idx, coefs, strict=True):
-                    A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(w_cv)
+                    A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(wt)
         try:
             delta = -np.linalg.solve(A + 1e-9 * np.eye(n), b)
         except np.linalg.LinAlgError:
