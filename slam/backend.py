@@ -178,7 +178,8 @@ class Backend:
         self._marginals: gtsam.Marginals | None = None
         self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
         self._links: list[tuple[int, int, int]] = []  # (keep, drop, factor id) plane equality ties
-        self._parallels: list[tuple[int, int, int, float]] = []  # (host, plane, factor id, sigma) parallelism ties
+        # (host, plane, factor id, sigma, perpendicular?) orientation ties between planes
+        self._parallels: list[tuple[int, int, int, float, bool]] = []
         self._anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
 
     # ----------------------------------------------------------------- variables
@@ -408,24 +409,36 @@ class Backend:
         """Keep plane ``plane_id`` parallel to ``host_id`` (same facing), offsets free: a door set
         into its wall, a board on it. Survives merges (re-keyed onto the surviving plane).
         Returns the factor id."""
+        return self._add_tie(host_id, plane_id, sigma_angle, perpendicular=False)
+
+    def add_perpendicular(self, host_id: int, plane_id: int, sigma_angle: float) -> int:
+        """Keep plane ``plane_id`` perpendicular to ``host_id`` (one residual: the dot product of
+        the unit normals, sigma ``sigma_angle`` [rad]): the plane through a door's edge across its
+        wall. Survives merges like :meth:`add_parallel`. Returns the factor id."""
+        return self._add_tie(host_id, plane_id, sigma_angle, perpendicular=True)
+
+    def _add_tie(self, host_id: int, plane_id: int, sigma_angle: float, perpendicular: bool) -> int:
         a, b = self._check_plane(host_id), self._check_plane(plane_id)
         if a == b:
-            raise ValueError(f"add_parallel: cannot tie plane {a} to itself")
-        fid = self._parallel_factor(a, b, sigma_angle)
-        self._parallels.append((a, b, fid, float(sigma_angle)))
+            raise ValueError(f"add_{'perpendicular' if perpendicular else 'parallel'}: cannot tie plane {a} to itself")
+        fid = self._tie_factor(a, b, sigma_angle, perpendicular)
+        self._parallels.append((a, b, fid, float(sigma_angle), perpendicular))
         return fid
 
-    def _parallel_factor(self, a: int, b: int, sigma_angle: float) -> int:
+    def _tie_factor(self, a: int, b: int, sigma_angle: float, perpendicular: bool) -> int:
+        if perpendicular:
+            one = gtsam.noiseModel.Isotropic.Sigma(1, sigma_angle)
+            return self._add_factor(gtsam.CustomFactor(one, [P(a), P(b)], _perpendicular_error))
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, 1e3]))
         error = _plane_equality(self._anchors[a], self._anchors[b])
         return self._add_factor(gtsam.CustomFactor(noise, [P(a), P(b)], error))
 
     def _rekey_parallels(self, drop: int, keep: int | None) -> None:
-        """Move the parallelism ties of plane ``drop`` onto ``keep`` (None: remove them)."""
+        """Move the orientation ties of plane ``drop`` onto ``keep`` (None: remove them)."""
         out = []
-        for a, b, fid, sigma in self._parallels:
+        for a, b, fid, sigma, perp in self._parallels:
             if drop not in (a, b):
-                out.append((a, b, fid, sigma))
+                out.append((a, b, fid, sigma, perp))
                 continue
             if fid in self._records:
                 self._remove_factor(fid)
@@ -433,7 +446,7 @@ class Backend:
                 continue
             na, nb = (keep if a == drop else a), (keep if b == drop else b)
             if na != nb:
-                out.append((na, nb, self._parallel_factor(na, nb, sigma), sigma))
+                out.append((na, nb, self._tie_factor(na, nb, sigma, perp), sigma, perp))
         self._parallels = out
 
     def fold_links(self) -> dict[int, int]:
@@ -824,6 +837,17 @@ def _vertical_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatA
         B = u.basis()
         H[0] = np.array([[B[2, 0], B[2, 1], 0.0]])
     return np.array([u.point3()[2]])
+
+
+def _perpendicular_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+    """Perpendicularity of two planes: the dot product of their unit normals (world frame)."""
+    ua = v.atOrientedPlane3(this.keys()[0]).normal()
+    ub = v.atOrientedPlane3(this.keys()[1]).normal()
+    na, nb = ua.point3(), ub.point3()
+    if H is not None:
+        H[0] = np.array([[*(nb @ ua.basis()), 0.0]])
+        H[1] = np.array([[*(na @ ub.basis()), 0.0]])
+    return np.array([float(na @ nb)])
 
 
 def _plane_residual(a: gtsam.OrientedPlane3, b: gtsam.OrientedPlane3, anchor_a: FloatArray,

@@ -71,6 +71,32 @@ class FrontEndConfig(StrictModel):
     vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
 
 
+class EdgeSection(StrictModel):
+    """Door and board edges as observations along walls (``slam.frontend.edges``): the break
+    between a wall's segment and its door's (or board's) segment in one scanline lies on the
+    door's vertical edge, which the back end holds as a plane perpendicular to the wall."""
+
+    use: bool = Field(True, description="observe door/board edges (the along-corridor direction)")
+    max_gap: float = Field(0.08, gt=0, description="m, largest gap between the two segments' boundary points")
+    min_incidence_deg: float = Field(
+        40.0, ge=0, le=90, description="deg from grazing: flatter beams see the step's shadow, not its edge")
+    sigma: float = Field(0.003, gt=0, description="m along the wall, added to the gap's spread (gap / sqrt 12)")
+    cluster_width: float = Field(0.02, gt=0, description="m, breaks of a new edge agree within this along the wall")
+    min_points: int = Field(6, ge=2, description="breaks a new edge needs")
+    min_scans: int = Field(4, ge=1, description="distinct scans among them")
+    gate: float = Field(0.04, gt=0, description="m, a break associates with an edge this close along the wall")
+    window: float = Field(3.0, gt=0, description="s a break waits for an edge")
+    merge_distance: float = Field(0.25, ge=0, description="m, edges of one door side this close are merged")
+    min_step: float = Field(0.004, gt=0, description="m, smallest step between a wall and its door or board")
+    max_step: float = Field(0.04, gt=0, description="m, largest such step")
+    step_tolerance: float = Field(0.005, gt=0, description="m, the step at both ends of the other segment agrees within this")
+    max_skipped_points: int = Field(15, ge=0, description="a segment this short between the two (a sloped frame) is skipped")
+    min_height_span: float = Field(
+        0.15, ge=0, description="m, a new edge's breaks span this in height (vertical edges), unless all come "
+        "from nearly horizontal scanlines")
+    perpendicular_sigma_deg: float = Field(0.02, gt=0, description="sigma of the edge plane's tie across its wall")
+
+
 class BackEndConfig(StrictModel):
     """Factor graph: noise, robust kernel, priors, update cadence."""
 
@@ -127,6 +153,7 @@ class SlamConfig(StrictModel):
     segmenter: SegmenterConfig = Field(default_factory=SegmenterConfig)
     trajectory: TrajectoryConfig = Field(default_factory=TrajectoryConfig)
     frontend: FrontEndConfig = Field(default_factory=FrontEndConfig)
+    edges: EdgeSection = Field(default_factory=EdgeSection)
     backend: BackEndConfig = Field(default_factory=BackEndConfig)
     imu: ImuSection = Field(default_factory=ImuSection)
     output: OutputConfig = Field(default_factory=OutputConfig)

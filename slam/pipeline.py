@@ -43,6 +43,18 @@ from slam.backend import Backend, BackendConfig
 from slam.config import SlamConfig
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
+from slam.frontend.edges import (
+    EDGE_ID_BASE,
+    Break,
+    EdgeMap,
+    EdgeParams,
+    along_wall,
+    break_pairs,
+    break_sigma,
+    is_flat,
+    steep_enough,
+    step_of,
+)
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.frontend.plane_init import (
     NewPlane,
@@ -151,6 +163,31 @@ class SlamRunner:
                 vertical_walls=cfg.backend.vertical_walls,
             )
         )
+        ec = cfg.edges
+        self.emap = (
+            EdgeMap(
+                EdgeParams(
+                    max_gap=ec.max_gap,
+                    min_incidence_deg=ec.min_incidence_deg,
+                    sigma=ec.sigma,
+                    cluster_width=ec.cluster_width,
+                    min_points=ec.min_points,
+                    min_scans=ec.min_scans,
+                    gate=ec.gate,
+                    window=ec.window,
+                    merge_distance=ec.merge_distance,
+                    min_step=ec.min_step,
+                    max_step=ec.max_step,
+                    step_tolerance=ec.step_tolerance,
+                    max_skipped_points=ec.max_skipped_points,
+                    min_height_span=ec.min_height_span,
+                ),
+                self.pmap.resolve,
+            )
+            if ec.use
+            else None
+        )
+        self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
         dt = 1.0 / cfg.trajectory.knot_rate
         ic = cfg.imu
         self.imu_config = (
@@ -210,6 +247,9 @@ class SlamRunner:
             "isam2_fallbacks": 0,
             "imu_used": int(imu is not None),
             "zero_velocity_updates": 0,
+            "edges_created": 0,
+            "edges_merged": 0,
+            "edge_observations": 0,
         }
         self._since_update = 0
 
@@ -362,6 +402,8 @@ class SlamRunner:
         self._associate_and_observe(ready)
         t = self._timer.add("association", t)
         self._create_planes(t_new)
+        if self.emap is not None:
+            self._create_edges(t_new)
         t = self._timer.add("plane_creation", t)
         self._since_update += 1
         if self._since_update >= self.cfg.backend.update_every:
@@ -443,10 +485,13 @@ class SlamRunner:
         fe = self.cfg.frontend
         blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
         now = self._knot_time(self._n_knots - 1)
+        hosts = self._host_map()
         for p in ready:
             ids = self._associate_scan(p, self.gates)
             p.plane_ids = ids
             segs = p.segs
+            if self.emap is not None:
+                self._observe_edges(p, ids, hosts, now, blocks)
             for j in map(int, np.flatnonzero(ids >= 0)):
                 pid = int(ids[j])
                 self._observe(segs, j, pid, blocks)
@@ -480,6 +525,103 @@ class SlamRunner:
                 )
             self._done.append(p)
         self._flush_blocks(blocks)
+
+    def _is_wall(self, hosts: dict[int, int]) -> Callable[[int], bool]:
+        """Whether a (current) plane id is a wall and not a door or board tied to one."""
+        return lambda pid: self.pmap.planes[pid].kind == KIND_WALL and pid not in hosts
+
+    def _host_map(self) -> dict[int, int]:
+        """Current (merged) plane id -> its current host wall id, for the tied doors and boards."""
+        out = {}
+        for child, host in self._host.items():
+            c, h = self.pmap.resolve(child), self.pmap.resolve(host)
+            if c != h:
+                out[c] = h
+        return out
+
+    def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
+                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+        """Break points of one scan between a wall and a step in it (``frontend.edges``): each
+        observes its edge plane, or waits in the edge map's pending list."""
+        assert self.emap is not None
+        ep = self.emap.params
+        segs = p.segs
+        pairs = break_pairs(segs.first_beam, segs.n_points, ids, self._is_wall(hosts), ep.max_skipped_points)
+        if not pairs:
+            return
+        origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
+        for j_wall, j_other in pairs:
+            if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
+                continue
+            # boundary points: the end of the earlier segment and the start of the later one
+            lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
+            ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
+            gap = float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib]))
+            if gap > ep.max_gap:
+                continue
+            pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
+            t = 0.5 * float(segs.times[ia] + segs.times[ib])
+            w = self._place(
+                np.vstack((pt_body[None], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
+                np.concatenate(([t], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
+            )
+            wall = int(ids[j_wall])
+            n_wall = self.pmap.planes[wall].normal
+            if not steep_enough(origin, w[0], n_wall, ep.min_incidence_deg):
+                continue
+            s1, s2 = step_of(n_wall, w[3:5], w[1:3])
+            if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
+                continue
+            n_e = along_wall(n_wall)
+            side = 1 if float(n_e @ (w[1:3].mean(axis=0) - w[0])) > 0.0 else -1
+            step = 1 if s1 + s2 > 0.0 else -1
+            brk = Break(wall, step, side, float(n_e @ w[0]), pt_body, w[0], t, break_sigma(gap, ep.sigma), p.serial,
+                        flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope))
+            edge = self.emap.match(brk)
+            if edge is None:
+                self.emap.pending.append(brk)
+                continue
+            self._observe_point(brk, edge.id, blocks)
+            edge.n_obs += 1
+            edge.last_seen_time = now
+
+    def _observe_point(self, brk: Break, pid: int,
+                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+        idx, alpha = self._fractions(np.array([brk.time]))
+        blocks.setdefault((int(idx[0]), pid), []).append((brk.point_body, alpha, np.array([brk.sigma])))
+        self.stats["edge_observations"] += 1
+
+    def _create_edges(self, now: float) -> None:
+        """New edge planes from clusters of pending breaks: vertical, tied perpendicular to the wall."""
+        assert self.emap is not None
+        self.emap.expire(now)
+        for members, u in self.emap.cluster():
+            b0 = members[0]
+            host = self.pmap.resolve(b0.host)
+            n_e = along_wall(self.pmap.planes[host].normal)
+            edge = self.emap.add(host, b0.step, b0.side, n_e, u, now)
+            anchor = np.mean([b.point_world for b in members], axis=0)
+            self.backend.add_plane(edge.id, n_e, -u, vertical=True, anchor=anchor)
+            self.backend.add_perpendicular(host, edge.id, np.radians(self.cfg.edges.perpendicular_sigma_deg))
+            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+            for b in members:
+                self._observe_point(b, edge.id, blocks)
+            self._flush_blocks(blocks)
+            edge.n_obs = len(members)
+            self.stats["edges_created"] += 1
+
+    def _refresh_edges(self, now: float) -> None:
+        """Copy the recently seen edges' estimates in and tie duplicated edges together."""
+        assert self.emap is not None
+        for e in self.emap.active():
+            if now - e.last_seen_time < 5.0:
+                e.normal, e.d = self.backend.plane(e.id)
+        for keep, drop in self.emap.duplicates():
+            self.backend.link_planes(keep.id, drop.id)
+            drop.merged_into = keep.id
+            keep.n_obs += drop.n_obs
+            keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
+            self.stats["edges_merged"] += 1
 
     def _world_summaries_one(self, segs: ScanSegments, j: int) -> tuple[FloatArray, FloatArray]:
         v = self._place(segs.virtual_body[j], segs.virtual_times[j])
@@ -548,6 +690,7 @@ class SlamRunner:
             )
             if host is not None:
                 self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
+                self._host[pl.id] = host
                 self.stats["planes_parallel"] += 1
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
@@ -669,6 +812,8 @@ class SlamRunner:
                 n, d = self.backend.plane(pl.id)
                 self.pmap.set_estimate(pl.id, n, d)
         self._merge_planes(now)
+        if self.emap is not None:
+            self._refresh_edges(now)
 
     def _merge_planes(self, now: float) -> None:
         fe = self.cfg.frontend
@@ -707,12 +852,15 @@ class SlamRunner:
         self._timer.add("batch", t)
         poses = self.backend.poses()
         ids, normals, offsets = self.backend.planes()
+        real = ids < EDGE_ID_BASE  # edge planes are observations' helpers, not surfaces
+        ids, normals, offsets = ids[real], normals[real], offsets[real]
         for pid, n, d in zip(ids, normals, offsets, strict=True):
             self.pmap.set_estimate(int(pid), n, float(d))
         rows = self._segment_rows()
         stats: dict[str, Any] = dict(self.stats)
         stats["knots"] = self._n_knots
         stats["planes"] = len(ids)
+        stats["edges"] = 0 if self.emap is None else len(self.emap.active())
         stats["pool_dropped"] = self.pool.dropped
         if summary is not None:
             stats["batch"] = {

@@ -306,11 +306,62 @@ def test_parallel_tie_keeps_planes_parallel_and_survives_merges(clean_scene: Sce
     assert np.degrees(np.arccos(min(1.0, float(n1 @ n2)))) < 0.05
     # merging the host away moves the tie onto the surviving plane; removing drops it
     be.merge_planes(b, a)
-    assert all(a not in (p, q) for p, q, _, _ in be._parallels)
+    assert all(a not in (p, q) for p, q, *_ in be._parallels)
     be.batch_optimize()
     be.remove_plane(99)
     assert not be._parallels
     be.batch_optimize()
+
+
+def test_perpendicular_tie_holds_an_edge_plane_across_its_wall(clean_scene: Scene) -> None:
+    be = _build(clean_scene, BackendConfig(), seed=7)
+    ids = be.plane_ids()
+    wall, other = ids[0], ids[1]
+    n_w, _ = be.plane(wall)
+    # an edge plane across the wall, started 4 deg off perpendicular, held by the tie alone
+    across = np.cross([0.0, 0.0, 1.0], n_w)
+    start = se3_exp(np.array([0.0, 0.0, 4.0 * DEG, 0.0, 0.0, 0.0]))[:3, :3] @ across
+    be.add_plane(77, start, -1.0, vertical=True)
+    be.add_perpendicular(wall, 77, 0.01 * DEG)
+    with pytest.raises(ValueError, match="itself"):
+        be.add_perpendicular(wall, wall, 0.01 * DEG)
+    be.batch_optimize()
+    n1, _ = be.plane(wall)
+    n2, _ = be.plane(77)
+    assert abs(float(n1 @ n2)) < np.sin(0.02 * DEG)
+    be.merge_planes(other, wall)  # the tie moves onto the surviving plane, still perpendicular
+    assert [(p, q, perp) for p, q, _, _, perp in be._parallels if q == 77] == [(other, 77, True)]
+    be.remove_plane(77)
+    assert all(77 not in (p, q) for p, q, *_ in be._parallels)
+
+
+def test_perpendicular_error_jacobians_match_numerical_differentiation() -> None:
+    import gtsam
+
+    from slam.backend import _perpendicular_error
+
+    rng = np.random.default_rng(3)
+    a = gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), 1.2)
+    b = gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), -0.4)
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
+    factor = gtsam.CustomFactor(noise, [1, 2], _perpendicular_error)
+    values = gtsam.Values()
+    values.insert(1, a)
+    values.insert(2, b)
+    H = [np.zeros((1, 3)), np.zeros((1, 3))]
+    _perpendicular_error(factor, values, H)
+    for k in (0, 1):
+        num = np.zeros((1, 3))
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = 1e-6
+            hi, lo = gtsam.Values(), gtsam.Values()
+            for v, sign in ((hi, 1.0), (lo, -1.0)):
+                v.insert(1, a.retract(sign * d) if k == 0 else a)
+                v.insert(2, b.retract(sign * d) if k == 1 else b)
+            num[:, i] = (_perpendicular_error(factor, hi, None) - _perpendicular_error(factor, lo, None)) / 2e-6
+        np.testing.assert_allclose(H[k], num, atol=1e-7)
+    assert np.abs(H[0]).max() > 0.1  # not trivially zero
 
 
 def gtsam_key_x(k: int) -> int:

@@ -1,0 +1,252 @@
+"""Door and board edges: where a scanline steps from a wall onto a door set into it (or a board on
+it), the break between the two segments lies on the door's edge.
+
+Along a corridor whose end walls are out of range every plane in view is parallel to the walking
+direction, so the line-to-plane model leaves that direction to the IMU. The vertical edges of
+doors and boards observe it. Each edge is modelled as a plane: vertical, perpendicular to the
+host wall, through the edge (an *edge plane*, in the back end an ``OrientedPlane3`` tied
+perpendicular to its wall). A break point observes it with the point-to-plane residual, which is
+the break's offset along the wall from the edge.
+
+A break point is the midpoint of the last point of one segment and the first point of the next
+(beam order; one short segment between them, a door's sloped frame, may be skipped) when one is
+associated with a wall and the other, associated or not, runs parallel to that wall a step of
+``min_step``-``max_step`` in front of or behind it (the step is measured between the two
+segments, so a pose error does not change it), the two ends are close (``max_gap``) and the beam
+meets the wall steeply (``min_incidence_deg``): at grazing incidence the 1-2 cm step shadows part
+of the recess and the break moves by centimetres. Its sigma along the wall is the gap's uniform
+spread (``gap / sqrt(12)``) plus ``sigma``. The door's own plane is not needed, so a door yields
+edges from the first time it is passed.
+
+Edges are keyed by (wall, step sign, side): the step sign tells a recessed door from a board
+standing proud, ``side`` on which side of the edge (along the wall direction ``n_e``) the step
+lies, so a door has one edge per side. A new edge is made from pending breaks of one key whose
+offsets along the wall agree within ``cluster_width`` and that span ``min_height_span`` in height
+or all come from nearly horizontal scanlines: vertical edges. Breaks on a door's top edge or a
+board's bottom edge lie at one height; they spread along the wall, but a scanline nearly parallel
+to such an edge can put a few of them close together.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+EDGE_ID_BASE = 1_000_000  # back-end plane ids of edge planes start here; map planes stay below
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class EdgeParams:
+    """Break detection, clustering and association of door/board edges (metres, degrees, seconds)."""
+
+    max_gap: float = 0.08
+    min_incidence_deg: float = 40.0
+    sigma: float = 0.003
+    cluster_width: float = 0.02
+    min_points: int = 6
+    min_scans: int = 4
+    gate: float = 0.04
+    window: float = 3.0
+    merge_distance: float = 0.25
+    min_step: float = 0.004
+    max_step: float = 0.04
+    step_tolerance: float = 0.005
+    max_skipped_points: int = 15
+    min_height_span: float = 0.15
+    flat_slope: float = 0.3
+
+
+@dataclass
+class Break:
+    """One break point: ``point_body`` (3,) in the body frame at ``time``, its offset ``u`` along the
+    wall (world, ``n_e . x``), sigma along the wall, the (raw) wall id, the step's sign (+1: in
+    front of the wall along its normal) and side (+1: the step lies along ``+n_e``). ``flat``: the
+    scanline runs nearly horizontally across the wall there, so it can only cross a vertical edge."""
+
+    host: int
+    step: int
+    side: int
+    u: float
+    point_body: FloatArray
+    point_world: FloatArray
+    time: float
+    sigma: float
+    serial: int
+    flat: bool = False
+
+
+@dataclass
+class Edge:
+    """An edge plane: ``normal . x + d = 0`` (world), ``normal`` along the wall (``n_e``)."""
+
+    id: int
+    host: int
+    step: int
+    side: int
+    normal: FloatArray
+    d: float
+    n_obs: int = 0
+    last_seen_time: float = 0.0
+    merged_into: int | None = None
+
+    @property
+    def u(self) -> float:
+        return -self.d
+
+
+def along_wall(normal_wall: FloatArray) -> FloatArray:
+    """The horizontal unit direction in a (vertical) wall: ``up x n_wall`` normalised (world)."""
+    e = np.cross(_UP, normal_wall)
+    return e / max(float(np.linalg.norm(e)), 1e-12)
+
+
+def break_pairs(
+    first_beam: NDArray[np.int64], n_points: NDArray[np.int64], plane_ids: NDArray[np.int64],
+    is_wall: Callable[[int], bool], max_skipped_points: int,
+) -> list[tuple[int, int]]:
+    """Neighbouring segments of one scan in beam order, ``(j_wall, j_other)``, where ``j_wall`` is
+    associated with a wall and ``j_other`` is not on that wall; one segment of at most
+    ``max_skipped_points`` points between them may be skipped. Geometry is checked by the caller."""
+    order = [int(j) for j in np.argsort(first_beam, kind="stable")]
+    out = []
+    for i, a in enumerate(order):
+        for b in order[i + 1 : i + 3]:
+            if b != order[i + 1] and n_points[order[i + 1]] > max_skipped_points:
+                break
+            pa, pb = int(plane_ids[a]), int(plane_ids[b])
+            if pa == pb and pa >= 0:
+                continue
+            if pa >= 0 and is_wall(pa):
+                out.append((a, b))
+            if pb >= 0 and is_wall(pb):
+                out.append((b, a))
+    return out
+
+
+def step_of(normal_wall: FloatArray, wall_world: FloatArray, other_world: FloatArray) -> tuple[float, float]:
+    """Step (m) of the other segment's two virtual points (2, 3) from the wall segment's (2, 3),
+    along the wall normal (world): the difference cancels a pose offset common to both."""
+    base = float(np.mean(wall_world @ normal_wall))
+    s = other_world @ normal_wall - base
+    return float(s[0]), float(s[1])
+
+
+def break_sigma(gap: float, sigma: float) -> float:
+    """Along-wall sigma of a break midpoint between two boundary points ``gap`` apart (m)."""
+    return float(np.sqrt(sigma**2 + gap**2 / 12.0))
+
+
+def is_flat(direction_world: FloatArray, normal_wall: FloatArray, slope: float) -> bool:
+    """Whether a scanline direction runs across the wall with a vertical slope below ``slope``."""
+    along = abs(float(direction_world @ along_wall(normal_wall)))
+    return abs(float(direction_world[2])) < slope * along
+
+
+def steep_enough(origin_world: FloatArray, point_world: FloatArray, normal_wall: FloatArray, min_deg: float) -> bool:
+    """Whether the beam from ``origin_world`` to ``point_world`` meets the wall at least ``min_deg``
+    from grazing."""
+    r = point_world - origin_world
+    s = abs(float(r @ normal_wall)) / max(float(np.linalg.norm(r)), 1e-12)
+    return s >= np.sin(np.radians(min_deg))
+
+
+@dataclass
+class EdgeMap:
+    """Edges, pending breaks and their association; plane ids are resolved through ``resolve``
+    (merged map planes) before comparing keys."""
+
+    params: EdgeParams
+    resolve: Callable[[int], int]
+    edges: dict[int, Edge] = field(default_factory=dict)
+    pending: list[Break] = field(default_factory=list)
+    _next: int = EDGE_ID_BASE
+
+    def key(self, host: int, step: int, side: int) -> tuple[int, int, int]:
+        return self.resolve(host), step, side
+
+    def active(self) -> list[Edge]:
+        return [e for e in self.edges.values() if e.merged_into is None]
+
+    def root(self, edge_id: int) -> int:
+        while self.edges[edge_id].merged_into is not None:
+            nxt = self.edges[edge_id].merged_into
+            assert nxt is not None
+            edge_id = nxt
+        return edge_id
+
+    def match(self, b: Break) -> Edge | None:
+        """The active edge of ``b``'s key nearest along the wall, within ``gate``."""
+        key = self.key(b.host, b.step, b.side)
+        best: tuple[float, Edge] | None = None
+        for e in self.active():
+            if self.key(e.host, e.step, e.side) != key:
+                continue
+            dist = abs(float(e.normal @ b.point_world) + e.d)
+            if dist <= self.params.gate and (best is None or dist < best[0]):
+                best = (dist, e)
+        return None if best is None else best[1]
+
+    def expire(self, now: float) -> None:
+        self.pending = [b for b in self.pending if now - b.time <= self.params.window]
+
+    def cluster(self) -> list[tuple[list[Break], float]]:
+        """New edges from the pending breaks: groups of one key within ``cluster_width`` along the
+        wall with ``min_points`` breaks from ``min_scans`` scans; returns (members, median u) and
+        removes the members from the pending list."""
+        p = self.params
+        groups: dict[tuple[int, int, int], list[Break]] = {}
+        for b in self.pending:
+            groups.setdefault(self.key(b.host, b.step, b.side), []).append(b)
+        found: list[tuple[list[Break], float]] = []
+        taken: set[int] = set()
+        for members in groups.values():
+            if len(members) < p.min_points:
+                continue
+            u = np.array([b.u for b in members])
+            order = np.argsort(u)
+            us = u[order]
+            hi = np.searchsorted(us, us + p.cluster_width, side="right")
+            counts = hi - np.arange(us.size)
+            i = int(np.argmax(counts))
+            if counts[i] < p.min_points:
+                continue
+            group = [members[int(k)] for k in order[i : hi[i]]]
+            if len({b.serial for b in group}) < p.min_scans:
+                continue
+            z = [float(b.point_world[2]) for b in group]
+            if max(z) - min(z) < p.min_height_span and not all(b.flat for b in group):
+                continue
+            found.append((group, float(np.median([b.u for b in group]))))
+            taken.update(id(b) for b in group)
+        if taken:
+            self.pending = [b for b in self.pending if id(b) not in taken]
+        return found
+
+    def add(self, host: int, step: int, side: int, normal: FloatArray, u: float, time: float) -> Edge:
+        e = Edge(self._next, host, step, side, normal.copy(), -u, last_seen_time=time)
+        self.edges[e.id] = e
+        self._next += 1
+        return e
+
+    def duplicates(self) -> list[tuple[Edge, Edge]]:
+        """Pairs (keep, drop) of active edges with the same resolved key within ``merge_distance``
+        along the wall (the same edge created twice, e.g. before its walls merged, or again after a loop)."""
+        by_key: dict[tuple[int, int, int], list[Edge]] = {}
+        for e in self.active():
+            by_key.setdefault(self.key(e.host, e.step, e.side), []).append(e)
+        out = []
+        for group in by_key.values():
+            if len(group) < 2:
+                continue
+            group.sort(key=lambda e: (-e.n_obs, e.id))
+            keep = group[0]
+            for other in group[1:]:
+                if abs(other.u - keep.u) <= self.params.merge_distance and float(other.normal @ keep.normal) > 0.99:
+                    out.append((keep, other))
+        return out

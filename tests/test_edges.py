@@ -1,0 +1,119 @@
+"""Door/board edges (slam.frontend.edges): break pairs, incidence, clustering, association, merges."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam.frontend.edges import (
+    EDGE_ID_BASE,
+    Break,
+    EdgeMap,
+    EdgeParams,
+    along_wall,
+    break_pairs,
+    break_sigma,
+    steep_enough,
+    step_of,
+)
+
+WALL_N = np.array([0.0, 1.0, 0.0])  # a wall y = 0 facing +y; along it: x
+
+
+def _break(u: float, serial: int, z: float = 1.5, host: int = 1, step: int = -1, side: int = 1) -> Break:
+    p = np.array([u * along_wall(WALL_N)[0], 0.0, z])
+    return Break(host, step, side, float(along_wall(WALL_N) @ p), p, p, float(serial) * 0.025, 0.004, serial)
+
+
+def test_along_wall_is_horizontal_and_in_the_wall() -> None:
+    for n in (WALL_N, np.array([0.6, -0.8, 0.0]), np.array([0.6, -0.79, 0.01])):
+        e = along_wall(n)
+        assert abs(float(np.linalg.norm(e)) - 1.0) < 1e-12
+        assert abs(e[2]) < 1e-12 and abs(float(e @ n)) < 1e-12
+
+
+def test_break_pairs_join_a_wall_and_its_neighbours() -> None:
+    # beam order: wall 1 (60 pts), door plane 2 (40), short slope segment (8), wall 1 (50),
+    # unassociated (30), wall 7 (20)
+    first = np.array([0, 60, 100, 108, 158, 188])
+    n_pts = np.array([60, 40, 8, 50, 30, 20])
+    ids = np.array([1, 2, -1, 1, -1, 7])
+    walls = {1, 7}
+    pairs = break_pairs(first, n_pts, ids, walls.__contains__, max_skipped_points=15)
+    assert set(pairs) == {(0, 1), (3, 2), (3, 1), (3, 4), (5, 4)}
+    # the same segments listed out of beam order give the same pairs
+    perm = np.array([3, 0, 5, 1, 4, 2])
+    got = break_pairs(first[perm], n_pts[perm], ids[perm], walls.__contains__, max_skipped_points=15)
+    assert {(int(perm[a]), int(perm[b])) for a, b in got} == set(pairs)
+    # a long segment in between is not skipped
+    assert (3, 1) not in break_pairs(first, np.array([60, 40, 30, 50, 30, 20]), ids, walls.__contains__, 15)
+    assert break_pairs(first, n_pts, ids, lambda pid: False, 15) == []
+
+
+def test_step_cancels_a_common_offset() -> None:
+    wall = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.2]])
+    door = np.array([[1.2, -0.015, 1.0], [2.0, -0.015, 1.1]])
+    s1, s2 = step_of(WALL_N, wall, door)
+    assert abs(s1 + 0.015) < 1e-12 and abs(s2 + 0.015) < 1e-12
+    shift = np.array([0.0, 0.02, 0.0])  # the pose 2 cm off across the wall
+    assert np.allclose(step_of(WALL_N, wall + shift, door + shift), (s1, s2))
+
+
+def test_break_sigma_and_incidence() -> None:
+    assert abs(break_sigma(0.0, 0.003) - 0.003) < 1e-12
+    assert abs(break_sigma(0.12, 0.0) - 0.12 / np.sqrt(12.0)) < 1e-12
+    origin = np.array([0.0, 1.0, 1.5])
+    assert steep_enough(origin, np.array([0.5, 0.0, 1.5]), WALL_N, 40.0)  # 63 deg from grazing
+    assert not steep_enough(origin, np.array([3.0, 0.0, 1.5]), WALL_N, 40.0)  # 18 deg
+
+
+def test_vertical_edge_clusters_and_top_edge_does_not() -> None:
+    em = EdgeMap(EdgeParams(min_points=6, min_scans=4, cluster_width=0.02), resolve=lambda i: i)
+    rng = np.random.default_rng(0)
+    # a jamb at u = 2.0: breaks of 8 scans within +-5 mm, at several heights
+    for s in range(8):
+        em.pending.append(_break(2.0 + rng.uniform(-0.005, 0.005), s, z=0.5 + 0.2 * s))
+    # the door's top edge: breaks spread along the wall at one height
+    for s in range(8):
+        em.pending.append(_break(3.0 + 0.1 * s, 20 + s, z=2.05, side=-1))
+    found = em.cluster()
+    assert len(found) == 1
+    members, u = found[0]
+    assert len(members) == 8 and abs(u - 2.0) < 0.005
+    assert len(em.pending) == 8  # the top-edge breaks are left to expire
+    em.expire(now=20 * 0.025 + 10.0)
+    assert em.pending == []
+
+
+def test_too_few_scans_make_no_edge() -> None:
+    em = EdgeMap(EdgeParams(min_points=6, min_scans=4), resolve=lambda i: i)
+    for k in range(9):
+        em.pending.append(_break(2.0, serial=k % 3))  # 9 breaks but 3 scans
+    assert em.cluster() == []
+
+
+def test_match_respects_key_side_and_gate() -> None:
+    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: {5: 1}.get(i, i))
+    e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
+    assert e.id == EDGE_ID_BASE
+    assert em.match(_break(2.01, 0)) is e
+    assert em.match(_break(2.01, 0, host=5)) is e  # wall 5 was merged into wall 1
+    assert em.match(_break(2.05, 0)) is None  # outside the gate
+    assert em.match(_break(2.0, 0, side=-1)) is None  # the door's other edge
+    assert em.match(_break(2.0, 0, step=1)) is None  # a board's edge, not a door's
+    assert em.match(_break(2.0, 0, host=3)) is None  # another wall
+
+
+def test_duplicates_pair_the_same_edge_made_twice() -> None:
+    merged: dict[int, int] = {}
+    em = EdgeMap(EdgeParams(merge_distance=0.25), resolve=lambda i: merged.get(i, i))
+    a = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
+    a.n_obs = 40
+    b = em.add(3, -1, 1, along_wall(WALL_N), u=2.12, time=5.0)  # the same wall, a second plane
+    b.n_obs = 6
+    em.add(3, -1, -1, along_wall(WALL_N), u=1.1, time=5.0)  # the door's other side: never paired
+    em.add(3, -1, 1, along_wall(WALL_N), u=4.0, time=5.0)  # another door on that wall
+    assert em.duplicates() == []  # walls 1 and 3 not merged yet
+    merged[3] = 1
+    assert em.duplicates() == [(a, b)]
+    b.merged_into = a.id
+    assert em.root(b.id) == a.id and em.duplicates() == []
