@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
-from slam.frontend.tracking import refine_window
+from slam.frontend.planemap import PlaneMap
+from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
+from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -80,3 +82,100 @@ def test_tracking_leaves_an_unobserved_direction_to_the_prediction() -> None:
     frozen = refine_window(T, *args, increment_sigmas=inc, degenerate_ratio=float(np.sin(np.radians(3.0)) ** 2))
     assert np.abs(free[:, 0, 3] - T[:, 0, 3]).max() > 0.005  # the tilt drags the window along x
     assert np.abs(frozen[:, 0, 3] - T[:, 0, 3]).max() < 1e-3
+
+
+def _refine_window_loops(T_knots: np.ndarray, knot_index: np.ndarray, alphas: np.ndarray, points_body: np.ndarray,
+                         normals: np.ndarray, offsets: np.ndarray, sigmas: np.ndarray, first_prior_sigmas: np.ndarray,
+                         cv_sigmas: np.ndarray, iterations: int = 3, huber_k: float = 2.0,
+                         increment_sigmas: np.ndarray | None = None,
+                         degenerate_ratio: float | None = None, freeze_sigma: float = 1e-4) -> np.ndarray:
+    """refine_window as it was written before its normal equations were vectorised: one
+    logarithm per knot and a Python loop per motion-prior block (the reference of the test below)."""
+    W = T_knots.shape[0]
+    T = T_knots.copy()
+    T_first = T[0].copy()
+    w_first = 1.0 / first_prior_sigmas**2
+    w_cv = 1.0 / cv_sigmas**2
+    T_given = T.copy()
+    w_stay = 1.0 / np.array([np.radians(1.0)] * 3 + [0.03] * 3) ** 2
+    n = 6 * W
+    for _ in range(iterations):
+        Tk = interpolate_poses(T[knot_index], T[knot_index + 1], alphas)
+        R = Tk[:, :3, :3]
+        pw = np.einsum("mij,mj->mi", R, points_body) + Tk[:, :3, 3]
+        r = (np.einsum("mi,mi->m", normals, pw) + offsets) / sigmas
+        Rtn = np.einsum("mji,mj->mi", R, normals)
+        g = np.concatenate((np.cross(points_body, Rtn), Rtn), axis=1) / sigmas[:, None]
+        a = np.abs(r)
+        w = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
+        J = np.zeros((r.shape[0], n))
+        rows = np.arange(r.shape[0])[:, None]
+        cols = 6 * knot_index[:, None] + np.arange(6)[None, :]
+        J[rows, cols] = g * (1.0 - alphas)[:, None]
+        J[rows, cols + 6] = g * alphas[:, None]
+        A = (J * w[:, None]).T @ J
+        b = (J * w[:, None]).T @ r
+        for k in range(1, W):
+            A[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += np.diag(w_stay)
+            b[6 * k : 6 * k + 6] += w_stay * se3_log(se3_inverse(T_given[k]) @ T[k])
+        if degenerate_ratio is not None:  # unchanged: shared
+            freeze_unobserved(A, b, T, T_given, normals, w / sigmas**2, degenerate_ratio, freeze_sigma)
+        e0 = se3_log(se3_inverse(T_first) @ T[0])
+        A[:6, :6] += np.diag(w_first)
+        b[:6] += w_first * e0
+        terms = []
+        if increment_sigmas is not None:
+            w_inc = 1.0 / increment_sigmas**2
+            for k in range(1, W):
+                e = se3_log(se3_inverse(se3_inverse(T_given[k - 1]) @ T_given[k]) @ (se3_inverse(T[k - 1]) @ T[k]))
+                terms.append((e, (k - 1, k), (-1.0, 1.0), w_inc))
+        else:
+            for k in range(1, W - 1):
+                e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
+                terms.append((e, (k - 1, k, k + 1), (1.0, -2.0, 1.0), w_cv))
+        for e, idx, coefs, wt in terms:
+            for i, ci in zip(idx, coefs, strict=True):
+                b[6 * i : 6 * i + 6] += ci * wt * e
+                for j, cj in zip(idx, coefs, strict=True):
+                    A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(wt)
+        delta = -np.linalg.solve(A + 1e-9 * np.eye(n), b)
+        T = T @ se3_exp(delta.reshape(W, 6))
+        if np.abs(delta).max() < 1e-7:
+            break
+    return np.array([orthonormalize(t) for t in T])
+
+
+def test_refine_window_matches_the_per_knot_loops_to_the_last_bit() -> None:
+    """The batched logarithms and block updates of refine_window add the same terms in the same
+    order as the per-knot loops they replaced: identical windows, with either motion prior."""
+    rng = np.random.default_rng(7)
+    W, m = 7, 300
+    T = np.repeat(np.eye(4)[None], W, axis=0)
+    for k in range(W):
+        T[k] = se3_exp(np.concatenate((rng.normal(0.0, 0.02, 3), [0.06 * k, 0.01 * k, 0.0])))
+    normals = rng.normal(size=(m, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    kis = rng.integers(0, W - 1, m)
+    al = rng.uniform(0.0, 1.0, m)
+    pts = rng.uniform(-3.0, 3.0, (m, 3))
+    # offsets that put the points 0-2 cm off their planes, a few of them 10 cm (Huber)
+    Tk = interpolate_poses(T[kis], T[kis + 1], al)
+    pw = np.einsum("mij,mj->mi", Tk[:, :3, :3], pts) + Tk[:, :3, 3]
+    off = -np.einsum("mi,mi->m", normals, pw) + rng.normal(0.0, 0.01, m)
+    off[:10] += 0.1
+    args = (kis, al, pts, normals, off, np.full(m, 0.004), np.array([np.radians(0.2)] * 3 + [0.01] * 3),
+            np.array([0.006] * 3 + [0.002] * 3))
+    inc = np.array([np.radians(0.05)] * 3 + [0.001] * 3)
+    for kw in ({}, {"increment_sigmas": inc}, {"increment_sigmas": inc, "degenerate_ratio": 0.5}):
+        np.testing.assert_array_equal(refine_window(T, *args, **kw), _refine_window_loops(T, *args, **kw))  # type: ignore[arg-type]
+
+
+def test_extending_a_plane_adds_each_cell_once() -> None:
+    pmap = PlaneMap(cell_size=0.25)
+    pid = pmap.add(np.array([0.0, 1.0, 0.0]), -2.0, 1, 0.0, 0.0).id
+    pts = np.random.default_rng(3).uniform(-1.0, 1.0, (200, 3))
+    pmap.extend(pid, pts)
+    expected = {tuple(c) for c in np.unique(pmap.cells_of(pid, pts), axis=0).tolist()}
+    assert pmap.planes[pid].cells == expected
+    assert all(type(v) is int for c in pmap.planes[pid].cells for v in c)
+    assert pmap.overlaps(pid, pts[:1], 0) and not pmap.overlaps(pid, pts[:1] + 10.0, 2)

@@ -104,9 +104,10 @@ class PlaneMap:
         return np.floor(uv / self.cell_size).astype(np.int64)
 
     def extend(self, pid: int, points_world: FloatArray) -> None:
-        """Add the cells of ``points_world`` to the plane's extent."""
+        """Add the cells of ``points_world`` (m, 3), world frame, to the plane's extent."""
         cells = self.cells_of(pid, points_world)
-        self.planes[pid].cells.update(map(tuple, np.unique(cells, axis=0).tolist()))
+        # the set takes the duplicates (np.unique over rows costs ten times more)
+        self.planes[pid].cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
 
     def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
         """Whether any of the points' cells is within ``dilate`` cells of the plane's extent."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
+from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log, so3_exp, so3_log
 
 FloatArray = NDArray[np.float64]
 
@@ -77,6 +77,21 @@ def refine_knot(
     return orthonormalize(T)
 
 
+def _interpolate_window(
+    T: FloatArray, knot_index: NDArray[np.int64], alphas: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Rotations (m, 3, 3) and positions (m, 3) (world frame) of the body at fractions ``alphas``
+    (m,) of the knot intervals ``knot_index`` (m,) of the window ``T`` (W, 4, 4).
+
+    The same arithmetic as ``interpolate_poses(T[knot_index], T[knot_index + 1], alphas)``, with
+    one rotation logarithm per knot interval instead of one per point.
+    """
+    phi = so3_log(np.swapaxes(T[:-1, :3, :3], -1, -2) @ T[1:, :3, :3])
+    R = T[knot_index, :3, :3] @ so3_exp(alphas[:, None] * phi[knot_index])
+    p0 = T[knot_index, :3, 3]
+    return R, p0 + alphas[:, None] * (T[knot_index + 1, :3, 3] - p0)
+
+
 def refine_window(
     T_knots: FloatArray,
     knot_index: NDArray[np.int64],
@@ -118,61 +133,56 @@ def refine_window(
     """
     W = T_knots.shape[0]
     T = T_knots.copy()
-    T_first = T[0].copy()
     w_first = 1.0 / first_prior_sigmas**2
     w_cv = 1.0 / cv_sigmas**2
     T_given = T.copy()
     w_stay = 1.0 / (stay_sigmas if stay_sigmas is not None else np.array([np.radians(1.0)] * 3 + [0.03] * 3)) ** 2
     n = 6 * W
+    m = points_body.shape[0]
+    # fixed over the iterations: the Jacobian's sparsity, the given poses' inverses, the priors
+    rows = np.arange(m)[:, None]
+    cols = 6 * knot_index[:, None] + np.arange(6)[None, :]
+    split_a, split_b = (1.0 - alphas)[:, None], alphas[:, None]
+    T_given_inv = se3_inverse(T_given)
+    given_increment_inv = se3_inverse(T_given_inv[:-1] @ T_given[1:])
+    later = np.arange(1, W)
     for _ in range(iterations):
-        Tk = interpolate_poses(T[knot_index], T[knot_index + 1], alphas)
-        R = Tk[:, :3, :3]
-        pw = np.einsum("mij,mj->mi", R, points_body) + Tk[:, :3, 3]
+        R, t = _interpolate_window(T, knot_index, alphas)
+        pw = np.einsum("mij,mj->mi", R, points_body) + t
         r = (np.einsum("mi,mi->m", normals, pw) + offsets) / sigmas
         Rtn = np.einsum("mji,mj->mi", R, normals)
         g = np.concatenate((np.cross(points_body, Rtn), Rtn), axis=1) / sigmas[:, None]
         a = np.abs(r)
         w = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
-        J = np.zeros((r.shape[0], n))
-        rows = np.arange(r.shape[0])[:, None]
-        cols = 6 * knot_index[:, None] + np.arange(6)[None, :]
-        J[rows, cols] = g * (1.0 - alphas)[:, None]
-        J[rows, cols + 6] = g * alphas[:, None]
-        A = (J * w[:, None]).T @ J
-        b = (J * w[:, None]).T @ r
-        for k in range(1, W):
-            A[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += np.diag(w_stay)
-            b[6 * k : 6 * k + 6] += w_stay * se3_log(se3_inverse(T_given[k]) @ T[k])
-        if degenerate_ratio is not None:
-            M = (normals * (w / sigmas**2)[:, None]).T @ normals
-            lam, vec = np.linalg.eigh(M)
-            for ev in np.flatnonzero(lam < degenerate_ratio * max(float(lam[-1]), 1e-300)):
-                dw = vec[:, ev]
-                for k in range(W):
-                    db = T[k, :3, :3].T @ dw  # the direction in knot k's body frame
-                    sl = slice(6 * k + 3, 6 * k + 6)
-                    A[sl, sl] += np.outer(db, db) / freeze_sigma**2
-                    b[sl] += db * float(dw @ (T[k, :3, 3] - T_given[k, :3, 3])) / freeze_sigma**2
-        e0 = se3_log(se3_inverse(T_first) @ T[0])
-        A[:6, :6] += np.diag(w_first)
-        b[:6] += w_first * e0
-        # motion prior: (residual, knots, coefficients of their perturbations, weights) per term
-        terms: list[tuple[FloatArray, tuple[int, ...], tuple[float, ...], FloatArray]] = []
+        J = np.zeros((m, n))
+        J[rows, cols] = g * split_a
+        J[rows, cols + 6] = g * split_b
+        Jw = J * w[:, None]
+        A = Jw.T @ J
+        b = Jw.T @ r
+        # 6x6 block views: A4[i, :, j, :] is the block of knots (i, j), b6[i] knot i's gradient
+        A4 = A.reshape(W, 6, W, 6)
+        b6 = b.reshape(W, 6)
+        # one batched logarithm: every knot against its given pose (the first one against its
+        # prior), then with an IMU every interval against the given one
+        rel = T_given_inv @ T
         if increment_sigmas is not None:
-            w_inc = 1.0 / increment_sigmas**2
-            for k in range(1, W):
-                e = se3_log(se3_inverse(se3_inverse(T_given[k - 1]) @ T_given[k]) @ (se3_inverse(T[k - 1]) @ T[k]))
-                # d e / d delta_k ~ I, d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
-                terms.append((e, (k - 1, k), (-1.0, 1.0), w_inc))
-        else:
-            for k in range(1, W - 1):
-                e = se3_log(se3_inverse(T[k]) @ T[k + 1]) - se3_log(se3_inverse(T[k - 1]) @ T[k])
-                terms.append((e, (k - 1, k, k + 1), (1.0, -2.0, 1.0), w_cv))
-        for e, idx, coefs, wt in terms:
-            for i, ci in zip(idx, coefs, strict=True):
-                b[6 * i : 6 * i + 6] += ci * wt * e
-                for j, cj in zip(idx, coefs, strict=True):
-                    A[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += ci * cj * np.diag(wt)
+            rel = np.concatenate((rel, given_increment_inv @ (se3_inverse(T[:-1]) @ T[1:])))
+        logs = se3_log(rel)
+        A4[later, :, later, :] += np.diag(w_stay)
+        b6[1:] += w_stay * logs[1:W]
+        if degenerate_ratio is not None:
+            freeze_unobserved(A, b, T, T_given, normals, w / sigmas**2, degenerate_ratio, freeze_sigma)
+        A[:6, :6] += np.diag(w_first)
+        b[:6] += w_first * logs[0]
+        if increment_sigmas is not None:
+            # each interval's relative pose held to the given one: d e / d delta_k ~ I,
+            # d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
+            _motion_prior(A4, b6, logs[W:], (-1.0, 1.0), 1.0 / increment_sigmas**2)
+        elif W > 2:
+            # constant velocity: the change of the body twist between consecutive intervals
+            twist = se3_log(se3_inverse(T[:-1]) @ T[1:])
+            _motion_prior(A4, b6, twist[1:] - twist[:-1], (1.0, -2.0, 1.0), w_cv)
         try:
             delta = -np.linalg.solve(A + 1e-9 * np.eye(n), b)
         except np.linalg.LinAlgError:
@@ -181,3 +191,43 @@ def refine_window(
         if np.abs(delta).max() < 1e-7:
             break
     return np.array([orthonormalize(t) for t in T])
+
+
+def freeze_unobserved(A: FloatArray, b: FloatArray, T: FloatArray, T_given: FloatArray, normals: FloatArray,
+                      info: FloatArray, ratio: float, freeze_sigma: float) -> None:
+    """Hold the window's translation at the given poses along the world directions the planes
+    hardly observe, in place in the normal equations ``A`` (6W, 6W), ``b`` (6W,).
+
+    ``T``, ``T_given`` (W, 4, 4) are the current and the given knots (world frame), ``normals``
+    (m, 3) the points' plane normals (world frame) with their weights ``info`` (m,), 1/m^2. The
+    directions are the eigenvectors of ``sum info n n^T`` whose eigenvalue is below ``ratio``
+    of the largest; each knot gets a prior of ``freeze_sigma`` (m) along them.
+    """
+    M = (normals * info[:, None]).T @ normals
+    lam, vec = np.linalg.eigh(M)
+    for ev in np.flatnonzero(lam < ratio * max(float(lam[-1]), 1e-300)):
+        dw = vec[:, ev]
+        for k in range(T.shape[0]):
+            db = T[k, :3, :3].T @ dw  # the direction in knot k's body frame
+            sl = slice(6 * k + 3, 6 * k + 6)
+            A[sl, sl] += np.outer(db, db) / freeze_sigma**2
+            b[sl] += db * float(dw @ (T[k, :3, 3] - T_given[k, :3, 3])) / freeze_sigma**2
+
+
+def _motion_prior(A4: FloatArray, b6: FloatArray, e: FloatArray, coefs: tuple[float, ...], wt: FloatArray) -> None:
+    """Add the Gauss-Newton terms of the motion prior residuals ``e`` (q, 6) in place.
+
+    Residual ``l`` involves the knots ``l, l + 1, ...`` (one per coefficient) with the
+    perturbation coefficients ``coefs`` and the diagonal weight ``wt`` (6,). ``A4`` (W, 6, W, 6)
+    and ``b6`` (W, 6) are block views of the normal equations. Every element receives its terms
+    in the order of increasing ``l`` (that of a loop over the residuals), so the sums are the
+    same to the last bit.
+    """
+    q = e.shape[0]
+    first = np.arange(q)
+    D = np.diag(wt)
+    # residual l reaches knot l + i; for a fixed knot, larger i means an earlier residual
+    for i in reversed(range(len(coefs))):
+        b6[i : i + q] += (coefs[i] * wt) * e
+        for j in range(len(coefs)):
+            A4[first + i, :, first + j, :] += (coefs[i] * coefs[j]) * D
