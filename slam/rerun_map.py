@@ -194,7 +194,10 @@ def _log_scans(
     t0 = float(np.min(cloud.time))
     for s in np.unique(cloud.scanner):
         sel = np.flatnonzero(cloud.scanner == s)
-        sel = sel[np.argsort(cloud.time[sel], kind="stable")][::step]
+        t = cloud.time[sel]
+        if not np.all(t[1:] >= t[:-1]):  # a scanner's points usually come in time order already
+            sel = sel[np.argsort(t, kind="stable")]
+        sel = sel[::step]
         if sel.size == 0:
             continue
         frame_t, lengths = _frames(cloud.time[sel], t0, opt.frame_period)
@@ -229,7 +232,9 @@ def _log_segments(rec: rr.RecordingStream, seg: SegmentLines, t0: float, opt: Ma
         "world/segments",
         indexes=[rr.TimeColumn("sensor", timestamp=frame_t)],
         columns=rr.LineStrips3D.columns(
-            strips=list(np.asarray(seg.endpoints_world, dtype=np.float64)[order]),
+            # one (M, 2, 3) float32 array (what rerun stores): its numpy path, a hundred times
+            # faster than a list of strips
+            strips=np.asarray(seg.endpoints_world, dtype=np.float64).reshape(-1, 2, 3)[order].astype(np.float32),
             colors=plane_colors(np.asarray(seg.plane_id)[order]),
         ).partition(lengths),
     )

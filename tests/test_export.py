@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
@@ -120,6 +121,37 @@ def test_cloud_round_trip(tmp_path: Path) -> None:
     assert _leftovers(tmp_path) == []
 
 
+def test_cloud_file_is_what_open3d_writes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The numpy writer (in chunks) gives open3d's PLY: the same properties and the same bytes
+    after the header; empty clouds read back empty."""
+    import open3d as o3d
+
+    import slam.export
+
+    rng = np.random.default_rng(4)
+    n = 1003
+    pts = rng.uniform(-50, 50, (n, 3))
+    scanner = rng.integers(0, 3, n).astype(np.int32)
+    time = 1.7e9 + np.sort(rng.uniform(0, 600, n))
+    plane = rng.integers(-1, 40, n).astype(np.int32)
+    monkeypatch.setattr(slam.export, "_PLY_CHUNK", 100)
+    write_cloud_ply(tmp_path / "ours.ply", pts, scanner, time, plane)
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor.from_numpy(pts))
+    for name, col in (("scanner", scanner), ("time", time), ("plane_id", plane)):
+        pc.point[name] = o3d.core.Tensor.from_numpy(np.ascontiguousarray(col[:, None]))
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "open3d.ply"), pc, write_ascii=False)
+    ours, theirs = ((tmp_path / f).read_bytes() for f in ("ours.ply", "open3d.ply"))
+    end = b"end_header\n"
+    head_ours, body_ours = ours.split(end, 1)
+    head_theirs, body_theirs = theirs.split(end, 1)
+    assert body_ours == body_theirs
+    assert [ln for ln in head_ours.splitlines() if not ln.startswith(b"comment")] == [
+        ln for ln in head_theirs.splitlines() if not ln.startswith(b"comment")
+    ]
+    assert write_cloud_ply(tmp_path / "empty.ply", np.zeros((0, 3)), [], [], []) == 0
+    assert len(read_cloud_ply(tmp_path / "empty.ply")) == 0
+
+
 def test_cloud_voxel_keeps_real_points(tmp_path: Path) -> None:
     # Two tight clusters in two voxels with different attributes: each survivor must be one of
     # the input points with its own attributes (no averaging of ids).
@@ -207,13 +239,13 @@ def test_failed_write_leaves_nothing_and_keeps_old_file(tmp_path: Path) -> None:
 
 
 def test_failed_cloud_write_midway(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import open3d as o3d
+    import slam.export
 
-    def half_write(path: str, pc: object, **kwargs: object) -> bool:
-        Path(path).write_bytes(b"ply\n")  # the writer dies after starting the file
+    def half_write(f: BinaryIO, *args: object) -> None:
+        f.write(b"\0" * 10)  # the writer dies after the header and a few bytes of points
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(o3d.t.io, "write_point_cloud", half_write)
+    monkeypatch.setattr(slam.export, "_write_ply_rows", half_write)
     with pytest.raises(KeyboardInterrupt):
         write_cloud_ply(tmp_path / "cloud.ply", np.zeros((2, 3)), [0, 0], [0.0, 1.0], [1, 1])
     assert list(tmp_path.iterdir()) == []

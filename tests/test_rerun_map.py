@@ -10,11 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 
 from slam.export import CloudRecord, PlaneRecord, write_cloud_ply, write_trajectory_tum
 from slam.rerun_map import (
     MapOptions,
     SegmentLines,
+    _log_scans,
     fan_triangles,
     plane_colors,
     write_map_from_dir,
@@ -155,3 +157,41 @@ def test_view_command_without_display(
     with pytest.raises(ViewError, match=r"empty[/\\]map\.rrd"):
         (tmp_path / "empty").mkdir()
         _view(["view", str(tmp_path / "empty")])
+
+
+class _Columns:
+    """A stand-in recording that keeps what send_columns gets, as arrow arrays per entity."""
+
+    def __init__(self) -> None:
+        self.sent: dict[str, list[object]] = {}
+
+    def send_columns(self, entity: str, indexes: list[rr.TimeColumn], columns: list[object]) -> None:
+        self.sent[entity] = [c.as_arrow_array() for c in (*indexes, *columns)]  # type: ignore[attr-defined]
+
+
+def test_scans_in_time_order_or_not_log_the_same_columns() -> None:
+    """_log_scans sorts a scanner's points by time only when they are not in order already."""
+    t, _ = _walk()
+    c = _cloud(t)
+    rng = np.random.default_rng(1)
+    shuffled = rng.permutation(len(c))
+    mixed = CloudRecord(c.points_world[shuffled], c.scanner[shuffled], c.time[shuffled], c.plane_id[shuffled])
+    logged = []
+    for cloud in (c, mixed):
+        rec = _Columns()
+        _log_scans(rec, cloud, ["top", "left", "right"], MapOptions(max_scan_points=1000))  # type: ignore[arg-type]
+        logged.append(rec.sent)
+    assert logged[0].keys() == logged[1].keys() and len(logged[0]) == 3
+    for entity, arrays in logged[0].items():
+        assert all(a.equals(b) for a, b in zip(arrays, logged[1][entity], strict=True)), entity  # type: ignore[attr-defined]
+
+
+def test_segments_as_one_array_log_what_a_list_of_strips_logs() -> None:
+    """The (M, 2, 3) float32 array handed to rerun for the segments gives the arrow data of a
+    list of M float64 strips."""
+    rng = np.random.default_rng(2)
+    ends = rng.normal(size=(50, 2, 3))
+    as_list = rr.LineStrips3D.columns(strips=list(ends)).partition([20, 30])
+    as_array = rr.LineStrips3D.columns(strips=ends.astype(np.float32)).partition([20, 30])
+    for a, b in zip(as_list, as_array, strict=True):
+        assert a.as_arrow_array().equals(b.as_arrow_array())
