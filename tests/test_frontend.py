@@ -7,7 +7,14 @@ import numpy as np
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
 from slam.frontend.planemap import PlaneMap
 from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
-from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
+from slam.interpolation import (
+    interpolate_poses,
+    interpolate_trajectory,
+    se3_exp,
+    se3_inverse,
+    se3_log,
+)
+from slam.placement import place_points
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -179,3 +186,17 @@ def test_extending_a_plane_adds_each_cell_once() -> None:
     assert pmap.planes[pid].cells == expected
     assert all(type(v) is int for c in pmap.planes[pid].cells for v in c)
     assert pmap.overlaps(pid, pts[:1], 0) and not pmap.overlaps(pid, pts[:1] + 10.0, 2)
+
+
+def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> None:
+    """slam.placement takes one rotation logarithm per knot interval: the same world points as
+    interpolate_trajectory's pose per point, to the last bit."""
+    rng = np.random.default_rng(5)
+    kt = 10.0 + 0.05 * np.arange(12)
+    T = np.array([se3_exp(np.concatenate((rng.normal(0.0, 0.3, 3), rng.normal(0.0, 1.0, 3)))) for _ in kt])
+    times = np.sort(rng.uniform(kt[0], kt[-1], 500))
+    times[-1] = kt[-1]
+    pts = rng.uniform(-5.0, 5.0, (500, 3))
+    Tw = interpolate_trajectory(kt, T, times)
+    expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
+    np.testing.assert_array_equal(place_points(kt, T, times, pts), expected)

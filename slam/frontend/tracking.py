@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log, so3_exp, so3_log
+from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
+from slam.placement import interval_poses
 
 FloatArray = NDArray[np.float64]
 
@@ -77,21 +78,6 @@ def refine_knot(
     return orthonormalize(T)
 
 
-def _interpolate_window(
-    T: FloatArray, knot_index: NDArray[np.int64], alphas: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Rotations (m, 3, 3) and positions (m, 3) (world frame) of the body at fractions ``alphas``
-    (m,) of the knot intervals ``knot_index`` (m,) of the window ``T`` (W, 4, 4).
-
-    The same arithmetic as ``interpolate_poses(T[knot_index], T[knot_index + 1], alphas)``, with
-    one rotation logarithm per knot interval instead of one per point.
-    """
-    phi = so3_log(np.swapaxes(T[:-1, :3, :3], -1, -2) @ T[1:, :3, :3])
-    R = T[knot_index, :3, :3] @ so3_exp(alphas[:, None] * phi[knot_index])
-    p0 = T[knot_index, :3, 3]
-    return R, p0 + alphas[:, None] * (T[knot_index + 1, :3, 3] - p0)
-
-
 def refine_window(
     T_knots: FloatArray,
     knot_index: NDArray[np.int64],
@@ -147,7 +133,7 @@ def refine_window(
     given_increment_inv = se3_inverse(T_given_inv[:-1] @ T_given[1:])
     later = np.arange(1, W)
     for _ in range(iterations):
-        R, t = _interpolate_window(T, knot_index, alphas)
+        R, t = interval_poses(T, knot_index, alphas)  # one rotation logarithm per knot interval
         pw = np.einsum("mij,mj->mi", R, points_body) + t
         r = (np.einsum("mi,mi->m", normals, pw) + offsets) / sigmas
         Rtn = np.einsum("mji,mj->mi", R, normals)
