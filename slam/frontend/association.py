@@ -94,12 +94,15 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
 def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
     """Plane id per segment, or -1 (no candidate, or ambiguous)."""
     out = np.full(segs.n, -1, dtype=np.int64)
-    ids = pmap.active_ids()
-    if ids.size == 0 or segs.n == 0:
+    active = [p for p in pmap.planes if p.active]
+    if not active or segs.n == 0:
         return out
-    normals, offs = pmap.arrays(ids)
-    sig_plane = np.array([pmap.planes[i].sigma_offset for i in ids])
-    since = np.array([odometer - pmap.planes[i].last_seen_odometer for i in ids])
+    # the active planes' arrays in one pass over the map (world frame)
+    ids = np.array([p.id for p in active], dtype=np.int64)
+    normals = np.array([p.normal for p in active])
+    offs = np.array([p.d for p in active])
+    sig_plane = np.array([p.sigma_offset for p in active])
+    since = np.array([odometer - p.last_seen_odometer for p in active])
     sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
     dist_c = segs.centroid @ normals.T + offs  # (k, P)
     sin_a = np.abs(segs.direction @ normals.T)
@@ -118,15 +121,16 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     facing = (normals @ segs.origin + offs) > 0.0
     ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap) & facing[None, :]
     cell = pmap.cell_size
+    # per plane: the extent margin grown with the drift since it was seen (cells)
+    dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
+    # per segment: its two end points and centroid (world frame), tested against the extents
+    seg_pts = np.concatenate((segs.endpoints, segs.centroid[:, None]), axis=1)
     for k in np.flatnonzero(ok.any(axis=1)):
         cand = np.flatnonzero(ok[k])
-        cand = cand[np.argsort(m2[k, cand])]
-        pts = np.vstack((segs.endpoints[k], segs.centroid[k : k + 1]))
-        passing = []
-        for j in cand:
-            extra = min(int(3.0 * sig_drift[j] / cell), gates.max_extra_cells)
-            if pmap.overlaps(int(ids[j]), pts, gates.extent_margin_cells + extra):
-                passing.append(j)
+        if cand.size > 1:
+            cand = cand[np.argsort(m2[k, cand])]
+        pts = seg_pts[k]
+        passing = [j for j in cand.tolist() if pmap.overlaps(int(ids[j]), pts, dilate[j])]
         if not passing:
             continue
         best = passing[0]

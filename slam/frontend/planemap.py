@@ -114,11 +114,15 @@ class PlaneMap:
         ext = self.planes[pid].cells
         if not ext:
             return False
+        cells = set(map(tuple, self.cells_of(pid, points_world).tolist()))
+        if not cells.isdisjoint(ext):  # the usual answer: a point inside the extent itself
+            return True
         r = range(-dilate, dilate + 1)
-        for cu, cv in set(map(tuple, self.cells_of(pid, points_world).tolist())):
+        for cu, cv in cells:
             for du in r:
+                u = cu + du
                 for dv in r:
-                    if (cu + du, cv + dv) in ext:
+                    if (u, cv + dv) in ext:
                         return True
         return False
 
