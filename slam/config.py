@@ -77,15 +77,20 @@ class EdgeSection(StrictModel):
     door's vertical edge, which the back end holds as a plane perpendicular to the wall."""
 
     use: bool = Field(True, description="observe door/board edges (the along-corridor direction)")
+    point: Literal["higher", "midpoint"] = Field(
+        "higher", description="edge point: the end of the surface nearer the scanner, or the midpoint of the gap")
     max_gap: float = Field(0.08, gt=0, description="m, largest gap between the two segments' boundary points")
     min_incidence_deg: float = Field(
-        40.0, ge=0, le=90, description="deg from grazing: flatter beams see the step's shadow, not its edge")
+        25.0, ge=0, le=90, description="deg from grazing: flatter beams see the step's shadow, not its edge")
     sigma: float = Field(0.003, gt=0, description="m along the wall, added to the gap's spread (gap / sqrt 12)")
     cluster_width: float = Field(0.02, gt=0, description="m, breaks of a new edge agree within this along the wall")
-    min_points: int = Field(6, ge=2, description="breaks a new edge needs")
-    min_scans: int = Field(4, ge=1, description="distinct scans among them")
+    min_points: int = Field(4, ge=2, description="breaks a new edge needs")
+    min_scans: int = Field(3, ge=1, description="distinct scans among them")
     gate: float = Field(0.04, gt=0, description="m, a break associates with an edge this close along the wall")
-    window: float = Field(3.0, gt=0, description="s a break waits for an edge")
+    tracking_gate: float = Field(
+        0.3, gt=0, description="m, the same for the tracker's pre-association (the predicted pose may be far off "
+        "along a corridor); below half a door's width")
+    window: float = Field(6.0, gt=0, description="s a break waits for an edge")
     merge_distance: float = Field(0.25, ge=0, description="m, edges of one door side this close are merged")
     min_step: float = Field(0.004, gt=0, description="m, smallest step between a wall and its door or board")
     max_step: float = Field(0.04, gt=0, description="m, largest such step")
@@ -110,6 +115,7 @@ class BackEndConfig(StrictModel):
     update_every: int = Field(10, ge=1, description="knots between iSAM2 updates")
     relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
     relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
+    isam2_iterations: int = Field(1, ge=1, description="iSAM2 steps per update (more: nearer the optimum, slower)")
     solver: Literal["isam2", "window"] = Field(
         "isam2", description="incremental estimation: iSAM2, or a fixed-lag window solved to convergence (slower)")
     window_seconds: float = Field(10.0, gt=0, description="s of knots the window solver re-estimates")

@@ -99,6 +99,8 @@ class _Pending:
     t_end: float
     plane_ids: NDArray[np.int64]
     loose_ids: NDArray[np.int64] | None = None
+    # breaks matched to known edges by the tracking pre-association: body points, times, edge ids, sigmas
+    loose_edges: tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray] | None = None
 
 
 @dataclass
@@ -181,6 +183,7 @@ class SlamRunner:
                     step_tolerance=ec.step_tolerance,
                     max_skipped_points=ec.max_skipped_points,
                     min_height_span=ec.min_height_span,
+                    midpoint=ec.point == "midpoint",
                 ),
                 self.pmap.resolve,
             )
@@ -439,8 +442,11 @@ class SlamRunner:
         self._recent = [p for p in self._recent if p.t_end >= t_lo]
         if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
             return T_pred
+        hosts = self._host_map() if self.emap is not None and self.emap.edges else None
         for p in ready:
             p.loose_ids = self._associate_scan(p, self.loose)
+            if hosts is not None:
+                self._loose_edges(p, hosts)
         for _ in range(1):
             pts, kis, al, nrm, off, sig = [], [], [], [], [], []
             for p in self._recent:
@@ -462,6 +468,21 @@ class SlamRunner:
                 nrm.append(n)
                 off.append(d)
                 sig.append(np.repeat(p.segs.virtual_sigma[sel], 2)[inside])
+            for p in self._recent:
+                if p.loose_edges is None:
+                    continue
+                e_pts, e_t, e_ids, e_sig = p.loose_edges
+                idx, alpha = self._fractions(e_t)
+                inside = idx >= k0
+                if not inside.any():
+                    continue
+                edges = [self.emap.edges[self.emap.root(int(i))] for i in e_ids[inside]] if self.emap else []
+                pts.append(e_pts[inside])
+                kis.append(idx[inside] - k0)
+                al.append(alpha[inside])
+                nrm.append(np.array([e.normal for e in edges]))
+                off.append(np.array([e.d for e in edges]))
+                sig.append(e_sig[inside])
             if not pts:
                 break
             window = refine_window(
@@ -492,20 +513,21 @@ class SlamRunner:
             segs = p.segs
             if self.emap is not None:
                 self._observe_edges(p, ids, hosts, now, blocks)
-            for j in map(int, np.flatnonzero(ids >= 0)):
+            associated = np.flatnonzero(ids >= 0)
+            for j, pts in zip(map(int, associated), self._place_segments(segs, associated, 8), strict=True):
                 pid = int(ids[j])
                 self._observe(segs, j, pid, blocks)
-                pts = self._place(segs.points_of(j)[:: max(1, segs.n_points[j] // 8)], segs.times_of(j)[:: max(1, segs.n_points[j] // 8)])
                 self.pmap.extend(pid, pts)
                 pl = self.pmap.planes[pid]
                 pl.n_segments += 1
                 pl.last_seen_time = now
                 pl.last_seen_odometer = self._odometer
             self.stats["associated"] += int((ids >= 0).sum())
-            for j in map(int, np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))):
-                step = max(1, int(segs.n_points[j]) // 12)
-                samples = self._place(segs.points_of(j)[::step], segs.times_of(j)[::step])
-                v_world, e_world = self._world_summaries_one(segs, int(j))
+            pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
+            if pooled.size:
+                v_all, e_all = self._world_summaries(p)
+            for j, samples in zip(map(int, pooled), self._place_segments(segs, pooled, 12), strict=True):
+                v_world, e_world = v_all[j], e_all[j]
                 d = e_world[1] - e_world[0]
                 T_mid = self._pose_at(float(segs.virtual_times[j].mean())) @ self._T_body_scanner[segs.scanner]
                 scan_normal = T_mid[:3, 2]
@@ -539,44 +561,64 @@ class SlamRunner:
                 out[c] = h
         return out
 
-    def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
-                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        """Break points of one scan between a wall and a step in it (``frontend.edges``): each
-        observes its edge plane, or waits in the edge map's pending list."""
+    def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
+        """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
+        the world with the current trajectory."""
         assert self.emap is not None
         ep = self.emap.params
         segs = p.segs
         pairs = break_pairs(segs.first_beam, segs.n_points, ids, self._is_wall(hosts), ep.max_skipped_points)
         if not pairs:
-            return
+            return []
         origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
+        out = []
         for j_wall, j_other in pairs:
             if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
                 continue
             # boundary points: the end of the earlier segment and the start of the later one
             lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
             ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
-            gap = float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib]))
-            if gap > ep.max_gap:
+            if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
                 continue
-            pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
-            t = 0.5 * float(segs.times[ia] + segs.times[ib])
             w = self._place(
-                np.vstack((pt_body[None], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
-                np.concatenate(([t], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
+                np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
+                np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
             )
             wall = int(ids[j_wall])
             n_wall = self.pmap.planes[wall].normal
-            if not steep_enough(origin, w[0], n_wall, ep.min_incidence_deg):
-                continue
-            s1, s2 = step_of(n_wall, w[3:5], w[1:3])
+            s1, s2 = step_of(n_wall, w[4:6], w[2:4])
             if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
                 continue
+            # the edge point is the end of the surface nearer the scanner (the wall for a door, the
+            # board for a board): beyond the edge the lower surface is shadowed or seen on the step's
+            # face, by an amount that depends on the view; the higher one ends at the edge either way
+            h_view = float(n_wall @ origin)
+            wall_higher = abs(h_view - float(np.mean(w[4:6] @ n_wall))) < abs(h_view - float(np.mean(w[2:4] @ n_wall)))
+            higher_is_lo = wall_higher == (j_wall == lo)
+            i_end, i_next, q = (ia, ia - 1, 0) if higher_is_lo else (ib, ib + 1, 1)
+            x_world = w[q]
+            pt_body, t = segs.points_body[i_end].copy(), float(segs.times[i_end])
+            spacing = float(np.linalg.norm(segs.points_body[i_end] - segs.points_body[i_next]))
+            if ep.midpoint:
+                x_world = 0.5 * (w[0] + w[1])
+                pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
+                t = 0.5 * float(segs.times[ia] + segs.times[ib])
+                spacing = float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib]))
+            if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
+                continue
             n_e = along_wall(n_wall)
-            side = 1 if float(n_e @ (w[1:3].mean(axis=0) - w[0])) > 0.0 else -1
+            side = 1 if float(n_e @ (w[2:4].mean(axis=0) - x_world)) > 0.0 else -1
             step = 1 if s1 + s2 > 0.0 else -1
-            brk = Break(wall, step, side, float(n_e @ w[0]), pt_body, w[0], t, break_sigma(gap, ep.sigma), p.serial,
-                        flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope))
+            out.append(Break(wall, step, side, float(n_e @ x_world), pt_body, x_world, t,
+                             break_sigma(spacing, ep.sigma), p.serial,
+                             flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
+        return out
+
+    def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
+                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+        """Each break of the scan observes its edge plane, or waits in the edge map's pending list."""
+        assert self.emap is not None
+        for brk in self._scan_breaks(p, ids, hosts):
             edge = self.emap.match(brk)
             if edge is None:
                 self.emap.pending.append(brk)
@@ -584,6 +626,22 @@ class SlamRunner:
             self._observe_point(brk, edge.id, blocks)
             edge.n_obs += 1
             edge.last_seen_time = now
+
+    def _loose_edges(self, p: _Pending, hosts: dict[int, int]) -> None:
+        """Breaks of a ready scan matched to known edges with the tracking gate (for the tracker)."""
+        assert self.emap is not None and p.loose_ids is not None
+        rows = []
+        for brk in self._scan_breaks(p, p.loose_ids, hosts):
+            edge = self.emap.match(brk, gate=self.cfg.edges.tracking_gate)
+            if edge is not None:
+                rows.append((brk.point_body, brk.time, edge.id, brk.sigma))
+        if rows:
+            p.loose_edges = (
+                np.array([r[0] for r in rows]),
+                np.array([r[1] for r in rows]),
+                np.array([r[2] for r in rows], dtype=np.int64),
+                np.array([r[3] for r in rows]),
+            )
 
     def _observe_point(self, brk: Break, pid: int,
                        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
@@ -623,11 +681,16 @@ class SlamRunner:
             keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
             self.stats["edges_merged"] += 1
 
-    def _world_summaries_one(self, segs: ScanSegments, j: int) -> tuple[FloatArray, FloatArray]:
-        v = self._place(segs.virtual_body[j], segs.virtual_times[j])
-        i0, i1 = int(segs.offsets[j]), int(segs.offsets[j + 1]) - 1
-        e = self._place(segs.points_body[[i0, i1]], segs.times[[i0, i1]])
-        return v, e
+    def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int) -> list[FloatArray]:
+        """World points (world frame) of the segments ``js``: every ``max(1, n // per)``-th of a
+        segment's n points, placed with one ``_place`` call for all of them (per point the same
+        numbers as one call per segment)."""
+        if js.size == 0:
+            return []
+        rows = [np.arange(segs.offsets[j], segs.offsets[j + 1], max(1, int(segs.n_points[j]) // per)) for j in js]
+        sel = np.concatenate(rows)
+        placed = self._place(segs.points_body[sel], segs.times[sel])
+        return np.split(placed, np.cumsum([r.size for r in rows])[:-1])
 
     def _observe(self, segs: ScanSegments, j: int, pid: int,
                  blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
@@ -783,7 +846,7 @@ class SlamRunner:
             self._after_update()
             return
         try:
-            self.backend.update()
+            self.backend.update(be.isam2_iterations)
         except ValueError:
             # an iSAM2 step can fail numerically (indeterminate system) where the same graph
             # relinearised from scratch factors fine: rebuild once; if that fails too, take a

@@ -38,10 +38,10 @@ from slam.export import (
     write_trajectory_tum,
 )
 from slam.imu_feed import ImuSamples
-from slam.interpolation import interpolate_trajectory
 from slam.io.bag import read_imu, read_scans, topics
 from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
+from slam.placement import place_points
 from slam.rerun_map import MapOptions, SegmentLines, write_map_rrd
 
 FloatArray = NDArray[np.float64]
@@ -186,8 +186,7 @@ def _cloud(
         p2 = line.points_xy[inside]
         p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
         p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
-        Tw = interpolate_trajectory(kt, T, times[inside])
-        pw = np.einsum("mij,mj->mi", Tw[:, :3, :3], p_b) + Tw[:, :3, 3]
+        pw = place_points(kt, T, times[inside], p_b)
         beams = line.valid_index[inside]
         plane = np.full(beams.shape[0], -1, dtype=np.int32)
         k = s * (1 << 40) + si

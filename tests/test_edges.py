@@ -12,6 +12,7 @@ from slam.frontend.edges import (
     along_wall,
     break_pairs,
     break_sigma,
+    is_flat,
     steep_enough,
     step_of,
 )
@@ -82,6 +83,22 @@ def test_vertical_edge_clusters_and_top_edge_does_not() -> None:
     assert len(em.pending) == 8  # the top-edge breaks are left to expire
     em.expire(now=20 * 0.025 + 10.0)
     assert em.pending == []
+
+
+def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
+    """A tilted scanline nearly parallel to a board's bottom edge puts its breaks close together at
+    one height: not a vertical edge. The horizontal scanner's breaks are all at one height too, but
+    its scanlines cross the wall flat and can only cross vertical edges."""
+    em = EdgeMap(EdgeParams(min_points=4, min_scans=3), resolve=lambda i: i)
+    for s in range(6):
+        em.pending.append(_break(5.0 + 0.002 * s, s, z=0.9))
+    assert em.cluster() == []
+    for b in em.pending:
+        b.flat = True
+    assert len(em.cluster()) == 1
+    assert is_flat(np.array([1.0, 0.0, 0.1]), WALL_N, 0.3)
+    assert not is_flat(np.array([1.0, 0.0, 0.7]), WALL_N, 0.3)
+    assert not is_flat(np.array([0.0, 1.0, 0.0]), WALL_N, 0.3)  # runs into the wall, not across it
 
 
 def test_too_few_scans_make_no_edge() -> None:

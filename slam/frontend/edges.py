@@ -8,15 +8,17 @@ host wall, through the edge (an *edge plane*, in the back end an ``OrientedPlane
 perpendicular to its wall). A break point observes it with the point-to-plane residual, which is
 the break's offset along the wall from the edge.
 
-A break point is the midpoint of the last point of one segment and the first point of the next
-(beam order; one short segment between them, a door's sloped frame, may be skipped) when one is
-associated with a wall and the other, associated or not, runs parallel to that wall a step of
-``min_step``-``max_step`` in front of or behind it (the step is measured between the two
-segments, so a pose error does not change it), the two ends are close (``max_gap``) and the beam
-meets the wall steeply (``min_incidence_deg``): at grazing incidence the 1-2 cm step shadows part
-of the recess and the break moves by centimetres. Its sigma along the wall is the gap's uniform
-spread (``gap / sqrt(12)``) plus ``sigma``. The door's own plane is not needed, so a door yields
-edges from the first time it is passed.
+A break is where a scanline steps between a wall and a surface parallel to it, a ``min_step`` to
+``max_step`` step in front of or behind it (a door set in, a board standing proud): neighbouring
+segments in beam order (one short segment between them, a door's sloped frame, may be skipped),
+one associated with the wall, the other, associated or not, parallel to it at that step (measured
+between the two segments, so a pose error does not change it), their boundary points within
+``max_gap``. The edge point is the boundary point of the surface nearer the scanner: beyond the
+edge the lower surface is shadowed or seen on the step's face, by an amount that depends on the
+view, while the higher one ends at the edge from every side. The beam must meet the wall at least
+``min_incidence_deg`` from grazing. The point's sigma along the wall is the local beam spacing's
+uniform spread (``spacing / sqrt(12)``) plus ``sigma``. The door's own plane is not needed, so a
+door yields edges from the first time it is passed.
 
 Edges are keyed by (wall, step sign, side): the step sign tells a recessed door from a board
 standing proud, ``side`` on which side of the edge (along the wall direction ``n_e``) the step
@@ -46,19 +48,20 @@ class EdgeParams:
     """Break detection, clustering and association of door/board edges (metres, degrees, seconds)."""
 
     max_gap: float = 0.08
-    min_incidence_deg: float = 40.0
+    min_incidence_deg: float = 25.0
     sigma: float = 0.003
     cluster_width: float = 0.02
-    min_points: int = 6
-    min_scans: int = 4
+    min_points: int = 4
+    min_scans: int = 3
     gate: float = 0.04
-    window: float = 3.0
+    window: float = 6.0
     merge_distance: float = 0.25
     min_step: float = 0.004
     max_step: float = 0.04
     step_tolerance: float = 0.005
     max_skipped_points: int = 15
     min_height_span: float = 0.15
+    midpoint: bool = False
     flat_slope: float = 0.3
 
 
@@ -137,9 +140,9 @@ def step_of(normal_wall: FloatArray, wall_world: FloatArray, other_world: FloatA
     return float(s[0]), float(s[1])
 
 
-def break_sigma(gap: float, sigma: float) -> float:
-    """Along-wall sigma of a break midpoint between two boundary points ``gap`` apart (m)."""
-    return float(np.sqrt(sigma**2 + gap**2 / 12.0))
+def break_sigma(spacing: float, sigma: float) -> float:
+    """Along-wall sigma of an edge point whose surface's points lie ``spacing`` apart there (m)."""
+    return float(np.sqrt(sigma**2 + spacing**2 / 12.0))
 
 
 def is_flat(direction_world: FloatArray, normal_wall: FloatArray, slope: float) -> bool:
@@ -180,15 +183,17 @@ class EdgeMap:
             edge_id = nxt
         return edge_id
 
-    def match(self, b: Break) -> Edge | None:
-        """The active edge of ``b``'s key nearest along the wall, within ``gate``."""
+    def match(self, b: Break, gate: float | None = None) -> Edge | None:
+        """The active edge of ``b``'s key nearest along the wall, within ``gate`` (default: the
+        parameters' gate)."""
+        gate = self.params.gate if gate is None else gate
         key = self.key(b.host, b.step, b.side)
         best: tuple[float, Edge] | None = None
         for e in self.active():
             if self.key(e.host, e.step, e.side) != key:
                 continue
             dist = abs(float(e.normal @ b.point_world) + e.d)
-            if dist <= self.params.gate and (best is None or dist < best[0]):
+            if dist <= gate and (best is None or dist < best[0]):
                 best = (dist, e)
         return None if best is None else best[1]
 
