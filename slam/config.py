@@ -88,7 +88,7 @@ class EdgeSection(StrictModel):
     min_scans: int = Field(3, ge=1, description="distinct scans among them")
     gate: float = Field(0.04, gt=0, description="m, a break associates with an edge this close along the wall")
     tracking_gate: float = Field(
-        0.3, gt=0, description="m, the same for the tracker's pre-association (the predicted pose may be far off "
+        0.15, gt=0, description="m, the same for the tracker's pre-association (the predicted pose may be far off "
         "along a corridor); below half a door's width")
     window: float = Field(6.0, gt=0, description="s a break waits for an edge")
     merge_distance: float = Field(0.25, ge=0, description="m, edges of one door side this close are merged")

@@ -657,7 +657,8 @@ class SlamRunner:
             b0 = members[0]
             host = self.pmap.resolve(b0.host)
             n_e = along_wall(self.pmap.planes[host].normal)
-            edge = self.emap.add(host, b0.step, b0.side, n_e, u, now)
+            z = [float(b.point_world[2]) for b in members]
+            edge = self.emap.add(host, b0.step, b0.side, n_e, u, now, (min(z), max(z)))
             anchor = np.mean([b.point_world for b in members], axis=0)
             self.backend.add_plane(edge.id, n_e, -u, vertical=True, anchor=anchor)
             self.backend.add_perpendicular(host, edge.id, np.radians(self.cfg.edges.perpendicular_sigma_deg))
@@ -677,6 +678,7 @@ class SlamRunner:
         for keep, drop in self.emap.duplicates():
             self.backend.link_planes(keep.id, drop.id)
             drop.merged_into = keep.id
+            keep.z_range = (min(keep.z_range[0], drop.z_range[0]), max(keep.z_range[1], drop.z_range[1]))
             keep.n_obs += drop.n_obs
             keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
             self.stats["edges_merged"] += 1

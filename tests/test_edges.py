@@ -120,6 +120,16 @@ def test_match_respects_key_side_and_gate() -> None:
     assert em.match(_break(2.0, 0, host=3)) is None  # another wall
 
 
+def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
+    em = EdgeMap(EdgeParams(gate=0.15, height_margin=0.1), resolve=lambda i: i)
+    e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0, z_range=(0.5, 1.8))
+    assert em.match(_break(2.1, 0, z=1.85)) is e
+    top = _break(2.1, 0, z=2.05)  # a break on the door's top edge, 10 cm along it
+    assert em.match(top) is None
+    top.flat = True  # a flat scanline cannot cross the top edge: it is on the jamb
+    assert em.match(top) is e
+
+
 def test_duplicates_pair_the_same_edge_made_twice() -> None:
     merged: dict[int, int] = {}
     em = EdgeMap(EdgeParams(merge_distance=0.25), resolve=lambda i: merged.get(i, i))

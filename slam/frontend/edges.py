@@ -62,6 +62,7 @@ class EdgeParams:
     max_skipped_points: int = 15
     min_height_span: float = 0.15
     midpoint: bool = False
+    height_margin: float = 0.1
     flat_slope: float = 0.3
 
 
@@ -97,6 +98,7 @@ class Edge:
     n_obs: int = 0
     last_seen_time: float = 0.0
     merged_into: int | None = None
+    z_range: tuple[float, float] = (-np.inf, np.inf)
 
     @property
     def u(self) -> float:
@@ -185,12 +187,18 @@ class EdgeMap:
 
     def match(self, b: Break, gate: float | None = None) -> Edge | None:
         """The active edge of ``b``'s key nearest along the wall, within ``gate`` (default: the
-        parameters' gate)."""
+        parameters' gate) and, unless ``b`` is flat, within ``height_margin`` of the heights the
+        edge was made from."""
         gate = self.params.gate if gate is None else gate
         key = self.key(b.host, b.step, b.side)
+        z, margin = float(b.point_world[2]), self.params.height_margin
         best: tuple[float, Edge] | None = None
         for e in self.active():
             if self.key(e.host, e.step, e.side) != key:
+                continue
+            # beyond the heights its breaks were seen at, a break may lie on the door's top edge,
+            # anywhere along it; a flat scanline can only cross a vertical edge
+            if not b.flat and not e.z_range[0] - margin <= z <= e.z_range[1] + margin:
                 continue
             dist = abs(float(e.normal @ b.point_world) + e.d)
             if dist <= gate and (best is None or dist < best[0]):
@@ -233,8 +241,9 @@ class EdgeMap:
             self.pending = [b for b in self.pending if id(b) not in taken]
         return found
 
-    def add(self, host: int, step: int, side: int, normal: FloatArray, u: float, time: float) -> Edge:
-        e = Edge(self._next, host, step, side, normal.copy(), -u, last_seen_time=time)
+    def add(self, host: int, step: int, side: int, normal: FloatArray, u: float, time: float,
+            z_range: tuple[float, float] = (-np.inf, np.inf)) -> Edge:
+        e = Edge(self._next, host, step, side, normal.copy(), -u, last_seen_time=time, z_range=z_range)
         self.edges[e.id] = e
         self._next += 1
         return e
