@@ -64,6 +64,8 @@ from slam.motion import (
     initial_velocity_factor,
     preintegrate,
 )
+from slam.placement import interval_poses
+from slam.plane_summary import plane_summary_factor, scatter, shift_anchor
 from slam.solver import damped_gauss_newton
 
 FloatArray = NDArray[np.float64]
@@ -181,6 +183,14 @@ class Backend:
         # (host, plane, factor id, sigma, perpendicular?) orientation ties between planes
         self._parallels: list[tuple[int, int, int, float, bool]] = []
         self._anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
+        # fixed-lag window (window_optimize): factors by the highest knot they touch, factors on no
+        # knot (plane priors and ties), and the exact summaries of the blocks that left the window
+        self._by_knot: dict[int, list[int]] = {}
+        self._knotless: list[int] = []
+        self._block_top: dict[int, int] = {}  # block id -> highest knot it touches
+        self._summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
+        self._summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
+        self._summarized_upto = 0  # blocks whose highest knot is below this are summarised
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike,
@@ -314,9 +324,15 @@ class Backend:
         frame when ``scanner`` is given. Returns the block id."""
         block = self._make_block(knot, plane_id, points, alphas, sigmas, scanner)
         bid = self._add_factor(self._block_factor(block))
+        self._add_block(bid, block)
+        return bid
+
+    def _add_block(self, bid: int, block: ObservationBlock) -> None:
         self._blocks[bid] = block
         self._plane_blocks[block.plane_id].add(bid)
-        return bid
+        self._block_top[bid] = block.knot + (1 if block.alphas is not None else 0)
+        if self._block_top[bid] < self._summarized_upto:  # its poses are held by the window already
+            self._summarize_block(bid)
 
     def replace_observations(self, block_id: int, points: ArrayLike, alphas: ArrayLike | None,
                              sigmas: ArrayLike) -> int:
@@ -325,8 +341,7 @@ class Backend:
         new = self._make_block(old.knot, old.plane_id, points, alphas, sigmas, old.scanner)
         self.remove_observations(block_id)
         bid = self._add_factor(self._block_factor(new))
-        self._blocks[bid] = new
-        self._plane_blocks[new.plane_id].add(bid)
+        self._add_block(bid, new)
         return bid
 
     def remove_observations(self, block_id: int) -> None:
@@ -334,7 +349,11 @@ class Backend:
         blk = self._get_block(block_id)
         self._remove_factor(block_id)
         del self._blocks[block_id]
+        del self._block_top[block_id]
         self._plane_blocks[blk.plane_id].discard(block_id)
+        C = self._summarized.pop(block_id, None)
+        if C is not None:
+            self._summary[blk.plane_id] -= C
 
     def blocks_of_plane(self, plane_id: int) -> list[int]:
         """Ids of the observation blocks on a plane."""
@@ -376,6 +395,12 @@ class Backend:
             self._records[bid] = _Record(factor, tuple(int(k) for k in factor.keys()))
             self._blocks[bid] = new
             self._plane_blocks[keep].add(bid)
+            C = self._summarized.get(bid)
+            if C is not None:
+                C = shift_anchor(C, self._anchors[drop], self._anchors[keep])
+                self._summarized[bid] = C
+                self._summary[keep] = self._summary.get(keep, np.zeros((4, 4))) + C
+        self._summary.pop(drop, None)
         if drop in self._plane_priors:
             fid = self._plane_priors.pop(drop)
             del self._records[fid]
@@ -482,6 +507,7 @@ class Backend:
             self._remove_factor(self._plane_priors.pop(j))
         self._rekey_parallels(j, None)
         del self._plane_blocks[j]
+        self._summary.pop(j, None)
         self._values.erase(P(j))
         self._invalidate_isam()
 
@@ -543,31 +569,86 @@ class Backend:
             iterations += it
         self._values.update(values)
         self._invalidate_isam()
+        self._drop_summaries()  # the held poses have moved
         return OptimizeSummary(float(e0), float(graph.error(values)), iterations,
                                _time.perf_counter() - t0)
 
+    def _drop_summaries(self) -> None:
+        self._summary, self._summarized, self._summarized_upto = {}, {}, 0
+
+    def _summarize_block(self, bid: int) -> None:
+        """Fold block ``bid`` into its plane's scatter at the current poses (held from now on) and
+        robust weights (frozen): see :mod:`slam.plane_summary`."""
+        blk = self._blocks[bid]
+        v = self._values
+        pts = blk.points
+        if blk.scanner is not None:
+            Es = v.atPose3(E(blk.scanner)).matrix()
+            pts = pts @ Es[:3, :3].T + Es[:3, 3]
+        Ta = v.atPose3(X(blk.knot)).matrix()
+        if blk.alphas is None:
+            x = pts @ Ta[:3, :3].T + Ta[:3, 3]
+        else:
+            T = np.stack((Ta, v.atPose3(X(blk.knot + 1)).matrix()))
+            R, t = interval_poses(T, np.zeros(pts.shape[0], dtype=np.int64), blk.alphas)
+            x = np.einsum("mij,mj->mi", R, pts) + t
+        j = blk.plane_id
+        a = self._anchors[j]
+        pl = v.atOrientedPlane3(P(j))
+        e = ((x - a) @ pl.normal().point3() + pl.distance()) / blk.sigmas
+        C = scatter(x, a, robust_weights(e, self.config.kernel) / blk.sigmas**2)
+        self._summarized[bid] = C
+        self._summary[j] = self._summary.get(j, np.zeros((4, 4))) + C
+
     def window_optimize(self, first_knot: int, max_iterations: int = 4) -> OptimizeSummary:
         """A fixed-lag step: solve (:meth:`_solve_batch`) for the knots from ``first_knot`` on
-        (poses, velocities, biases) and every plane they observe, with every factor touching them;
-        older variables those factors reach are held at their estimates. The full problem is
-        left to a final :meth:`batch_optimize` (loop closures reach the old knots there)."""
+        (poses, velocities, biases) and every plane they observe, with every factor touching
+        those knots and the planes' priors and ties; older variables those factors reach are held
+        at their estimates. The observation blocks of older knots enter as one exact summary per
+        plane (:mod:`slam.plane_summary`, taken when a block leaves the window: its poses are held
+        from then on), so a solve costs what the window holds, not what the walk has seen. The
+        window never reopens summarised knots (``first_knot`` is raised to them). The full
+        problem is left to a final :meth:`batch_optimize` (loop closures reach the old knots
+        there), which drops the summaries."""
         t0 = _time.perf_counter()
-        first = max(0, min(int(first_knot), len(self._times) - 1))
+        n = len(self._times)
+        first = max(0, min(int(first_knot), n - 1))
+        for k in range(self._summarized_upto, first):
+            for fid in self._by_knot.get(k, ()):
+                if fid in self._blocks and fid not in self._summarized:
+                    self._summarize_block(fid)
+        self._summarized_upto = max(self._summarized_upto, first)
+        first = min(self._summarized_upto, n - 1)
         active: set[int] = set()
-        for k in range(first, len(self._times)):
+        for k in range(first, n):
             for sym in (X, V, B):
                 key = int(sym(k))
                 if self._values.exists(key):
                     active.add(key)
-        for blk in self._blocks.values():
-            if blk.knot >= first - 1:
-                active.add(int(P(blk.plane_id)))
         graph = gtsam.NonlinearFactorGraph()
         used: set[int] = set()
-        for rec in self._records.values():
-            if any(k in active for k in rec.keys):
+        planes: set[int] = set()
+        for k in range(first, n):
+            for fid in self._by_knot.get(k, ()):
+                rec = self._records.get(fid)
+                if rec is None:
+                    continue
                 graph.add(rec.factor)
                 used.update(rec.keys)
+                blk = self._blocks.get(fid)
+                if blk is not None:
+                    planes.add(blk.plane_id)
+        active.update(int(P(j)) for j in planes)
+        for fid in self._knotless:
+            rec = self._records.get(fid)
+            if rec is not None and any(k in active for k in rec.keys):
+                graph.add(rec.factor)
+                used.update(rec.keys)
+        for j in sorted(planes):
+            M = self._summary.get(j)
+            if M is not None:
+                graph.add(plane_summary_factor(int(P(j)), M))
+        self._knotless = [fid for fid in self._knotless if fid in self._records]
         values = gtsam.Values()
         for k in used:
             _copy_value(values, self._values, k)
@@ -721,7 +802,13 @@ class Backend:
     def _add_factor(self, factor: gtsam.NonlinearFactor) -> int:
         fid = self._next_id
         self._next_id += 1
-        self._records[fid] = _Record(factor, tuple(int(k) for k in factor.keys()))
+        keys = tuple(int(k) for k in factor.keys())
+        self._records[fid] = _Record(factor, keys)
+        top = _top_knot(keys)
+        if top is None:
+            self._knotless.append(fid)
+        else:
+            self._by_knot.setdefault(top, []).append(fid)
         self._pending.append(fid)
         self._marginals = None
         self._isam_fresh = False
@@ -896,6 +983,17 @@ def _as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
         raise ValueError(f"{name}: rotation block is not a rotation matrix")
     return gtsam.Pose3(gtsam.Rot3(R), M[:3, 3])
+
+
+def _top_knot(keys: Sequence[int]) -> int | None:
+    """The highest knot index among ``keys`` (X, V and B symbols), or None."""
+    top = None
+    for k in keys:
+        sym = gtsam.Symbol(k)
+        if chr(sym.chr()) in "xvb":
+            i = int(sym.index())
+            top = i if top is None else max(top, i)
+    return top
 
 
 def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = False) -> None:

@@ -77,8 +77,9 @@ class EdgeSection(StrictModel):
     door's vertical edge, which the back end holds as a plane perpendicular to the wall."""
 
     use: bool = Field(True, description="observe door/board edges (the along-corridor direction)")
-    point: Literal["higher", "midpoint"] = Field(
-        "higher", description="edge point: the end of the surface nearer the scanner, or the midpoint of the gap")
+    point: Literal["bracket", "higher", "midpoint"] = Field(
+        "bracket", description="edge point: between the last and the next beam's crossings of the surface nearer "
+        "the scanner (unbiased), that surface's last sample, or the midpoint of the gap")
     max_gap: float = Field(0.08, gt=0, description="m, largest gap between the two segments' boundary points")
     min_incidence_deg: float = Field(
         25.0, ge=0, le=90, description="deg from grazing: flatter beams see the step's shadow, not its edge")

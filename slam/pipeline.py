@@ -49,6 +49,7 @@ from slam.frontend.edges import (
     EdgeMap,
     EdgeParams,
     along_wall,
+    bracket_point,
     break_pairs,
     break_sigma,
     is_flat,
@@ -183,7 +184,7 @@ class SlamRunner:
                     step_tolerance=ec.step_tolerance,
                     max_skipped_points=ec.max_skipped_points,
                     min_height_span=ec.min_height_span,
-                    midpoint=ec.point == "midpoint",
+                    point=ec.point,
                 ),
                 self.pmap.resolve,
             )
@@ -599,7 +600,21 @@ class SlamRunner:
             x_world = w[q]
             pt_body, t = segs.points_body[i_end].copy(), float(segs.times[i_end])
             spacing = float(np.linalg.norm(segs.points_body[i_end] - segs.points_body[i_next]))
-            if ep.midpoint:
+            if ep.point == "bracket":
+                j_high = lo if higher_is_lo else hi
+                k_end = int(segs.last_beam[lo]) if higher_is_lo else int(segs.first_beam[hi])
+                k_next = k_end + 1 if higher_is_lo else k_end - 1
+                if not 0 <= k_next < segs.beam_angles.shape[0]:
+                    continue
+                got = bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]),
+                                    segs.line_centroid[j_high], segs.line_direction[j_high])
+                if got is None:
+                    continue
+                edge_scanner, spacing = got
+                T_bs = self._T_body_scanner[segs.scanner]
+                pt_body = T_bs[:3, :3] @ np.array([edge_scanner[0], edge_scanner[1], 0.0]) + T_bs[:3, 3]
+                x_world = self._place(pt_body[None, :], np.array([t]))[0]
+            elif ep.point == "midpoint":
                 x_world = 0.5 * (w[0] + w[1])
                 pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
                 t = 0.5 * float(segs.times[ia] + segs.times[ib])

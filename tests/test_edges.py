@@ -10,9 +10,11 @@ from slam.frontend.edges import (
     EdgeMap,
     EdgeParams,
     along_wall,
+    bracket_point,
     break_pairs,
     break_sigma,
     is_flat,
+    ray_on_line,
     steep_enough,
     step_of,
 )
@@ -144,3 +146,37 @@ def test_duplicates_pair_the_same_edge_made_twice() -> None:
     assert em.duplicates() == [(a, b)]
     b.merged_into = a.id
     assert em.root(b.id) == a.id and em.duplicates() == []
+
+
+def test_ray_on_line_meets_the_line_in_front_only() -> None:
+    c, u = np.array([2.0, 1.0]), np.array([1.0, 0.0])  # the line y = 1 (scanner frame)
+    q = ray_on_line(np.pi / 4, c, u)
+    assert q is not None and np.allclose(q, [1.0, 1.0])
+    assert ray_on_line(-np.pi / 4, c, u) is None  # meets it behind the scanner
+    assert ray_on_line(0.0, c, u) is None  # parallel
+
+
+def test_bracket_point_is_unbiased_where_the_last_sample_is_not() -> None:
+    """A wall y = 1 ending at x = e, seen by 0.25-degree beams from the origin: the midpoint of the
+    last beam's and the next beam's crossings is within half a spacing of the edge and unbiased;
+    the last sample itself lies half a spacing short on average."""
+    rng = np.random.default_rng(0)
+    step = np.radians(0.25)
+    c, u = np.array([0.0, 1.0]), np.array([1.0, 0.0])
+    err_bracket, err_last, spacings = [], [], []
+    for e in rng.uniform(0.8, 2.0, 400):  # the edge ahead at 27-51 deg from grazing
+        phase = rng.uniform(0.0, step)
+        angles = np.arange(np.pi / 2 - phase, 0.2, -step)  # sweeping from +y towards +x
+        x_hit = 1.0 / np.tan(angles)
+        k_end = int(np.flatnonzero(x_hit <= e)[-1])
+        got = bracket_point(float(angles[k_end]), float(angles[k_end + 1]), c, u)
+        assert got is not None
+        mid, spacing = got
+        assert abs(mid[1] - 1.0) < 1e-12
+        assert abs(mid[0] - e) <= 0.5 * spacing + 1e-12
+        err_bracket.append(mid[0] - e)
+        err_last.append(x_hit[k_end] - e)
+        spacings.append(spacing)
+    half = 0.5 * float(np.mean(spacings))
+    assert abs(float(np.mean(err_bracket))) < 0.1 * half
+    assert abs(float(np.mean(err_last)) + half) < 0.1 * half

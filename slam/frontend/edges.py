@@ -13,9 +13,13 @@ A break is where a scanline steps between a wall and a surface parallel to it, a
 segments in beam order (one short segment between them, a door's sloped frame, may be skipped),
 one associated with the wall, the other, associated or not, parallel to it at that step (measured
 between the two segments, so a pose error does not change it), their boundary points within
-``max_gap``. The edge point is the boundary point of the surface nearer the scanner: beyond the
-edge the lower surface is shadowed or seen on the step's face, by an amount that depends on the
-view, while the higher one ends at the edge from every side. The beam must meet the wall at least
+``max_gap``. The edge lies where the surface nearer the scanner ends (beyond the edge the lower
+surface is shadowed or seen on the step's face, by an amount that depends on the view, while the
+higher one ends at the edge from every side): between the crossings of that surface's fitted
+line by its last beam and by the next beam, which misses it. The midpoint of the two crossings
+(``point = "bracket"``) is unbiased, uniform within half the beam spacing there; the surface's
+last sample itself (``"higher"``) lies short of the edge by half a spacing on average and carries
+the range noise along the wall at 1 / tan(incidence). The beam must meet the wall at least
 ``min_incidence_deg`` from grazing. The point's sigma along the wall is the local beam spacing's
 uniform spread (``spacing / sqrt(12)``) plus ``sigma``. The door's own plane is not needed, so a
 door yields edges from the first time it is passed.
@@ -61,7 +65,7 @@ class EdgeParams:
     step_tolerance: float = 0.005
     max_skipped_points: int = 15
     min_height_span: float = 0.15
-    midpoint: bool = False
+    point: str = "bracket"
     height_margin: float = 0.1
     flat_slope: float = 0.3
 
@@ -140,6 +144,31 @@ def step_of(normal_wall: FloatArray, wall_world: FloatArray, other_world: FloatA
     base = float(np.mean(wall_world @ normal_wall))
     s = other_world @ normal_wall - base
     return float(s[0]), float(s[1])
+
+
+def ray_on_line(angle: float, centroid: FloatArray, direction: FloatArray) -> FloatArray | None:
+    """Where the beam at ``angle`` (scanner frame, from the origin) meets the line through
+    ``centroid`` along ``direction`` (2D, scanner frame); None when it runs (nearly) parallel
+    to the line or meets it behind the scanner."""
+    r = np.array([np.cos(angle), np.sin(angle)])
+    det = float(direction[0] * r[1] - direction[1] * r[0])
+    if abs(det) < 1e-6:
+        return None
+    lam = float(direction[0] * centroid[1] - direction[1] * centroid[0]) / det
+    return None if lam <= 0.0 else lam * r
+
+
+def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
+                  direction: FloatArray) -> tuple[FloatArray, float] | None:
+    """The edge of a surface (its fitted 2D line, scanner frame) whose last beam is ``angle_end``
+    while the next beam ``angle_next`` misses it: the edge lies between the two beams' crossings
+    of the line, so their midpoint is an unbiased estimate, uniform within +-spacing / 2.
+    Returns (midpoint (2,), spacing) in the scanner frame, or None."""
+    a = ray_on_line(angle_end, centroid, direction)
+    b = ray_on_line(angle_next, centroid, direction)
+    if a is None or b is None:
+        return None
+    return 0.5 * (a + b), float(np.linalg.norm(b - a))
 
 
 def break_sigma(spacing: float, sigma: float) -> float:

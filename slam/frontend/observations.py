@@ -39,6 +39,8 @@ class ScanSegments:
     (k, 2) their times (s) and ``virtual_sigma`` (k,) the standard deviation
     of one virtual point's distance (m): point noise / sqrt(n / 2).
     ``points_body``/``times`` hold every point, ``offsets`` (k + 1,) slice them.
+    ``line_centroid``/``line_direction`` (k, 2) are each segment's fitted line in the scanner
+    frame, ``beam_angles`` every beam's angle (rad, scanner frame, invalid beams included).
     """
 
     scanner: int
@@ -55,6 +57,9 @@ class ScanSegments:
     virtual_times: FloatArray
     virtual_sigma: FloatArray
     rms: FloatArray
+    line_centroid: FloatArray
+    line_direction: FloatArray
+    beam_angles: FloatArray
 
     @property
     def n_segments(self) -> int:
@@ -127,4 +132,7 @@ def scan_segments(
         virtual_times=v_times,
         virtual_sigma=v_sigma,
         rms=seg.rms,
+        line_centroid=np.asarray(c2, dtype=np.float64),
+        line_direction=np.asarray(u2, dtype=np.float64),
+        beam_angles=line.angles,
     )
