@@ -414,18 +414,34 @@ class SlamRunner:
             self._update()
             self._timer.add("backend", t)
 
-    def _world_summaries(self, p: _Pending) -> tuple[FloatArray, FloatArray]:
-        segs = p.segs
-        k = segs.n_segments
-        ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
-        pts = np.concatenate((segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]))
-        tms = np.concatenate((segs.virtual_times.ravel(), segs.times[ends_idx]))
-        w = self._place(pts, tms)
-        return w[: 2 * k].reshape(k, 2, 3), w[2 * k :].reshape(k, 2, 3)
+    def _world_summaries(self, ps: list[_Pending]) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+        """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
+        their end points (k, 2, 3) and the scanner's position at the scan's stamp (4,),
+        homogeneous). One ``_place`` for all the scans: per point the same numbers as one call per
+        scan (``_place``'s arithmetic is element by element for two points or more, and a scan has
+        four at least). The stamps' poses stay one ``_pose_at`` each: for a single pose numpy
+        takes another (matrix-vector) route through ``exp_coefficients``, with other last bits."""
+        if not ps:
+            return []
+        pts, tms, sizes = [], [], []
+        for p in ps:
+            segs = p.segs
+            ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
+            pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
+            tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
+            sizes += [2 * segs.n_segments, 2 * segs.n_segments]
+        w = np.split(self._place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
+        return [
+            (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
+             self._pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
+            for i, p in enumerate(ps)
+        ]
 
-    def _associate_scan(self, p: _Pending, gates: Gates) -> NDArray[np.int64]:
-        v_world, e_world = self._world_summaries(p)
-        origin = self._pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3]
+    def _associate_scan(self, p: _Pending, gates: Gates,
+                        summary: tuple[FloatArray, FloatArray, FloatArray]) -> NDArray[np.int64]:
+        """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``
+        (``_world_summaries``)."""
+        v_world, e_world, origin = summary
         ws = world_segments(
             v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
         )
@@ -444,8 +460,8 @@ class SlamRunner:
         if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
             return T_pred
         hosts = self._host_map() if self.emap is not None and self.emap.edges else None
-        for p in ready:
-            p.loose_ids = self._associate_scan(p, self.loose)
+        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
+            p.loose_ids = self._associate_scan(p, self.loose, summary)
             if hosts is not None:
                 self._loose_edges(p, hosts)
         for _ in range(1):
@@ -508,14 +524,18 @@ class SlamRunner:
         blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
         now = self._knot_time(self._n_knots - 1)
         hosts = self._host_map()
-        for p in ready:
-            ids = self._associate_scan(p, self.gates)
+        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
+            ids = self._associate_scan(p, self.gates, summary)
             p.plane_ids = ids
             segs = p.segs
             if self.emap is not None:
                 self._observe_edges(p, ids, hosts, now, blocks)
             associated = np.flatnonzero(ids >= 0)
-            for j, pts in zip(map(int, associated), self._place_segments(segs, associated, 8), strict=True):
+            pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
+            # every 8th point of the associated segments (extents), every 12th of the pooled ones
+            placed = self._place_segments(segs, np.concatenate((associated, pooled)),
+                                          np.repeat([8, 12], [associated.size, pooled.size]))
+            for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
                 pid = int(ids[j])
                 self._observe(segs, j, pid, blocks)
                 self.pmap.extend(pid, pts)
@@ -524,18 +544,17 @@ class SlamRunner:
                 pl.last_seen_time = now
                 pl.last_seen_odometer = self._odometer
             self.stats["associated"] += int((ids >= 0).sum())
-            pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
-            if pooled.size:
-                v_all, e_all = self._world_summaries(p)
-            for j, samples in zip(map(int, pooled), self._place_segments(segs, pooled, 12), strict=True):
+            v_all, e_all = summary[0], summary[1]
+            for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
                 v_world, e_world = v_all[j], e_all[j]
                 d = e_world[1] - e_world[0]
-                T_mid = self._pose_at(float(segs.virtual_times[j].mean())) @ self._T_body_scanner[segs.scanner]
+                t_mid = float(segs.virtual_times[j].mean())
+                T_mid = self._pose_at(t_mid) @ self._T_body_scanner[segs.scanner]
                 scan_normal = T_mid[:3, 2]
                 self.pool.add(
                     PooledSegment(
                         ref=(p.serial, int(j)),
-                        time=float(segs.virtual_times[j].mean()),
+                        time=t_mid,
                         scan_serial=p.serial,
                         centroid=v_world.mean(axis=0),
                         direction=d / max(float(np.linalg.norm(d)), 1e-9),
@@ -698,13 +717,15 @@ class SlamRunner:
             keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
             self.stats["edges_merged"] += 1
 
-    def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int) -> list[FloatArray]:
+    def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int | NDArray[np.int64]) -> list[FloatArray]:
         """World points (world frame) of the segments ``js``: every ``max(1, n // per)``-th of a
-        segment's n points, placed with one ``_place`` call for all of them (per point the same
-        numbers as one call per segment)."""
+        segment's n points (``per`` one for all or one per segment), placed with one ``_place``
+        call for all of them (per point the same numbers as one call per segment)."""
         if js.size == 0:
             return []
-        rows = [np.arange(segs.offsets[j], segs.offsets[j + 1], max(1, int(segs.n_points[j]) // per)) for j in js]
+        pers = np.broadcast_to(per, js.shape).tolist()
+        rows = [np.arange(segs.offsets[j], segs.offsets[j + 1], max(1, int(segs.n_points[j]) // d))
+                for j, d in zip(js.tolist(), pers, strict=True)]
         sel = np.concatenate(rows)
         placed = self._place(segs.points_body[sel], segs.times[sel])
         return np.split(placed, np.cumsum([r.size for r in rows])[:-1])

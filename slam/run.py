@@ -58,6 +58,7 @@ def bag_time_range(path: str | Path) -> tuple[float, float]:
 
 
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
+_PLACE_CHUNK = 4096  # cloud points per place_points call: its (m, 3, 3) temporaries stay in cache (~2x faster)
 
 
 def load_imu(bag: str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> ImuSamples | None:
@@ -158,7 +159,10 @@ def _cloud(
     bag: str | Path, rig: Rig, res: SlamResult, progress: bool
 ) -> tuple[FloatArray, NDArray[np.int32], FloatArray, NDArray[np.int32], SegmentLines]:
     """Second pass over the bag: every valid point in the world with the final trajectory,
-    and the associated segments' end points for display."""
+    and the associated segments' end points for display.
+
+    The points (body frame) of all scans are placed together, in chunks of ``_PLACE_CHUNK``
+    (``place_points`` gives every point the same numbers however the points are batched)."""
     names = res.scanner_names
     index = {n: i for i, n in enumerate(names)}
     T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
@@ -168,11 +172,12 @@ def _cloud(
     order = np.argsort(key, kind="stable")
     key_sorted = key[order]
     kt, T = res.knot_times, res.T_world_body
-    pts_all, sc_all, tm_all, pid_all = [], [], [], []
+    pb_all, sc_all, tm_all, pid_all = [], [], [], []
     seg_stamp: list[float] = []
-    seg_ends: list[FloatArray] = []
+    seg_ends: list[int] = []  # indices of the segments' first and last points in the cloud
     seg_pid: list[int] = []
     counters = [0] * len(names)
+    n_points = 0
     for line in tqdm(read_scans(bag, rig=rig), desc="cloud", disable=not progress, leave=False):
         s = index[line.scanner_id]
         si = counters[s]
@@ -186,7 +191,6 @@ def _cloud(
         p2 = line.points_xy[inside]
         p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
         p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
-        pw = place_points(kt, T, times[inside], p_b)
         beams = line.valid_index[inside]
         plane = np.full(beams.shape[0], -1, dtype=np.int32)
         k = s * (1 << 40) + si
@@ -197,20 +201,27 @@ def _cloud(
                 if m.size:
                     plane[m] = rows["plane_id"][r]
                     seg_stamp.append(line.stamp)
-                    seg_ends.append(pw[[m[0], m[-1]]])
+                    seg_ends.extend((n_points + int(m[0]), n_points + int(m[-1])))
                     seg_pid.append(int(rows["plane_id"][r]))
-        pts_all.append(pw)
-        sc_all.append(np.full(pw.shape[0], s, dtype=np.int32))
+        pb_all.append(p_b)
+        sc_all.append(np.full(p_b.shape[0], s, dtype=np.int32))
         tm_all.append(times[inside])
         pid_all.append(plane)
+        n_points += p_b.shape[0]
+    if not pb_all:
+        lines = SegmentLines(np.zeros(0), np.zeros((0, 2, 3)), np.zeros(0, np.int32))
+        return np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), lines
+    pb, tm = np.concatenate(pb_all), np.concatenate(tm_all)
+    pw = np.empty_like(pb)
+    for a in range(0, n_points, _PLACE_CHUNK):
+        b = min(a + _PLACE_CHUNK, n_points)
+        pw[a:b] = place_points(kt, T, tm[a:b], pb[a:b])
     lines = SegmentLines(
         np.asarray(seg_stamp, dtype=np.float64),
-        np.asarray(seg_ends, dtype=np.float64).reshape(-1, 2, 3),
+        pw[np.asarray(seg_ends, dtype=np.int64)].reshape(-1, 2, 3),
         np.asarray(seg_pid, dtype=np.int32),
     )
-    if not pts_all:
-        return np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), lines
-    return np.concatenate(pts_all), np.concatenate(sc_all), np.concatenate(tm_all), np.concatenate(pid_all), lines
+    return pw, np.concatenate(sc_all), tm, np.concatenate(pid_all), lines
 
 
 def _write_outputs(
