@@ -66,7 +66,7 @@ from slam.motion import (
 )
 from slam.placement import interval_poses
 from slam.plane_summary import plane_summary_factor, scatter, shift_anchor
-from slam.solver import damped_gauss_newton
+from slam.solver import Solution, solve
 
 FloatArray = NDArray[np.float64]
 
@@ -93,6 +93,9 @@ class BackendConfig:
         :meth:`Backend.batch_optimize` (graduated robustness: a redescending kernel at 3 sigma
         from an initial guess that is centimetres off would treat every point as an outlier).
     imu: IMU noise and mounting; None without an IMU.
+    coalesce_blocks: a block added on the (knot, plane, scanner) of a block not yet summarised
+        joins it (one factor instead of two: the per-factor cost dominates small blocks); the
+        returned block id is then the joint block's and the earlier id is gone.
     """
 
     kernel: RobustKernel = field(default_factory=RobustKernel)
@@ -111,6 +114,7 @@ class BackendConfig:
     lm_relative_tolerance: float = 1e-10
     robust_schedule: tuple[float, ...] = (30.0, 10.0, 3.0)
     imu: ImuConfig | None = None
+    coalesce_blocks: bool = False
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
@@ -191,6 +195,7 @@ class Backend:
         self._summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self._summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self._summarized_upto = 0  # blocks whose highest knot is below this are summarised
+        self._open_blocks: dict[tuple[int, int, int | None, bool], int] = {}  # coalesce_blocks
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike,
@@ -323,8 +328,18 @@ class Backend:
         point-to-plane sigmas (N,) or scalar [m]. Body frame at each beam time, or the scanner
         frame when ``scanner`` is given. Returns the block id."""
         block = self._make_block(knot, plane_id, points, alphas, sigmas, scanner)
+        key = (block.knot, block.plane_id, block.scanner, block.alphas is not None)
+        if self.config.coalesce_blocks and key in self._open_blocks:
+            old = self._blocks[self._open_blocks[key]]
+            block = ObservationBlock(
+                block.knot, block.plane_id, np.concatenate((old.points, block.points)),
+                None if block.alphas is None or old.alphas is None else np.concatenate((old.alphas, block.alphas)),
+                np.concatenate((old.sigmas, block.sigmas)), block.scanner)
+            self.remove_observations(self._open_blocks[key])
         bid = self._add_factor(self._block_factor(block))
         self._add_block(bid, block)
+        if self.config.coalesce_blocks and bid not in self._summarized:
+            self._open_blocks[key] = bid
         return bid
 
     def _add_block(self, bid: int, block: ObservationBlock) -> None:
@@ -351,6 +366,9 @@ class Backend:
         del self._blocks[block_id]
         del self._block_top[block_id]
         self._plane_blocks[blk.plane_id].discard(block_id)
+        key = (blk.knot, blk.plane_id, blk.scanner, blk.alphas is not None)
+        if self._open_blocks.get(key) == block_id:
+            del self._open_blocks[key]
         C = self._summarized.pop(block_id, None)
         if C is not None:
             self._summary[blk.plane_id] -= C
@@ -390,6 +408,7 @@ class Backend:
         moved = sorted(self._plane_blocks[drop])
         for bid in moved:
             old = self._blocks[bid]
+            self._open_blocks.pop((old.knot, drop, old.scanner, old.alphas is not None), None)
             new = ObservationBlock(old.knot, keep, old.points, old.alphas, old.sigmas, old.scanner)
             factor = self._block_factor(new)
             self._records[bid] = _Record(factor, tuple(int(k) for k in factor.keys()))
@@ -599,6 +618,9 @@ class Backend:
         C = scatter(x, a, robust_weights(e, self.config.kernel) / blk.sigmas**2)
         self._summarized[bid] = C
         self._summary[j] = self._summary.get(j, np.zeros((4, 4))) + C
+        key = (blk.knot, j, blk.scanner, blk.alphas is not None)
+        if self._open_blocks.get(key) == bid:
+            del self._open_blocks[key]
 
     def window_optimize(self, first_knot: int, max_iterations: int = 4) -> OptimizeSummary:
         """A fixed-lag step: solve (:meth:`_solve_batch`) for the knots from ``first_knot`` on
@@ -653,22 +675,28 @@ class Backend:
         for k in used:
             _copy_value(values, self._values, k)
         fixed = sorted(used - active)
-        e0 = graph.error(values)
-        values, it = self._solve_batch(graph, values, max_iterations, fixed=fixed)
+        sol = self._solve(graph, values, max_iterations, fixed=fixed)
         for k in active & used:
-            _copy_value(self._values, values, k, update=True)
+            _copy_value(self._values, sol.values, k, update=True)
         self._pending, self._pending_removals = [], []
         self._invalidate_isam()
-        return OptimizeSummary(float(e0), float(graph.error(values)), it, _time.perf_counter() - t0)
+        return OptimizeSummary(float(sol.initial_error), float(sol.final_error), sol.iterations,
+                               _time.perf_counter() - t0)
 
     def _solve_batch(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      max_iterations: int | None,
                      fixed: Sequence[int] = ()) -> tuple[gtsam.Values, int]:
-        """:func:`slam.solver.damped_gauss_newton` with the configured iterations and tolerance;
-        a failure of its Levenberg-Marquardt fallback is a ValueError naming the variable."""
+        """:meth:`_solve`'s values and iterations."""
+        sol = self._solve(graph, values, max_iterations, fixed)
+        return sol.values, sol.iterations
+
+    def _solve(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+               max_iterations: int | None, fixed: Sequence[int] = ()) -> Solution:
+        """:func:`slam.solver.solve` with the configured iterations and tolerance; a failure of
+        its Levenberg-Marquardt fallback is a ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
         try:
-            return damped_gauss_newton(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            return solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
         except RuntimeError as err2:
             raise ValueError(f"batch optimisation failed ({_name_keys(str(err2))}); is every "
                              "variable constrained by its factors?") from None

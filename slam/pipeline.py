@@ -219,6 +219,7 @@ class SlamRunner:
                 vertical_sigma=np.radians(be.vertical_prior_deg),
                 imu=self.imu_config,
                 use_motion_prior=imu is None or ic.motion_prior,
+                coalesce_blocks=be.solver == "window",
             )
         )
         self.dt = dt

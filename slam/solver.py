@@ -11,6 +11,7 @@ Shared by the SLAM back end and the calibration batch.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -19,16 +20,34 @@ DAMPING = 1e-2  # on the whitened Jacobian: 1e-4 on the Hessian's diagonal
 HOLD = 1e6  # "damping" of held variables: their steps stay at zero
 
 
+@dataclass(frozen=True)
+class Solution:
+    """A solve's result: the values, the iterations taken, the graph error before and after."""
+
+    values: gtsam.Values
+    iterations: int
+    initial_error: float
+    final_error: float
+
+
 def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
                         relative_tolerance: float, fixed: Sequence[int] = ()) -> tuple[gtsam.Values, int]:
-    """Solve from ``values``; returns the solution and the iterations taken. Stops when no step
-    lowers the error or the relative decrease falls below ``relative_tolerance``. Variables in
-    ``fixed`` (keys) are held at their values. A singular linear system falls back to gtsam's
-    Levenberg-Marquardt (without held variables), whose failure raises RuntimeError."""
+    """Solve from ``values``; returns the solution and the iterations taken (see :func:`solve`)."""
+    s = solve(graph, values, max_iterations, relative_tolerance, fixed)
+    return s.values, s.iterations
+
+
+def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
+          relative_tolerance: float, fixed: Sequence[int] = ()) -> Solution:
+    """Solve from ``values``. Stops when no step lowers the error or the relative decrease falls
+    below ``relative_tolerance``. Variables in ``fixed`` (keys) are held at their values. A
+    singular linear system falls back to gtsam's Levenberg-Marquardt (without held variables),
+    whose failure raises RuntimeError."""
     hold = {int(k) for k in fixed}
     damping = [(int(k), int(d), HOLD if int(k) in hold else DAMPING) for k, d in values.dims().items()]
+    err0 = err = float("nan")
     try:
-        err = graph.error(values)
+        err0 = err = graph.error(values)
         it = 0
         for it in range(1, max_iterations + 1):
             lin = graph.linearize(values)
@@ -43,12 +62,12 @@ def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                     break
                 step *= 0.5
             else:
-                return values, it  # no step lowers the error: converged
+                return Solution(values, it, err0, err)  # no step lowers the error: converged
             rel = (err - new_err) / max(err, 1e-300)
             values, err = trial, new_err
             if rel < relative_tolerance:
                 break
-        return values, it
+        return Solution(values, it, err0, err)
     except RuntimeError:
         pass
     params = gtsam.LevenbergMarquardtParams()
@@ -56,4 +75,5 @@ def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     params.setRelativeErrorTol(relative_tolerance)
     params.setAbsoluteErrorTol(0.0)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    return opt.optimize(), int(opt.iterations())
+    out = opt.optimize()
+    return Solution(out, int(opt.iterations()), err0 if err0 == err0 else graph.error(values), graph.error(out))

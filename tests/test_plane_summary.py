@@ -143,3 +143,26 @@ def test_summaries_follow_merges_and_removals() -> None:
     assert 77 not in be._summary
     be.batch_optimize(1)
     assert not be._summary and not be._summarized  # the held poses moved: summaries dropped
+
+
+def test_coalesced_blocks_cost_what_the_separate_blocks_cost() -> None:
+    scene = make_scene(duration=1.0, beams=61, sigma_range=0.003, seed=7)
+    rng = np.random.default_rng(8)
+    guesses = [T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG) for i, T in enumerate(scene.knot_poses)]
+    errors, counts = [], []
+    for coalesce in (False, True):
+        be = Backend(BackendConfig(coalesce_blocks=coalesce))
+        for t, T in zip(scene.knot_times, guesses, strict=True):
+            be.add_pose(t, T)
+        for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+            be.add_plane(j, n0, d0 + 0.01)
+        for blk in scene.blocks:  # each block handed over in two halves
+            h = blk["points_body"].shape[0] // 2
+            for sl in (slice(0, h), slice(h, None)):
+                if blk["points_body"][sl].shape[0]:
+                    al = None if blk["alphas"] is None else blk["alphas"][sl]
+                    be.add_observations(blk["knot"], blk["plane"], blk["points_body"][sl], al, blk["sigmas"][sl])
+        errors.append(be.error())
+        counts.append(len(be._blocks))
+    assert counts[1] <= len(scene.blocks) < counts[0]
+    assert abs(errors[0] - errors[1]) <= 1e-9 * errors[0]
