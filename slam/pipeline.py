@@ -55,6 +55,7 @@ from slam.frontend.edges import (
     is_flat,
     steep_enough,
     step_of,
+    surface_end,
 )
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.frontend.plane_init import (
@@ -623,7 +624,12 @@ class SlamRunner:
             if ep.point == "bracket":
                 j_high = lo if higher_is_lo else hi
                 k_end = int(segs.last_beam[lo]) if higher_is_lo else int(segs.first_beam[hi])
-                k_next = k_end + 1 if higher_is_lo else k_end - 1
+                direction = 1 if higher_is_lo else -1
+                # half the step: a return on the lower surface stays off the higher one's line
+                tol = min(3.0 * self._range_sigma[segs.scanner], 0.5 * abs(0.5 * (s1 + s2)))
+                k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
+                                    segs.line_centroid[j_high], segs.line_direction[j_high], tol)
+                k_next = k_end + direction
                 if not 0 <= k_next < segs.beam_angles.shape[0]:
                     continue
                 got = bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]),

@@ -17,6 +17,7 @@ from slam.frontend.edges import (
     ray_on_line,
     steep_enough,
     step_of,
+    surface_end,
 )
 
 WALL_N = np.array([0.0, 1.0, 0.0])  # a wall y = 0 facing +y; along it: x
@@ -180,3 +181,19 @@ def test_bracket_point_is_unbiased_where_the_last_sample_is_not() -> None:
     half = 0.5 * float(np.mean(spacings))
     assert abs(float(np.mean(err_bracket))) < 0.1 * half
     assert abs(float(np.mean(err_last)) + half) < 0.1 * half
+
+
+def test_surface_end_walks_over_beams_still_on_the_surface() -> None:
+    """A board y = 1 (scanner frame) ending at x = 1.2, a wall 5 mm behind it: a segment that
+    stopped three beams short of the board's edge is extended to its last beam, not onto the wall."""
+    angles = np.radians(np.arange(90.0, 30.0, -0.25))
+    x_edge = 1.2
+    hit_board = 1.0 / np.tan(angles) <= x_edge
+    ranges = np.where(hit_board, 1.0 / np.sin(angles), 1.005 / np.sin(angles))
+    valid = np.ones(angles.size, dtype=bool)
+    last_board = int(np.flatnonzero(hit_board)[-1])
+    c, u = np.array([0.5, 1.0]), np.array([1.0, 0.0])
+    assert surface_end(last_board - 3, 1, angles, ranges, valid, c, u, 0.0025) == last_board
+    assert surface_end(last_board - 3, 1, angles, ranges, valid, c, u, 0.0025, max_beams=2) == last_board - 1
+    valid[last_board - 1] = False  # an invalid return ends the walk
+    assert surface_end(last_board - 3, 1, angles, ranges, valid, c, u, 0.0025) == last_board - 2

@@ -158,6 +158,25 @@ def ray_on_line(angle: float, centroid: FloatArray, direction: FloatArray) -> Fl
     return None if lam <= 0.0 else lam * r
 
 
+def surface_end(k_end: int, step: int, angles: FloatArray, ranges: FloatArray, valid: NDArray[np.bool_],
+                centroid: FloatArray, direction: FloatArray, tolerance: float, max_beams: int = 8) -> int:
+    """The last beam, from ``k_end`` on in direction ``step`` (+1 / -1), whose return still lies
+    on the surface's fitted 2D line (scanner frame) within ``tolerance`` (m): a segmenter may stop
+    a few beams short of the surface's edge (its windows, a mixed pixel), and a beam that still
+    hits the surface must not be taken for the first one past the edge. At most ``max_beams``."""
+    normal = np.array([-direction[1], direction[0]])
+    k = k_end
+    for _ in range(max_beams):
+        j = k + step
+        if not 0 <= j < angles.shape[0] or not valid[j]:
+            break
+        p = ranges[j] * np.array([np.cos(angles[j]), np.sin(angles[j])])
+        if abs(float(normal @ (p - centroid))) > tolerance:
+            break
+        k = j
+    return k
+
+
 def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
                   direction: FloatArray) -> tuple[FloatArray, float] | None:
     """The edge of a surface (its fitted 2D line, scanner frame) whose last beam is ``angle_end``

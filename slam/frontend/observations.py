@@ -40,7 +40,8 @@ class ScanSegments:
     of one virtual point's distance (m): point noise / sqrt(n / 2).
     ``points_body``/``times`` hold every point, ``offsets`` (k + 1,) slice them.
     ``line_centroid``/``line_direction`` (k, 2) are each segment's fitted line in the scanner
-    frame, ``beam_angles`` every beam's angle (rad, scanner frame, invalid beams included).
+    frame, ``beam_angles`` every beam's angle (rad, scanner frame, invalid beams included),
+    ``beam_ranges`` its range (m) and ``beam_valid`` whether it is a valid return.
     """
 
     scanner: int
@@ -60,6 +61,8 @@ class ScanSegments:
     line_centroid: FloatArray
     line_direction: FloatArray
     beam_angles: FloatArray
+    beam_ranges: FloatArray
+    beam_valid: NDArray[np.bool_]
 
     @property
     def n_segments(self) -> int:
@@ -135,4 +138,6 @@ def scan_segments(
         line_centroid=np.asarray(c2, dtype=np.float64),
         line_direction=np.asarray(u2, dtype=np.float64),
         beam_angles=line.angles,
+        beam_ranges=line.ranges,
+        beam_valid=line.valid,
     )
