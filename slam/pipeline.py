@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 import segmentation
 from backpack_slam.rig import Rig
 from segmentation import Scanline
+from slam import frontend_kernels as fk
 from slam.backend import Backend, BackendConfig
 from slam.config import SlamConfig
 from slam.factors import RobustKernel
@@ -76,7 +77,7 @@ from slam.frontend.planemap import (
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.interpolation import interpolate_poses, so3_exp, so3_log
+from slam.interpolation import so3_exp
 from slam.motion import ImuConfig, MotionPriorConfig
 
 FloatArray = NDArray[np.float64]
@@ -315,26 +316,23 @@ class SlamRunner:
         return T
 
     def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
+        """Knot interval index and fraction (m,) of each time (m,) on the current knots, clipped
+        to the first and the last interval."""
         assert self.t0 is not None
-        x = (times - self.t0) / self.dt
-        idx = np.clip(np.floor(x).astype(np.int64), 0, max(self._n_knots - 2, 0))
-        return idx, np.clip(x - idx, 0.0, 1.0)
+        return fk.uniform_fractions(self.t0, self.dt, self._n_knots, np.ascontiguousarray(times, dtype=np.float64))
 
     def _pose_at(self, t: float) -> FloatArray:
-        idx, alpha = self._fractions(np.array([t]))
-        return interpolate_poses(self._T[idx[0]], self._T[idx[0] + 1], alpha[0])
+        """``T_world_body`` (4, 4) at time ``t`` with the current knots (compiled, one call)."""
+        assert self.t0 is not None
+        return fk.pose_uniform(self._T, self.t0, self.dt, self._n_knots, float(t))
 
     def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
-        """Points (m, 3) body frame at their times -> world frame with the current knots."""
-        idx, alpha = self._fractions(times)
-        # one rotation vector per knot interval involved (few), one exponential per point
-        uniq, inv = np.unique(idx, return_inverse=True)
-        R0 = self._T[uniq, :3, :3]
-        phi = so3_log(np.swapaxes(R0, 1, 2) @ self._T[uniq + 1, :3, :3])
-        R = self._T[idx, :3, :3] @ so3_exp(alpha[:, None] * phi[inv])
-        p0 = self._T[idx, :3, 3]
-        t = p0 + alpha[:, None] * (self._T[idx + 1, :3, 3] - p0)
-        return np.einsum("mij,mj->mi", R, points_body) + t
+        """Points (m, 3) body frame at their times (m,) -> world frame with the current knots:
+        one compiled pass, one rotation logarithm per run of equal knot intervals."""
+        assert self.t0 is not None
+        return fk.place_uniform(self._T, self.t0, self.dt, self._n_knots,
+                                np.ascontiguousarray(times, dtype=np.float64),
+                                np.ascontiguousarray(points_body, dtype=np.float64))
 
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:

@@ -10,11 +10,12 @@ from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_win
 from slam.interpolation import (
     interpolate_poses,
     interpolate_trajectory,
+    knot_fractions,
     se3_exp,
     se3_inverse,
     se3_log,
 )
-from slam.placement import place_points
+from slam.placement import interval_poses, place_points
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -152,9 +153,10 @@ def _refine_window_loops(T_knots: np.ndarray, knot_index: np.ndarray, alphas: np
     return np.array([orthonormalize(t) for t in T])
 
 
-def test_refine_window_matches_the_per_knot_loops_to_the_last_bit() -> None:
-    """The batched logarithms and block updates of refine_window add the same terms in the same
-    order as the per-knot loops they replaced: identical windows, with either motion prior."""
+def test_refine_window_matches_the_per_knot_loops() -> None:
+    """The compiled normal equations, batched logarithms and block updates of refine_window add
+    the same terms as the dense Jacobian and per-knot loops they replaced (in another order):
+    the same windows to rounding (1e-12 m / rad), with either motion prior."""
     rng = np.random.default_rng(7)
     W, m = 7, 300
     T = np.repeat(np.eye(4)[None], W, axis=0)
@@ -174,7 +176,8 @@ def test_refine_window_matches_the_per_knot_loops_to_the_last_bit() -> None:
             np.array([0.006] * 3 + [0.002] * 3))
     inc = np.array([np.radians(0.05)] * 3 + [0.001] * 3)
     for kw in ({}, {"increment_sigmas": inc}, {"increment_sigmas": inc, "degenerate_ratio": 0.5}):
-        np.testing.assert_array_equal(refine_window(T, *args, **kw), _refine_window_loops(T, *args, **kw))  # type: ignore[arg-type]
+        np.testing.assert_allclose(refine_window(T, *args, **kw), _refine_window_loops(T, *args, **kw),  # type: ignore[arg-type]
+                                   rtol=0.0, atol=1e-12)
 
 
 def test_extending_a_plane_adds_each_cell_once() -> None:
@@ -189,8 +192,8 @@ def test_extending_a_plane_adds_each_cell_once() -> None:
 
 
 def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> None:
-    """slam.placement takes one rotation logarithm per knot interval: the same world points as
-    interpolate_trajectory's pose per point, to the last bit."""
+    """slam.placement takes one rotation logarithm per knot interval (compiled): the same world
+    points and poses as interpolate_trajectory's pose per point, to rounding (1e-12 m)."""
     rng = np.random.default_rng(5)
     kt = 10.0 + 0.05 * np.arange(12)
     T = np.array([se3_exp(np.concatenate((rng.normal(0.0, 0.3, 3), rng.normal(0.0, 1.0, 3)))) for _ in kt])
@@ -199,4 +202,10 @@ def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> No
     pts = rng.uniform(-5.0, 5.0, (500, 3))
     Tw = interpolate_trajectory(kt, T, times)
     expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
-    np.testing.assert_array_equal(place_points(kt, T, times, pts), expected)
+    np.testing.assert_allclose(place_points(kt, T, times, pts), expected, rtol=0.0, atol=1e-12)
+    idx, alpha = knot_fractions(kt, times)
+    R, t = interval_poses(T, idx, alpha)
+    np.testing.assert_allclose(R, Tw[:, :3, :3], rtol=0.0, atol=1e-14)
+    np.testing.assert_allclose(t, Tw[:, :3, 3], rtol=0.0, atol=1e-12)
+    # a point's world position does not depend on the batch it is placed with
+    np.testing.assert_array_equal(place_points(kt, T, times[7:9], pts[7:9]), place_points(kt, T, times, pts)[7:9])

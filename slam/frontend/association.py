@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slam import frontend_kernels as fk
 from slam.frontend.planemap import PlaneMap
 
 FloatArray = NDArray[np.float64]
@@ -92,52 +93,50 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
 
 
 def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
-    """Plane id per segment, or -1 (no candidate, or ambiguous)."""
+    """Plane id per segment, or -1 (no candidate, or ambiguous).
+
+    The per-pair gates (angle and distance, end points, facing side) and every pair's extent
+    cells are computed in one compiled pass (``slam.frontend_kernels.association_gates``); the
+    extents (Python sets of cells) are then tested only for the pairs under the gates.
+    """
     out = np.full(segs.n, -1, dtype=np.int64)
     active = [p for p in pmap.planes if p.active]
     if not active or segs.n == 0:
         return out
-    # the active planes' arrays in one pass over the map (world frame)
-    ids = np.array([p.id for p in active], dtype=np.int64)
-    normals = np.array([p.normal for p in active])
-    offs = np.array([p.d for p in active])
-    sig_plane = np.array([p.sigma_offset for p in active])
-    since = np.array([odometer - p.last_seen_odometer for p in active])
+    # the active planes' arrays in one pass over the map (world frame): normal, offset, offset
+    # sigma, odometer when last seen, in-plane axes u and v
+    ids = [p.id for p in active]
+    rows = np.array([(*p.normal, p.d, p.sigma_offset, p.last_seen_odometer, *p.u, *p.v) for p in active])
+    normals = np.ascontiguousarray(rows[:, 0:3])
+    since = odometer - rows[:, 5]
     sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
-    dist_c = segs.centroid @ normals.T + offs  # (k, P)
-    sin_a = np.abs(segs.direction @ normals.T)
-    # a rotation error of the pose moves a segment by its range times the angle (lever arm)
-    lever = (gates.sigma_lever * segs.range) ** 2
-    sig_d2 = (
-        segs.sigma_centroid[:, None] ** 2 + sig_plane[None] ** 2 + gates.sigma_pose**2 + lever[:, None] + sig_drift[None] ** 2
+    ok, m2, dist_c, sig_d2, cells = fk.association_gates(
+        segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
+        segs.origin, normals, np.ascontiguousarray(rows[:, 3]), np.ascontiguousarray(rows[:, 4]), sig_drift,
+        np.ascontiguousarray(rows[:, 6:9]), np.ascontiguousarray(rows[:, 9:12]), float(pmap.cell_size),
+        float(gates.sigma_pose), float(gates.sigma_rotation), float(gates.sigma_lever),
+        float(gates.max_endpoint_distance), float(gates.chi2),
     )
-    sig_a2 = segs.sigma_direction[:, None] ** 2 + gates.sigma_rotation**2 + (sig_drift[None] / 5.0) ** 2
-    m2 = dist_c**2 / sig_d2 + sin_a**2 / sig_a2
-    e0 = np.abs(segs.endpoints[:, 0] @ normals.T + offs)
-    e1 = np.abs(segs.endpoints[:, 1] @ normals.T + offs)
-    cap = gates.max_endpoint_distance + 3.0 * sig_drift[None] + 3.0 * gates.sigma_lever * segs.range[:, None]
-    # map normals face the side they were seen from: the scanner must be on that side (this
-    # keeps the two faces of a thin wall apart)
-    facing = (normals @ segs.origin + offs) > 0.0
-    ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap) & facing[None, :]
+    hit = np.flatnonzero(ok.any(axis=1))
+    if hit.size == 0:
+        return out
     cell = pmap.cell_size
     # per plane: the extent margin grown with the drift since it was seen (cells)
     dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
-    # per segment: its two end points and centroid (world frame), tested against the extents
-    seg_pts = np.concatenate((segs.endpoints, segs.centroid[:, None]), axis=1)
-    for k in np.flatnonzero(ok.any(axis=1)):
+    same_normal = float(np.cos(np.radians(2.0)))
+    for k in hit.tolist():
         cand = np.flatnonzero(ok[k])
         if cand.size > 1:
             cand = cand[np.argsort(m2[k, cand])]
-        pts = seg_pts[k]
-        passing = [j for j in cand.tolist() if pmap.overlaps(int(ids[j]), pts, dilate[j])]
+        # the segment's two end points and centroid (world frame) against the extents
+        passing = [j for j in cand.tolist() if pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j])]
         if not passing:
             continue
         best = passing[0]
         ambiguous = False
         for j in passing[1:]:
             # same surface seen twice (a duplicate awaiting merge) is not ambiguity
-            same = (normals[best] @ normals[j] > np.cos(np.radians(2.0))) and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best])
+            same = (float(normals[best] @ normals[j]) > same_normal) and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best])
             if not same:
                 ambiguous = True
                 break

@@ -110,15 +110,23 @@ class PlaneMap:
         self.planes[pid].cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
 
     def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
-        """Whether any of the points' cells is within ``dilate`` cells of the plane's extent."""
+        """Whether any of the points' (m, 3), world frame, cells is within ``dilate`` cells of the
+        plane's extent."""
+        if not self.planes[pid].cells:
+            return False
+        return self.overlaps_cells(pid, self.cells_of(pid, points_world).tolist(), dilate)
+
+    def overlaps_cells(self, pid: int, cells: list[list[int]], dilate: int) -> bool:
+        """Whether any of the cells ``[[cu, cv], ...]`` (the plane's (u, v) frame, as
+        ``cells_of``) is within ``dilate`` cells of the plane's extent."""
         ext = self.planes[pid].cells
         if not ext:
             return False
-        cells = set(map(tuple, self.cells_of(pid, points_world).tolist()))
-        if not cells.isdisjoint(ext):  # the usual answer: a point inside the extent itself
+        own = {(cu, cv) for cu, cv in cells}
+        if not own.isdisjoint(ext):  # the usual answer: a point inside the extent itself
             return True
         r = range(-dilate, dilate + 1)
-        for cu, cv in cells:
+        for cu, cv in own:
             for du in r:
                 u = cu + du
                 for dv in r:

@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from slam import frontend_kernels as fk
 from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
-from slam.placement import interval_poses
 
 FloatArray = NDArray[np.float64]
 
@@ -116,67 +116,28 @@ def refine_window(
     corridor, would slide the window along it by decimetres. Right perturbations; the Jacobians use the first-order split
     ``(1 - alpha, alpha)`` of an interpolated pose's perturbation, exact
     enough for the few-centimetre corrections tracking makes.
+
+    The iterations run in one compiled call (``slam.frontend_kernels.refine_window``), with the
+    numbers of the numpy formulation (dense Jacobian, ``slam.interpolation``'s batched
+    logarithms, :func:`freeze_unobserved`) to rounding.
     """
-    W = T_knots.shape[0]
-    T = T_knots.copy()
-    w_first = 1.0 / first_prior_sigmas**2
-    w_cv = 1.0 / cv_sigmas**2
-    T_given = T.copy()
-    w_stay = 1.0 / (stay_sigmas if stay_sigmas is not None else np.array([np.radians(1.0)] * 3 + [0.03] * 3)) ** 2
-    n = 6 * W
-    m = points_body.shape[0]
-    # fixed over the iterations: the Jacobian's sparsity, the given poses' inverses, the priors
-    rows = np.arange(m)[:, None]
-    cols = 6 * knot_index[:, None] + np.arange(6)[None, :]
-    split_a, split_b = (1.0 - alphas)[:, None], alphas[:, None]
-    T_given_inv = se3_inverse(T_given)
-    given_increment_inv = se3_inverse(T_given_inv[:-1] @ T_given[1:])
-    later = np.arange(1, W)
-    for _ in range(iterations):
-        R, t = interval_poses(T, knot_index, alphas)  # one rotation logarithm per knot interval
-        pw = np.einsum("mij,mj->mi", R, points_body) + t
-        r = (np.einsum("mi,mi->m", normals, pw) + offsets) / sigmas
-        Rtn = np.einsum("mji,mj->mi", R, normals)
-        g = np.concatenate((np.cross(points_body, Rtn), Rtn), axis=1) / sigmas[:, None]
-        a = np.abs(r)
-        w = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
-        J = np.zeros((m, n))
-        J[rows, cols] = g * split_a
-        J[rows, cols + 6] = g * split_b
-        Jw = J * w[:, None]
-        A = Jw.T @ J
-        b = Jw.T @ r
-        # 6x6 block views: A4[i, :, j, :] is the block of knots (i, j), b6[i] knot i's gradient
-        A4 = A.reshape(W, 6, W, 6)
-        b6 = b.reshape(W, 6)
-        # one batched logarithm: every knot against its given pose (the first one against its
-        # prior), then with an IMU every interval against the given one
-        rel = T_given_inv @ T
-        if increment_sigmas is not None:
-            rel = np.concatenate((rel, given_increment_inv @ (se3_inverse(T[:-1]) @ T[1:])))
-        logs = se3_log(rel)
-        A4[later, :, later, :] += np.diag(w_stay)
-        b6[1:] += w_stay * logs[1:W]
-        if degenerate_ratio is not None:
-            freeze_unobserved(A, b, T, T_given, normals, w / sigmas**2, degenerate_ratio, freeze_sigma)
-        A[:6, :6] += np.diag(w_first)
-        b[:6] += w_first * logs[0]
-        if increment_sigmas is not None:
-            # each interval's relative pose held to the given one: d e / d delta_k ~ I,
-            # d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
-            _motion_prior(A4, b6, logs[W:], (-1.0, 1.0), 1.0 / increment_sigmas**2)
-        elif W > 2:
-            # constant velocity: the change of the body twist between consecutive intervals
-            twist = se3_log(se3_inverse(T[:-1]) @ T[1:])
-            _motion_prior(A4, b6, twist[1:] - twist[:-1], (1.0, -2.0, 1.0), w_cv)
-        try:
-            delta = -np.linalg.solve(A + 1e-9 * np.eye(n), b)
-        except np.linalg.LinAlgError:
-            break
-        T = T @ se3_exp(delta.reshape(W, 6))
-        if np.abs(delta).max() < 1e-7:
-            break
-    return np.array([orthonormalize(t) for t in T])
+    stay = stay_sigmas if stay_sigmas is not None else np.array([np.radians(1.0)] * 3 + [0.03] * 3)
+    motion = increment_sigmas if increment_sigmas is not None else cv_sigmas
+
+    def f64(x: FloatArray) -> FloatArray:
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    return fk.refine_window(
+        f64(T_knots), np.ascontiguousarray(knot_index, dtype=np.int64), f64(alphas), f64(points_body), f64(normals),
+        f64(offsets), f64(sigmas),
+        f64(1.0 / first_prior_sigmas**2), f64(1.0 / stay**2), f64(1.0 / motion**2),
+        increment_sigmas is not None,
+        degenerate_ratio is not None,
+        -1.0 if degenerate_ratio is None else float(degenerate_ratio),
+        float(freeze_sigma),
+        int(iterations),
+        float(huber_k),
+    )
 
 
 def freeze_unobserved(A: FloatArray, b: FloatArray, T: FloatArray, T_given: FloatArray, normals: FloatArray,
@@ -187,7 +148,8 @@ def freeze_unobserved(A: FloatArray, b: FloatArray, T: FloatArray, T_given: Floa
     ``T``, ``T_given`` (W, 4, 4) are the current and the given knots (world frame), ``normals``
     (m, 3) the points' plane normals (world frame) with their weights ``info`` (m,), 1/m^2. The
     directions are the eigenvectors of ``sum info n n^T`` whose eigenvalue is below ``ratio``
-    of the largest; each knot gets a prior of ``freeze_sigma`` (m) along them.
+    of the largest; each knot gets a prior of ``freeze_sigma`` (m) along them. (The numpy
+    formulation of the step that ``slam.frontend_kernels.refine_window`` takes compiled.)
     """
     M = (normals * info[:, None]).T @ normals
     lam, vec = np.linalg.eigh(M)
@@ -198,22 +160,3 @@ def freeze_unobserved(A: FloatArray, b: FloatArray, T: FloatArray, T_given: Floa
             sl = slice(6 * k + 3, 6 * k + 6)
             A[sl, sl] += np.outer(db, db) / freeze_sigma**2
             b[sl] += db * float(dw @ (T[k, :3, 3] - T_given[k, :3, 3])) / freeze_sigma**2
-
-
-def _motion_prior(A4: FloatArray, b6: FloatArray, e: FloatArray, coefs: tuple[float, ...], wt: FloatArray) -> None:
-    """Add the Gauss-Newton terms of the motion prior residuals ``e`` (q, 6) in place.
-
-    Residual ``l`` involves the knots ``l, l + 1, ...`` (one per coefficient) with the
-    perturbation coefficients ``coefs`` and the diagonal weight ``wt`` (6,). ``A4`` (W, 6, W, 6)
-    and ``b6`` (W, 6) are block views of the normal equations. Every element receives its terms
-    in the order of increasing ``l`` (that of a loop over the residuals), so the sums are the
-    same to the last bit.
-    """
-    q = e.shape[0]
-    first = np.arange(q)
-    D = np.diag(wt)
-    # residual l reaches knot l + i; for a fixed knot, larger i means an earlier residual
-    for i in reversed(range(len(coefs))):
-        b6[i : i + q] += (coefs[i] * wt) * e
-        for j in range(len(coefs)):
-            A4[first + i, :, first + j, :] += (coefs[i] * coefs[j]) * D

@@ -1,0 +1,542 @@
+"""Compiled (numba) kernels of the front end's per-point arithmetic.
+
+Placing body points in the world with the knot trajectory (``slam.placement``, the pipeline's
+``_place`` / ``_pose_at``) and the normal equations of tracking's window
+(``slam.frontend.tracking.refine_window``) are a few dozen flops per point, for which numpy's
+per-call overhead (tens of small array operations per call, thousands of calls per scan) was
+most of the cost. These loops compute the same formulas as the numpy functions of
+:mod:`slam.interpolation` in one pass over the points; they agree with them to rounding
+(~1e-15 relative, tested in tests/test_frontend.py), not to the last bit, since sums are
+taken in another order. They are deterministic: the same input gives the same output.
+
+Between knots ``T_i`` and ``T_i+1`` (``T_world_body``, (K, 4, 4)) the rotation follows the
+geodesic and the position the straight line (``slam.interpolation.interpolate_poses``)::
+
+    R(alpha) = R_i Exp(alpha Log(R_i^T R_i+1)),   p(alpha) = p_i + alpha (p_i+1 - p_i).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_SERIES_MAX = 0.5  # rad, as slam.interpolation.exp_coefficients: power series below, closed forms above
+_LOG_SMALL = 1e-4  # rad, as slam.interpolation.so3_log: Taylor series of theta / (2 sin theta) below
+_NEAR_PI = math.pi - 0.1  # rad, above this so3_log takes the quaternion route
+
+
+@nb.njit(cache=True)
+def exp_ab(t: float) -> tuple[float, float]:
+    """``A = sin t / t`` and ``B = (1 - cos t) / t^2`` at an angle ``t`` >= 0 (rad): the first two
+    coefficients of ``slam.interpolation.exp_coefficients`` (seven-term series in ``t^2`` below
+    0.5 rad, closed forms above)."""
+    if t >= _SERIES_MAX:
+        return math.sin(t) / t, (1.0 - math.cos(t)) / (t * t)
+    x = t * t
+    # Horner form of sum_k (-1)^k x^k / (2k+1)!  and  sum_k (-1)^k x^k / (2k+2)!, k = 0..6
+    a = 1.0 + x * (-1.0 / 6.0 + x * (1.0 / 120.0 + x * (-1.0 / 5040.0 + x * (1.0 / 362880.0 + x * (
+        -1.0 / 39916800.0 + x * (1.0 / 6227020800.0))))))
+    b = 0.5 + x * (-1.0 / 24.0 + x * (1.0 / 720.0 + x * (-1.0 / 40320.0 + x * (1.0 / 3628800.0 + x * (
+        -1.0 / 479001600.0 + x * (1.0 / 87178291200.0))))))
+    return a, b
+
+
+@nb.njit(cache=True)
+def _quaternion_log(R: FloatArray, out: FloatArray) -> None:
+    """``Log(R)`` into ``out`` (3,) through the unit quaternion (Markley's choice of the largest
+    diagonal term, then ``2 atan2(|v|, w)``): scipy's ``Rotation.from_matrix(R).as_rotvec()``,
+    exact near pi where the closed form of :func:`so3_log_into` loses precision."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    q = np.empty(4)
+    i = 0
+    best = R[0, 0]
+    for c in range(1, 3):
+        if R[c, c] > best:
+            best, i = R[c, c], c
+    if tr > best:
+        q[0] = R[2, 1] - R[1, 2]
+        q[1] = R[0, 2] - R[2, 0]
+        q[2] = R[1, 0] - R[0, 1]
+        q[3] = 1.0 + tr
+    else:
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[i] = 1.0 - tr + 2.0 * R[i, i]
+        q[j] = R[j, i] + R[i, j]
+        q[k] = R[k, i] + R[i, k]
+        q[3] = R[k, j] - R[j, k]
+    nq = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    s = 1.0 / nq if q[3] >= 0.0 else -1.0 / nq
+    x, y, z, w = q[0] * s, q[1] * s, q[2] * s, q[3] * s
+    nv = math.sqrt(x * x + y * y + z * z)
+    angle = 2.0 * math.atan2(nv, w)
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
+    else:
+        scale = angle / math.sin(angle / 2.0)
+    out[0], out[1], out[2] = scale * x, scale * y, scale * z
+
+
+@nb.njit(cache=True)
+def so3_log_into(R: FloatArray, out: FloatArray) -> None:
+    """Rotation vector ``Log(R)`` (3,) of a rotation matrix (3, 3) into ``out``: the formulas of
+    ``slam.interpolation.so3_log`` (closed form, Taylor series below 1e-4 rad, quaternion route
+    within 0.1 rad of pi)."""
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    theta = math.acos(min(1.0, max(-1.0, c)))
+    if theta > _NEAR_PI:
+        _quaternion_log(R, out)
+        return
+    if theta < _LOG_SMALL:
+        f = 0.5 + theta * theta / 12.0
+    else:
+        f = theta / (2.0 * math.sin(theta))
+    out[0] = f * (R[2, 1] - R[1, 2])
+    out[1] = f * (R[0, 2] - R[2, 0])
+    out[2] = f * (R[1, 0] - R[0, 1])
+
+
+@nb.njit(cache=True)
+def interval_logs(T: FloatArray, lo: int, hi: int) -> FloatArray:
+    """Rotation vectors ``Log(R_i^T R_i+1)`` (hi - lo, 3) of the knot intervals ``lo <= i < hi``
+    of the knots ``T`` (K, 4, 4), body frame of knot ``i``."""
+    out = np.empty((max(hi - lo, 0), 3))
+    D = np.empty((3, 3))
+    for i in range(lo, hi):
+        for r in range(3):
+            for c in range(3):
+                D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
+        so3_log_into(D, out[i - lo])
+    return out
+
+
+@nb.njit(cache=True)
+def _exp_into(vx: float, vy: float, vz: float, E: FloatArray) -> None:
+    """``Exp(v)`` (3, 3) of the rotation vector ``v`` into ``E``: ``I + A [v]x + B [v]x^2``."""
+    a, b = exp_ab(math.sqrt(vx * vx + vy * vy + vz * vz))
+    xx, yy, zz = vx * vx, vy * vy, vz * vz
+    E[0, 0] = 1.0 - b * (yy + zz)
+    E[1, 1] = 1.0 - b * (xx + zz)
+    E[2, 2] = 1.0 - b * (xx + yy)
+    bxy, bxz, byz = b * vx * vy, b * vx * vz, b * vy * vz
+    E[0, 1] = bxy - a * vz
+    E[1, 0] = bxy + a * vz
+    E[0, 2] = bxz + a * vy
+    E[2, 0] = bxz - a * vy
+    E[1, 2] = byz - a * vx
+    E[2, 1] = byz + a * vx
+
+
+@nb.njit(cache=True)
+def _interpolated_into(T: FloatArray, i: int, a: float, phi: FloatArray, E: FloatArray,
+                       R: FloatArray, t: FloatArray) -> None:
+    """Rotation ``R`` (3, 3) and position ``t`` (3,) of ``T_world_body`` a fraction ``a`` of the way
+    from knot ``i`` to ``i + 1`` of ``T`` (K, 4, 4), with the interval's rotation vector ``phi``
+    (3,); ``E`` (3, 3) is scratch."""
+    _exp_into(a * phi[0], a * phi[1], a * phi[2], E)
+    for r in range(3):
+        r0, r1, r2 = T[i, r, 0], T[i, r, 1], T[i, r, 2]
+        for c in range(3):
+            R[r, c] = r0 * E[0, c] + r1 * E[1, c] + r2 * E[2, c]
+        p0 = T[i, r, 3]
+        t[r] = p0 + a * (T[i + 1, r, 3] - p0)
+
+
+@nb.njit(cache=True)
+def interval_poses(T: FloatArray, idx: IntArray, alpha: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotations (m, 3, 3) and positions (m, 3) of ``T_world_body`` at the fractions ``alpha`` (m,)
+    of the knot intervals ``idx`` (m,) of the knots ``T`` (K, 4, 4); one rotation logarithm per
+    run of equal intervals."""
+    m = idx.shape[0]
+    R = np.empty((m, 3, 3))
+    t = np.empty((m, 3))
+    phi = np.empty(3)
+    E = np.empty((3, 3))
+    D = np.empty((3, 3))
+    last = -1
+    for k in range(m):
+        i = idx[k]
+        if i != last:
+            for r in range(3):
+                for c in range(3):
+                    D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
+            so3_log_into(D, phi)
+            last = i
+        _interpolated_into(T, i, alpha[k], phi, E, R[k], t[k])
+    return R, t
+
+
+@nb.njit(cache=True)
+def place(T: FloatArray, idx: IntArray, alpha: FloatArray, points_body: FloatArray) -> FloatArray:
+    """World points (m, 3) of body points (m, 3) seen at the fractions ``alpha`` (m,) of the knot
+    intervals ``idx`` (m,) of the knots ``T`` (K, 4, 4): ``R(alpha) p + t(alpha)``, with one
+    rotation logarithm per run of equal intervals and the exponential applied to the point
+    (Rodrigues) instead of built as a matrix."""
+    m = idx.shape[0]
+    out = np.empty((m, 3))
+    phi = np.empty(3)
+    D = np.empty((3, 3))
+    last = -1
+    for k in range(m):
+        i = idx[k]
+        if i != last:
+            for r in range(3):
+                for c in range(3):
+                    D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
+            so3_log_into(D, phi)
+            last = i
+        a = alpha[k]
+        vx, vy, vz = a * phi[0], a * phi[1], a * phi[2]
+        A, B = exp_ab(math.sqrt(vx * vx + vy * vy + vz * vz))
+        px, py, pz = points_body[k, 0], points_body[k, 1], points_body[k, 2]
+        # Exp(v) p = p + A v x p + B v x (v x p)
+        cx, cy, cz = vy * pz - vz * py, vz * px - vx * pz, vx * py - vy * px
+        qx = px + A * cx + B * (vy * cz - vz * cy)
+        qy = py + A * cy + B * (vz * cx - vx * cz)
+        qz = pz + A * cz + B * (vx * cy - vy * cx)
+        for r in range(3):
+            p0 = T[i, r, 3]
+            out[k, r] = T[i, r, 0] * qx + T[i, r, 1] * qy + T[i, r, 2] * qz + (p0 + a * (T[i + 1, r, 3] - p0))
+    return out
+
+
+@nb.njit(cache=True)
+def uniform_fractions(t0: float, dt: float, n_knots: int, times: FloatArray) -> tuple[IntArray, FloatArray]:
+    """Interval index and fraction (m,) of each time (m,) on knots ``t0 + k dt`` (``n_knots`` of
+    them), clipped to the first and the last interval: the pipeline's ``_fractions``."""
+    m = times.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    alpha = np.empty(m)
+    top = max(n_knots - 2, 0)
+    for k in range(m):
+        x = (times[k] - t0) / dt
+        i = min(max(int(np.floor(x)), 0), top)
+        idx[k] = i
+        alpha[k] = min(max(x - i, 0.0), 1.0)
+    return idx, alpha
+
+
+@nb.njit(cache=True)
+def place_uniform(T: FloatArray, t0: float, dt: float, n_knots: int, times: FloatArray,
+                  points_body: FloatArray) -> FloatArray:
+    """World points (m, 3) of body points (m, 3) at their ``times`` (m,) on the uniform knots
+    ``t0 + k dt`` (the first ``n_knots`` of ``T`` (K, 4, 4), ``T_world_body``)."""
+    idx, alpha = uniform_fractions(t0, dt, n_knots, times)
+    return place(T, idx, alpha, points_body)
+
+
+@nb.njit(cache=True)
+def pose_uniform(T: FloatArray, t0: float, dt: float, n_knots: int, time: float) -> FloatArray:
+    """``T_world_body`` (4, 4) at ``time`` on the uniform knots ``t0 + k dt`` (the first
+    ``n_knots`` of ``T`` (K, 4, 4))."""
+    idx, alpha = uniform_fractions(t0, dt, n_knots, np.array([time]))
+    R, t = interval_poses(T, idx, alpha)
+    out = np.zeros((4, 4))
+    out[:3, :3] = R[0]
+    out[:3, 3] = t[0]
+    out[3, 3] = 1.0
+    return out
+
+
+@nb.njit(cache=True)
+def window_normal_equations(
+    T: FloatArray, knot_index: IntArray, alphas: FloatArray, points_body: FloatArray, normals: FloatArray,
+    offsets: FloatArray, sigmas: FloatArray, huber_k: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gauss-Newton terms of tracking's point-on-plane residuals on the window ``T`` (W, 4, 4).
+
+    Point ``m`` (body frame) lies between knots ``knot_index[m]`` and ``+ 1`` at fraction
+    ``alphas[m]``, on the world plane ``normals[m] . x + offsets[m] = 0``; its residual is
+    ``r = (n . (R p + t) + d) / sigma`` and its Jacobian ``g (1 - alpha, alpha)`` on the right
+    perturbations of the two knots, ``g = (p x R^T n, R^T n) / sigma``. Returns
+    ``A = J^T W J`` (6W, 6W), ``b = J^T W r`` (6W,) and the Huber weights ``w`` (m,) (``huber_k``
+    in sigmas): the products that ``refine_window`` formed with a dense Jacobian.
+    """
+    W = T.shape[0]
+    n = 6 * W
+    m = knot_index.shape[0]
+    A = np.zeros((n, n))
+    b = np.zeros(n)
+    w_out = np.empty(m)
+    phi = interval_logs(T, 0, W - 1)
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    E = np.empty((3, 3))
+    g = np.empty(6)
+    for k in range(m):
+        i = knot_index[k]
+        a = alphas[k]
+        _interpolated_into(T, i, a, phi[i], E, R, t)
+        px, py, pz = points_body[k, 0], points_body[k, 1], points_body[k, 2]
+        nx, ny, nz = normals[k, 0], normals[k, 1], normals[k, 2]
+        s = sigmas[k]
+        wx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+        wy = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+        wz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        r = (nx * wx + ny * wy + nz * wz + offsets[k]) / s
+        ux = R[0, 0] * nx + R[1, 0] * ny + R[2, 0] * nz  # R^T n
+        uy = R[0, 1] * nx + R[1, 1] * ny + R[2, 1] * nz
+        uz = R[0, 2] * nx + R[1, 2] * ny + R[2, 2] * nz
+        g[0] = (py * uz - pz * uy) / s
+        g[1] = (pz * ux - px * uz) / s
+        g[2] = (px * uy - py * ux) / s
+        g[3], g[4], g[5] = ux / s, uy / s, uz / s
+        ar = abs(r)
+        w = 1.0 if ar <= huber_k else huber_k / max(ar, 1e-12)
+        w_out[k] = w
+        ca, cb = 1.0 - a, a
+        waa, wab, wbb = w * ca * ca, w * ca * cb, w * cb * cb
+        o = 6 * i
+        for p in range(6):
+            gp = g[p]
+            b[o + p] += w * ca * gp * r
+            b[o + 6 + p] += w * cb * gp * r
+            for q in range(6):
+                gg = gp * g[q]
+                A[o + p, o + q] += waa * gg
+                A[o + p, o + 6 + q] += wab * gg
+                A[o + 6 + p, o + q] += wab * gg
+                A[o + 6 + p, o + 6 + q] += wbb * gg
+    return A, b, w_out
+
+
+@nb.njit(cache=True)
+def exp_abc(t: float) -> tuple[float, float, float]:
+    """``A = sin t / t``, ``B = (1 - cos t) / t^2`` and ``C = (t - sin t) / t^3`` at an angle
+    ``t`` >= 0 (rad), as ``slam.interpolation.exp_coefficients``."""
+    a, b = exp_ab(t)
+    if t >= _SERIES_MAX:
+        return a, b, (t - math.sin(t)) / (t * t * t)
+    x = t * t
+    c = 1.0 / 6.0 + x * (-1.0 / 120.0 + x * (1.0 / 5040.0 + x * (-1.0 / 362880.0 + x * (1.0 / 39916800.0 + x * (
+        -1.0 / 6227020800.0 + x * (1.0 / 1307674368000.0))))))
+    return a, b, c
+
+
+@nb.njit(cache=True)
+def se3_log_into(T: FloatArray, out: FloatArray) -> None:
+    """Twist ``Log(T) = (omega, v)`` (6,) of a pose (4, 4) into ``out``: the formulas of
+    ``slam.interpolation.se3_log``, ``v = V^-1 t`` with ``V^-1 = I - K / 2 + e K^2``."""
+    R = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = T[r, c]
+    phi = np.empty(3)
+    so3_log_into(R, phi)
+    fx, fy, fz = phi[0], phi[1], phi[2]
+    th = math.sqrt(fx * fx + fy * fy + fz * fz)
+    if th < _LOG_SMALL:
+        e = 1.0 / 12.0 + th * th / 720.0
+    else:
+        e = (1.0 - th * math.sin(th) / (2.0 * (1.0 - math.cos(th)))) / (th * th)
+    tx, ty, tz = T[0, 3], T[1, 3], T[2, 3]
+    cx, cy, cz = fy * tz - fz * ty, fz * tx - fx * tz, fx * ty - fy * tx  # K t
+    out[0], out[1], out[2] = fx, fy, fz
+    out[3] = tx - 0.5 * cx + e * (fy * cz - fz * cy)
+    out[4] = ty - 0.5 * cy + e * (fz * cx - fx * cz)
+    out[5] = tz - 0.5 * cz + e * (fx * cy - fy * cx)
+
+
+@nb.njit(cache=True)
+def se3_exp_into(xi: FloatArray, out: FloatArray) -> None:
+    """Pose ``Exp(xi)`` (4, 4) of a twist ``xi = (omega, v)`` (6,) into ``out``: the formulas of
+    ``slam.interpolation.se3_exp``, ``t = V v`` with ``V = I + B K + C K^2``."""
+    fx, fy, fz = xi[0], xi[1], xi[2]
+    a, b, c = exp_abc(math.sqrt(fx * fx + fy * fy + fz * fz))
+    E = np.empty((3, 3))
+    xx, yy, zz = fx * fx, fy * fy, fz * fz
+    E[0, 0] = 1.0 - b * (yy + zz)
+    E[1, 1] = 1.0 - b * (xx + zz)
+    E[2, 2] = 1.0 - b * (xx + yy)
+    bxy, bxz, byz = b * fx * fy, b * fx * fz, b * fy * fz
+    E[0, 1], E[1, 0] = bxy - a * fz, bxy + a * fz
+    E[0, 2], E[2, 0] = bxz + a * fy, bxz - a * fy
+    E[1, 2], E[2, 1] = byz - a * fx, byz + a * fx
+    vx, vy, vz = xi[3], xi[4], xi[5]
+    cx, cy, cz = fy * vz - fz * vy, fz * vx - fx * vz, fx * vy - fy * vx  # K v
+    for r in range(3):
+        for q in range(3):
+            out[r, q] = E[r, q]
+        out[3, r] = 0.0
+    out[0, 3] = vx + b * cx + c * (fy * cz - fz * cy)
+    out[1, 3] = vy + b * cy + c * (fz * cx - fx * cz)
+    out[2, 3] = vz + b * cz + c * (fx * cy - fy * cx)
+    out[3, 3] = 1.0
+
+
+@nb.njit(cache=True)
+def _inverse(T: FloatArray) -> FloatArray:
+    """Inverse (4, 4) of a pose (4, 4)."""
+    out = np.zeros((4, 4))
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = T[c, r]
+        out[r, 3] = -(T[0, r] * T[0, 3] + T[1, r] * T[1, 3] + T[2, r] * T[2, 3])
+    out[3, 3] = 1.0
+    return out
+
+
+@nb.njit(cache=True)
+def _add_prior(A: FloatArray, b: FloatArray, knots: tuple[int, ...], coefs: tuple[float, ...], wt: FloatArray,
+               e: FloatArray) -> None:
+    """Gauss-Newton terms of a diagonal-weight (``wt`` (6,)) prior residual ``e`` (6,) on the
+    knots ``knots`` with the perturbation coefficients ``coefs``, in place in ``A``, ``b``."""
+    for i in range(len(knots)):
+        oi, ci = 6 * knots[i], coefs[i]
+        for j in range(6):
+            b[oi + j] += ci * wt[j] * e[j]
+        for k in range(len(knots)):
+            ok, ck = 6 * knots[k], coefs[k]
+            for j in range(6):
+                A[oi + j, ok + j] += ci * ck * wt[j]
+
+
+@nb.njit(cache=True)
+def refine_window(
+    T_knots: FloatArray, knot_index: IntArray, alphas: FloatArray, points_body: FloatArray, normals: FloatArray,
+    offsets: FloatArray, sigmas: FloatArray, w_first: FloatArray, w_stay: FloatArray, w_motion: FloatArray,
+    increments: bool, freeze: bool, degenerate_ratio: float, freeze_sigma: float, iterations: int, huber_k: float,
+) -> FloatArray:
+    """Tracking's windowed Gauss-Newton (``slam.frontend.tracking.refine_window``, which documents
+    the model) in one compiled call: the knots (W, 4, 4) refined against the fixed world planes.
+
+    ``w_first``, ``w_stay`` (6,) are the information of the first knot's prior and of every later
+    knot's pull to its given pose; ``w_motion`` (6,) that of the motion prior, on each interval's
+    relative pose against the given one with ``increments``, else on the change of the body twist
+    between consecutive intervals (constant velocity). With ``freeze`` the translation is held at
+    the given poses (``freeze_sigma``, m) along the world directions whose point information is
+    below ``degenerate_ratio`` of the largest. Returns the refined knots, rotations
+    orthonormalised.
+    """
+    W = T_knots.shape[0]
+    n = 6 * W
+    T = T_knots.copy()
+    given_inv = np.empty((W, 4, 4))
+    for k in range(W):
+        given_inv[k] = _inverse(T_knots[k])
+    given_increment_inv = np.empty((max(W - 1, 0), 4, 4))
+    for k in range(W - 1):
+        given_increment_inv[k] = _inverse(given_inv[k] @ T_knots[k + 1])
+    e = np.empty(6)
+    twist = np.empty((max(W - 1, 0), 6))
+    step = np.empty((4, 4))
+    delta = np.empty(n)
+    fs2 = freeze_sigma * freeze_sigma
+    for _ in range(iterations):
+        A, b, w = window_normal_equations(T, knot_index, alphas, points_body, normals, offsets, sigmas, huber_k)
+        # every knot against its given pose: the first with its prior, the later ones weakly
+        for k in range(W):
+            se3_log_into(given_inv[k] @ T[k], e)
+            _add_prior(A, b, (k,), (1.0,), w_first if k == 0 else w_stay, e)
+        if freeze:
+            M = np.zeros((3, 3))
+            for q in range(normals.shape[0]):
+                info = w[q] / (sigmas[q] * sigmas[q])
+                for r in range(3):
+                    for c in range(3):
+                        M[r, c] += info * normals[q, r] * normals[q, c]
+            lam, vec = np.linalg.eigh(M)
+            floor = degenerate_ratio * max(lam[2], 1e-300)
+            for ev in range(3):
+                if not lam[ev] < floor:
+                    continue
+                dw = vec[:, ev]
+                for k in range(W):
+                    o = 6 * k + 3
+                    db = np.empty(3)  # the direction in knot k's body frame
+                    for r in range(3):
+                        db[r] = T[k, 0, r] * dw[0] + T[k, 1, r] * dw[1] + T[k, 2, r] * dw[2]
+                    shift = dw[0] * (T[k, 0, 3] - T_knots[k, 0, 3]) + dw[1] * (T[k, 1, 3] - T_knots[k, 1, 3]) + dw[2] * (
+                        T[k, 2, 3] - T_knots[k, 2, 3])
+                    for r in range(3):
+                        b[o + r] += db[r] * shift / fs2
+                        for c in range(3):
+                            A[o + r, o + c] += db[r] * db[c] / fs2
+        if increments:
+            # each interval's relative pose held to the given one: d e / d delta_k ~ I,
+            # d e / d delta_{k-1} ~ -I (intervals of a few centimetres)
+            for k in range(W - 1):
+                se3_log_into(given_increment_inv[k] @ (_inverse(T[k]) @ T[k + 1]), e)
+                _add_prior(A, b, (k, k + 1), (-1.0, 1.0), w_motion, e)
+        elif W > 2:
+            # constant velocity: the change of the body twist between consecutive intervals
+            for k in range(W - 1):
+                se3_log_into(_inverse(T[k]) @ T[k + 1], twist[k])
+            for k in range(W - 2):
+                _add_prior(A, b, (k, k + 1, k + 2), (1.0, -2.0, 1.0), w_motion, twist[k + 1] - twist[k])
+        for i in range(n):
+            A[i, i] += 1e-9
+        try:
+            delta[:] = -np.linalg.solve(A, b)
+        except Exception:  # a singular system (numba raises LinAlgError as a plain exception)
+            break
+        for k in range(W):
+            se3_exp_into(delta[6 * k : 6 * k + 6], step)
+            T[k] = T[k] @ step
+        if np.abs(delta).max() < 1e-7:
+            break
+    for k in range(W):
+        u, _, vt = np.linalg.svd(np.ascontiguousarray(T[k, :3, :3]))
+        T[k, :3, :3] = u @ vt
+        T[k, 3, :3] = 0.0
+        T[k, 3, 3] = 1.0
+    return T
+
+
+@nb.njit(cache=True)
+def association_gates(
+    centroid: FloatArray, direction: FloatArray, endpoints: FloatArray, sigma_centroid: FloatArray,
+    sigma_direction: FloatArray, seg_range: FloatArray, origin: FloatArray, normals: FloatArray, offsets: FloatArray,
+    sigma_plane: FloatArray, sigma_drift: FloatArray, plane_u: FloatArray, plane_v: FloatArray, cell_size: float,
+    sigma_pose: float, sigma_rotation: float, sigma_lever: float, max_endpoint_distance: float, chi2: float,
+) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray, IntArray]:
+    """The per-pair tests of ``slam.frontend.association.associate`` for k world segments against
+    P planes (world frame), which documents them.
+
+    Segments: centroids, unit directions (k, 3), end points (k, 2, 3), the centroid's and the
+    direction's sigmas (k,) (m, rad), ranges from the scanner (k,) (m) and the scanner's position
+    ``origin`` (3,). Planes: ``normals`` (P, 3), ``offsets`` (P,), offset sigmas and drift sigmas
+    (P,) (m), in-plane axes ``plane_u``, ``plane_v`` (P, 3) and the extent's ``cell_size`` (m).
+    Returns ``ok`` (k, P), whether the pair passes the chi-square, end-point and facing gates,
+    the squared Mahalanobis distance ``m2`` (k, P), the centroid's signed distance ``dist`` (k, P)
+    and its variance ``sig_d2`` (k, P) (m^2), and the extent cells ``cells`` (k, P, 3, 2) of the
+    two end points and the centroid in each plane's (u, v) frame.
+    """
+    k_n, p_n = centroid.shape[0], normals.shape[0]
+    ok = np.zeros((k_n, p_n), dtype=np.bool_)
+    m2 = np.empty((k_n, p_n))
+    dist = np.empty((k_n, p_n))
+    sig_d2 = np.empty((k_n, p_n))
+    cells = np.empty((k_n, p_n, 3, 2), dtype=np.int64)
+    pts = np.empty((3, 3))
+    for j in range(p_n):
+        nx, ny, nz, d = normals[j, 0], normals[j, 1], normals[j, 2], offsets[j]
+        # map normals face the side they were seen from: the scanner must be on that side
+        facing = nx * origin[0] + ny * origin[1] + nz * origin[2] + d > 0.0
+        sd = sigma_drift[j]
+        for k in range(k_n):
+            c = centroid[k]
+            dc = nx * c[0] + ny * c[1] + nz * c[2] + d
+            sa = abs(nx * direction[k, 0] + ny * direction[k, 1] + nz * direction[k, 2])
+            lever = (sigma_lever * seg_range[k]) ** 2
+            s2 = sigma_centroid[k] ** 2 + sigma_plane[j] ** 2 + sigma_pose**2 + lever + sd**2
+            a2 = sigma_direction[k] ** 2 + sigma_rotation**2 + (sd / 5.0) ** 2
+            mk = dc**2 / s2 + sa**2 / a2
+            e0 = abs(nx * endpoints[k, 0, 0] + ny * endpoints[k, 0, 1] + nz * endpoints[k, 0, 2] + d)
+            e1 = abs(nx * endpoints[k, 1, 0] + ny * endpoints[k, 1, 1] + nz * endpoints[k, 1, 2] + d)
+            cap = max_endpoint_distance + 3.0 * sd + 3.0 * sigma_lever * seg_range[k]
+            ok[k, j] = (mk < chi2) and (e0 < cap) and (e1 < cap) and facing
+            m2[k, j], dist[k, j], sig_d2[k, j] = mk, dc, s2
+            pts[0], pts[1], pts[2] = endpoints[k, 0], endpoints[k, 1], c
+            for q in range(3):
+                pu = pts[q, 0] * plane_u[j, 0] + pts[q, 1] * plane_u[j, 1] + pts[q, 2] * plane_u[j, 2]
+                pv = pts[q, 0] * plane_v[j, 0] + pts[q, 1] * plane_v[j, 1] + pts[q, 2] * plane_v[j, 2]
+                cells[k, j, q, 0] = int(np.floor(pu / cell_size))
+                cells[k, j, q, 1] = int(np.floor(pv / cell_size))
+    return ok, m2, dist, sig_d2, cells

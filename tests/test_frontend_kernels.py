@@ -1,0 +1,182 @@
+"""The compiled front-end kernels (slam.frontend_kernels) against their numpy originals."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from slam import frontend_kernels as fk
+from slam.frontend.association import Gates, WorldSegments, associate, world_segments
+from slam.frontend.planemap import PlaneMap
+from slam.interpolation import exp_coefficients, interpolate_poses, se3_exp, so3_exp, so3_log
+
+
+def _knots(rng: np.random.Generator, k: int, rot: float = 0.3) -> np.ndarray:
+    """``k`` random poses ``T_world_body`` (k, 4, 4)."""
+    return np.array([se3_exp(np.concatenate((rng.normal(0.0, rot, 3), rng.normal(0.0, 1.0, 3)))) for _ in range(k)])
+
+
+def test_exp_coefficients_match_across_the_series_boundary() -> None:
+    t = np.concatenate(([0.0, 1e-9, 1e-4], np.linspace(0.4, 0.6, 41), [1.0, 2.0, 3.1]))
+    a, b, *_ = exp_coefficients(t)
+    got = np.array([fk.exp_ab(float(x)) for x in t])
+    np.testing.assert_allclose(got[:, 0], a, rtol=1e-15, atol=0.0)
+    np.testing.assert_allclose(got[:, 1], b, rtol=1e-15, atol=0.0)
+
+
+def test_rotation_logarithm_matches_so3_log_near_zero_and_near_pi() -> None:
+    rng = np.random.default_rng(2)
+    for angle in (0.0, 1e-9, 5e-5, 2e-4, 0.3, 1.0, 3.0, np.pi - 0.05, np.pi - 1e-7, np.pi):
+        axis = rng.normal(size=3)
+        R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+        out = np.empty(3)
+        fk.so3_log_into(R, out)
+        if angle < np.pi - 1e-6:
+            np.testing.assert_allclose(out, so3_log(R), rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(so3_exp(out), R, rtol=0.0, atol=1e-12)  # a logarithm at pi
+
+
+def test_placement_and_poses_match_interpolate_poses() -> None:
+    rng = np.random.default_rng(3)
+    T = _knots(rng, 9)
+    idx = rng.integers(0, 8, 400)  # unsorted: one logarithm per run of equal intervals
+    al = rng.uniform(0.0, 1.0, 400)
+    al[:3] = (0.0, 1.0, 0.5)
+    pts = rng.uniform(-5.0, 5.0, (400, 3))
+    Tw = interpolate_poses(T[idx], T[idx + 1], al)
+    R, t = fk.interval_poses(T, idx, al)
+    np.testing.assert_allclose(R, Tw[:, :3, :3], rtol=0.0, atol=1e-14)
+    np.testing.assert_allclose(t, Tw[:, :3, 3], rtol=0.0, atol=1e-12)
+    expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
+    np.testing.assert_allclose(fk.place(T, idx, al, pts), expected, rtol=0.0, atol=1e-12)
+    # the same input gives the same bits
+    np.testing.assert_array_equal(fk.place(T, idx, al, pts), fk.place(T, idx, al, pts))
+
+
+def test_uniform_knots_match_the_numpy_fractions() -> None:
+    rng = np.random.default_rng(4)
+    t0, dt, n = 100.0, 0.05, 7
+    T = np.concatenate((_knots(rng, n), np.zeros((5, 4, 4))))  # spare capacity past the knots
+    times = np.concatenate((rng.uniform(t0 - 0.01, t0 + dt * n, 300), [t0, t0 + dt * (n - 1)]))
+    x = (times - t0) / dt
+    idx = np.clip(np.floor(x).astype(np.int64), 0, n - 2)
+    alpha = np.clip(x - idx, 0.0, 1.0)
+    got_idx, got_alpha = fk.uniform_fractions(t0, dt, n, times)
+    np.testing.assert_array_equal(got_idx, idx)
+    np.testing.assert_array_equal(got_alpha, alpha)
+    pts = rng.uniform(-3.0, 3.0, (times.size, 3))
+    Tw = interpolate_poses(T[idx], T[idx + 1], alpha)
+    expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
+    np.testing.assert_allclose(fk.place_uniform(T, t0, dt, n, times, pts), expected, rtol=0.0, atol=1e-12)
+    for k in (0, 5, 301):
+        np.testing.assert_allclose(fk.pose_uniform(T, t0, dt, n, float(times[k])), Tw[k], rtol=0.0, atol=1e-12)
+
+
+def test_window_normal_equations_match_the_dense_jacobian() -> None:
+    """A = J^T W J, b = J^T W r of refine_window's point residuals, formed without the dense
+    Jacobian: the same numbers as the dense products (relative 1e-12)."""
+    rng = np.random.default_rng(5)
+    W, m, huber_k = 7, 500, 2.0
+    T = _knots(rng, W, rot=0.02)
+    kis = rng.integers(0, W - 1, m)
+    al = rng.uniform(0.0, 1.0, m)
+    pts = rng.uniform(-3.0, 3.0, (m, 3))
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    off = rng.normal(0.0, 1.0, m)
+    sig = rng.uniform(0.002, 0.01, m)
+    A, b, w = fk.window_normal_equations(T, kis, al, pts, nrm, off, sig, huber_k)
+    Tk = interpolate_poses(T[kis], T[kis + 1], al)
+    R = Tk[:, :3, :3]
+    r = (np.einsum("mi,mi->m", nrm, np.einsum("mij,mj->mi", R, pts) + Tk[:, :3, 3]) + off) / sig
+    Rtn = np.einsum("mji,mj->mi", R, nrm)
+    g = np.concatenate((np.cross(pts, Rtn), Rtn), axis=1) / sig[:, None]
+    w_ref = np.where(np.abs(r) <= huber_k, 1.0, huber_k / np.maximum(np.abs(r), 1e-12))
+    J = np.zeros((m, 6 * W))
+    rows, cols = np.arange(m)[:, None], 6 * kis[:, None] + np.arange(6)[None, :]
+    J[rows, cols] = g * (1.0 - al)[:, None]
+    J[rows, cols + 6] = g * al[:, None]
+    np.testing.assert_allclose(w, w_ref, rtol=1e-12, atol=0.0)
+    assert 0 < (w < 1.0).sum() < m  # both sides of the Huber corner
+    np.testing.assert_allclose(A, (J * w_ref[:, None]).T @ J, rtol=0.0, atol=1e-12 * np.abs(A).max())
+    np.testing.assert_allclose(b, (J * w_ref[:, None]).T @ r, rtol=0.0, atol=1e-12 * np.abs(b).max())
+
+
+def _associate_numpy(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> np.ndarray:
+    """slam.frontend.association.associate as it was before its gates were compiled (numpy over
+    the (segment, plane) pairs, PlaneMap.overlaps per candidate): the reference of the test below."""
+    out = np.full(segs.n, -1, dtype=np.int64)
+    active = [p for p in pmap.planes if p.active]
+    if not active or segs.n == 0:
+        return out
+    ids = np.array([p.id for p in active], dtype=np.int64)
+    normals = np.array([p.normal for p in active])
+    offs = np.array([p.d for p in active])
+    sig_plane = np.array([p.sigma_offset for p in active])
+    since = np.array([odometer - p.last_seen_odometer for p in active])
+    sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
+    dist_c = segs.centroid @ normals.T + offs
+    sin_a = np.abs(segs.direction @ normals.T)
+    lever = (gates.sigma_lever * segs.range) ** 2
+    sig_d2 = (segs.sigma_centroid[:, None] ** 2 + sig_plane[None] ** 2 + gates.sigma_pose**2 + lever[:, None]
+              + sig_drift[None] ** 2)
+    sig_a2 = segs.sigma_direction[:, None] ** 2 + gates.sigma_rotation**2 + (sig_drift[None] / 5.0) ** 2
+    m2 = dist_c**2 / sig_d2 + sin_a**2 / sig_a2
+    e0 = np.abs(segs.endpoints[:, 0] @ normals.T + offs)
+    e1 = np.abs(segs.endpoints[:, 1] @ normals.T + offs)
+    cap = gates.max_endpoint_distance + 3.0 * sig_drift[None] + 3.0 * gates.sigma_lever * segs.range[:, None]
+    facing = (normals @ segs.origin + offs) > 0.0
+    ok = (m2 < gates.chi2) & (e0 < cap) & (e1 < cap) & facing[None, :]
+    dilate = [gates.extent_margin_cells + min(int(3.0 * sd / pmap.cell_size), gates.max_extra_cells) for sd in sig_drift]
+    seg_pts = np.concatenate((segs.endpoints, segs.centroid[:, None]), axis=1)
+    for k in np.flatnonzero(ok.any(axis=1)):
+        cand = np.flatnonzero(ok[k])
+        cand = cand[np.argsort(m2[k, cand])]
+        passing = [j for j in cand.tolist() if pmap.overlaps(int(ids[j]), seg_pts[k], dilate[j])]
+        if not passing:
+            continue
+        best = passing[0]
+        ambiguous = any(
+            not ((normals[best] @ normals[j] > np.cos(np.radians(2.0)))
+                 and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best]))
+            for j in passing[1:]
+        )
+        if not ambiguous:
+            out[k] = ids[best]
+    return out
+
+
+def test_association_matches_the_numpy_gates() -> None:
+    """Walls of a few rooms (coplanar ones in different rooms, a duplicate awaiting merge, one
+    merged away) and segments on and off them: the compiled gates give the same plane per
+    segment as the numpy formulation, and the same m2 to rounding."""
+    rng = np.random.default_rng(6)
+    pmap = PlaneMap(cell_size=0.25)
+    # (normal, offset, extent along the plane's u): normals towards the scanner but one
+    walls = [((0.0, -1.0, 0.0), 2.0, (0.0, 4.0)), ((0.0, -1.0, 0.0), 2.0, (8.0, 12.0)),
+             ((0.0, -1.0, 0.0), 2.004, (3.0, 6.0)), ((1.0, 0.0, 0.0), 1.0, (-2.0, 2.0)),
+             ((0.0, 1.0, 0.0), 2.0, (0.0, 12.0)), ((0.0, 0.0, 1.0), 0.0, (-3.0, 3.0)),
+             ((0.0, -1.0, 0.01), 2.0, (0.0, 3.0)), ((-1.0, 0.0, 0.0), 1.0, (-2.0, 2.0))]
+    for n, d, (lo, hi) in walls:
+        p = pmap.add(np.array(n), d, 1, 0.0, rng.uniform(0.0, 5.0))
+        s = np.linspace(lo, hi, 60)
+        pts = np.column_stack((s, rng.uniform(-2.0, 2.0, 60), rng.uniform(0.0, 2.5, 60)))
+        pmap.extend(p.id, pts - (pts @ p.normal + p.d)[:, None] * p.normal)
+    pmap.merge(0, 6)
+    k = 300
+    host = rng.integers(0, len(walls), k)
+    ends = np.empty((k, 2, 3))
+    for i, h in enumerate(host):
+        p = pmap.planes[int(h)]
+        c = -p.d * p.normal + rng.uniform(-6.0, 12.0) * p.u + rng.uniform(-1.0, 3.0) * p.v
+        c += rng.normal(0.0, 0.01 if i % 3 else 0.1) * p.normal
+        u = p.u * np.cos(rng.uniform(0, np.pi)) + p.v * np.sin(rng.uniform(0, np.pi))
+        u += rng.normal(0.0, 0.01, 3)
+        ends[i] = (c - 0.3 * u, c + 0.3 * u)
+    origin = np.array([1.0, 0.5, 1.2])
+    virtual = ends * 0.9 + ends[:, ::-1] * 0.1
+    segs = world_segments(virtual, ends, rng.uniform(0.001, 0.004, k), 0.003, rng.integers(10, 200, k), origin)
+    for gates in (Gates(), Gates().loosened(3.0)):
+        got = associate(segs, pmap, 10.0, gates)
+        np.testing.assert_array_equal(got, _associate_numpy(segs, pmap, 10.0, gates))
+        assert 0.2 * k < (got >= 0).sum() < k  # some associated, some not
