@@ -540,3 +540,77 @@ def association_gates(
                 cells[k, j, q, 0] = int(np.floor(pu / cell_size))
                 cells[k, j, q, 1] = int(np.floor(pv / cell_size))
     return ok, m2, dist, sig_d2, cells
+
+
+@nb.njit(cache=True)
+def segment_summaries(
+    virtual_world: FloatArray, endpoints_world: FloatArray, virtual_sigma: FloatArray, point_sigma: float,
+    n_points: IntArray, origin: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The arrays of ``slam.frontend.association.world_segments`` for k segments placed in the
+    world: centroids of the two virtual points (k, 3), unit directions of the end points (k, 3),
+    the centroid's sigma (k,) (m, the virtual points' ``virtual_sigma`` over sqrt 2), the total
+    least squares direction sigma ``point_sigma / (L sqrt(n / 12))`` (k,) (rad) and the range from
+    the scanner at ``origin`` (3,) (k,) (m). Inputs: virtual points and end points (k, 2, 3)
+    (world frame), ``virtual_sigma`` (k,) (m), the segments' point counts ``n_points`` (k,)."""
+    k_n = virtual_world.shape[0]
+    c = np.empty((k_n, 3))
+    u = np.empty((k_n, 3))
+    sig_c = np.empty(k_n)
+    sig_dir = np.empty(k_n)
+    rng = np.empty(k_n)
+    root2 = math.sqrt(2.0)
+    for k in range(k_n):
+        ss = 0.0
+        dd = 0.0
+        for r in range(3):
+            c[k, r] = (virtual_world[k, 0, r] + virtual_world[k, 1, r]) / 2.0
+            u[k, r] = endpoints_world[k, 1, r] - endpoints_world[k, 0, r]
+            ss += u[k, r] * u[k, r]
+            dd += (c[k, r] - origin[r]) ** 2
+        length = math.sqrt(ss)
+        scale = max(length, 1e-9)
+        for r in range(3):
+            u[k, r] /= scale
+        # TLS direction error: sigma / sqrt(sum s_i^2), sum s_i^2 ~ n L^2 / 12
+        sig_dir[k] = point_sigma / max(length * math.sqrt(n_points[k] / 12.0), 1e-9)
+        sig_c[k] = virtual_sigma[k] / root2
+        rng[k] = math.sqrt(dd)
+    return c, u, sig_c, sig_dir, rng
+
+
+@nb.njit(cache=True)
+def subsample_rows(offsets: IntArray, n_points: IntArray, js: IntArray, per: IntArray) -> tuple[IntArray, IntArray]:
+    """Rows of every ``max(1, n // per)``-th point of the segments ``js`` (their points are rows
+    ``offsets[j]`` to ``offsets[j + 1] - 1``, ``n_points[j]`` of them; ``per`` one per segment of
+    ``js``), concatenated, and the split positions (len(js) - 1,) between the segments."""
+    total = 0
+    for q in range(js.shape[0]):
+        j = js[q]
+        step = max(1, n_points[j] // per[q])
+        total += (offsets[j + 1] - offsets[j] + step - 1) // step
+    rows = np.empty(total, dtype=np.int64)
+    splits = np.empty(max(js.shape[0] - 1, 0), dtype=np.int64)
+    o = 0
+    for q in range(js.shape[0]):
+        j = js[q]
+        step = max(1, n_points[j] // per[q])
+        for i in range(offsets[j], offsets[j + 1], step):
+            rows[o] = i
+            o += 1
+        if q < js.shape[0] - 1:
+            splits[q] = o
+    return rows, splits
+
+
+@nb.njit(cache=True)
+def plane_cells(points_world: FloatArray, u: FloatArray, v: FloatArray, cell_size: float) -> IntArray:
+    """Extent cells (m, 2) of points (m, 3), world frame, in a plane's (u, v) frame (unit axes
+    ``u``, ``v`` (3,), world frame): ``floor((p . u, p . v) / cell_size)``."""
+    m = points_world.shape[0]
+    out = np.empty((m, 2), dtype=np.int64)
+    for k in range(m):
+        x, y, z = points_world[k, 0], points_world[k, 1], points_world[k, 2]
+        out[k, 0] = int(np.floor((x * u[0] + y * u[1] + z * u[2]) / cell_size))
+        out[k, 1] = int(np.floor((x * v[0] + y * v[1] + z * v[2]) / cell_size))
+    return out

@@ -466,25 +466,24 @@ class SlamRunner:
                 self._loose_edges(p, hosts)
         for _ in range(1):
             pts, kis, al, nrm, off, sig = [], [], [], [], [], []
-            for p in self._recent:
-                ids = p.loose_ids
-                if ids is None:
-                    continue
-                sel = np.flatnonzero(ids >= 0)
-                if sel.size == 0:
-                    continue
-                vt = p.segs.virtual_times[sel].ravel()
-                idx, alpha = self._fractions(vt)
-                inside = idx >= k0
-                if not inside.any():
-                    continue
-                n, d = self.pmap.arrays(np.repeat(ids[sel], 2)[inside])
-                pts.append(p.segs.virtual_body[sel].reshape(-1, 3)[inside])
-                kis.append(idx[inside] - k0)
-                al.append(alpha[inside])
-                nrm.append(n)
-                off.append(d)
-                sig.append(np.repeat(p.segs.virtual_sigma[sel], 2)[inside])
+            # the recent scans' loosely associated segments, both virtual points each (body
+            # frame), gathered in one batch in the order of a loop over scans and segments
+            tracked = [p for p in self._recent if p.loose_ids is not None]
+            ids = np.concatenate([p.loose_ids for p in tracked]) if tracked else np.empty(0, dtype=np.int64)
+            sel = np.flatnonzero(ids >= 0)
+            if sel.size:
+                idx, alpha = self._fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
+                keep = np.flatnonzero(idx >= k0)
+                if keep.size:
+                    # the planes' current estimates (world frame): normal, offset, a row per plane
+                    planes = np.array([[*q.normal.tolist(), q.d] for q in self.pmap.planes])
+                    pid = np.repeat(ids[sel], 2)[keep]
+                    pts.append(np.concatenate([p.segs.virtual_body for p in tracked])[sel].reshape(-1, 3)[keep])
+                    kis.append(idx[keep] - k0)
+                    al.append(alpha[keep])
+                    nrm.append(planes[pid, :3])
+                    off.append(planes[pid, 3])
+                    sig.append(np.repeat(np.concatenate([p.segs.virtual_sigma for p in tracked])[sel], 2)[keep])
             for p in self._recent:
                 if p.loose_edges is None:
                     continue
@@ -728,12 +727,12 @@ class SlamRunner:
         call for all of them (per point the same numbers as one call per segment)."""
         if js.size == 0:
             return []
-        pers = np.broadcast_to(per, js.shape).tolist()
-        rows = [np.arange(segs.offsets[j], segs.offsets[j + 1], max(1, int(segs.n_points[j]) // d))
-                for j, d in zip(js.tolist(), pers, strict=True)]
-        sel = np.concatenate(rows)
+        pers = np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64)
+        sel, splits = fk.subsample_rows(np.ascontiguousarray(segs.offsets, dtype=np.int64),
+                                        np.ascontiguousarray(segs.n_points, dtype=np.int64),
+                                        np.ascontiguousarray(js, dtype=np.int64), pers)
         placed = self._place(segs.points_body[sel], segs.times[sel])
-        return np.split(placed, np.cumsum([r.size for r in rows])[:-1])
+        return np.split(placed, splits)
 
     def _observe(self, segs: ScanSegments, j: int, pid: int,
                  blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:

@@ -180,3 +180,50 @@ def test_association_matches_the_numpy_gates() -> None:
         got = associate(segs, pmap, 10.0, gates)
         np.testing.assert_array_equal(got, _associate_numpy(segs, pmap, 10.0, gates))
         assert 0.2 * k < (got >= 0).sum() < k  # some associated, some not
+
+
+def test_world_segments_match_the_numpy_summaries() -> None:
+    rng = np.random.default_rng(8)
+    k = 50
+    ends = rng.uniform(-4.0, 4.0, (k, 2, 3))
+    ends[0, 1] = ends[0, 0]  # a degenerate segment: zero length
+    virtual = ends * 0.8 + ends[:, ::-1] * 0.2
+    sig, n_pts, origin = rng.uniform(0.001, 0.004, k), rng.integers(4, 300, k), np.array([0.5, -0.2, 1.1])
+    ws = world_segments(virtual, ends, sig, 0.003, n_pts, origin)
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    c = virtual.mean(axis=1)
+    np.testing.assert_allclose(ws.centroid, c, rtol=0.0, atol=1e-15)
+    np.testing.assert_allclose(ws.direction, (ends[:, 1] - ends[:, 0]) / np.maximum(length, 1e-9)[:, None],
+                               rtol=0.0, atol=1e-15)
+    np.testing.assert_allclose(ws.sigma_centroid, sig / np.sqrt(2.0), rtol=1e-15, atol=0.0)
+    np.testing.assert_allclose(ws.sigma_direction, 0.003 / np.maximum(length * np.sqrt(n_pts / 12.0), 1e-9),
+                               rtol=1e-14, atol=0.0)
+    np.testing.assert_allclose(ws.range, np.linalg.norm(c - origin, axis=1), rtol=1e-15, atol=0.0)
+    assert ws.endpoints is ends and ws.n == k
+
+
+def test_subsampled_rows_match_the_per_segment_ranges() -> None:
+    rng = np.random.default_rng(9)
+    counts = rng.integers(1, 80, 30)
+    offsets = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    js = rng.permutation(30)[:17].astype(np.int64)
+    per = rng.choice([8, 12], js.size).astype(np.int64)
+    rows = [np.arange(offsets[j], offsets[j + 1], max(1, int(counts[j]) // d)) for j, d in zip(js, per, strict=True)]
+    sel, splits = fk.subsample_rows(offsets, counts.astype(np.int64), js, per)
+    np.testing.assert_array_equal(sel, np.concatenate(rows))
+    np.testing.assert_array_equal(splits, np.cumsum([r.size for r in rows])[:-1])
+
+
+def test_plane_cells_match_the_numpy_floor() -> None:
+    rng = np.random.default_rng(10)
+    pmap = PlaneMap(cell_size=0.25)
+    pid = pmap.add(np.array([0.3, 0.9, 0.1]), -2.0, 1, 0.0, 0.0).id
+    pts = rng.uniform(-6.0, 6.0, (500, 3))
+    p = pmap.planes[pid]
+    expected = np.floor(np.column_stack((pts @ p.u, pts @ p.v)) / 0.25).astype(np.int64)
+    got = pmap.cells_of(pid, pts)
+    # equal but where a point lies within rounding of a cell boundary
+    uv = np.column_stack((pts @ p.u, pts @ p.v)) / 0.25
+    near = np.abs(uv - np.round(uv)) < 1e-12
+    np.testing.assert_array_equal(got[~near], expected[~near])
+    assert got.dtype == np.int64 and got.shape == (500, 2)

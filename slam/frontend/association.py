@@ -81,15 +81,14 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
                    point_sigma: float, n_points: NDArray[np.int64], origin_world: FloatArray) -> WorldSegments:
     """Summaries from the virtual points (k, 2, 3) and endpoints (k, 2, 3) already placed in the
     world; ``origin_world`` (3,) is the scanner's position (for the rotation's lever arm)."""
-    c = virtual_world.mean(axis=1)
-    diff = endpoints_world[:, 1] - endpoints_world[:, 0]
-    length = np.linalg.norm(diff, axis=1)
-    u = diff / np.maximum(length, 1e-9)[:, None]
-    n = n_points.astype(np.float64)
-    # TLS direction error: sigma / sqrt(sum s_i^2), sum s_i^2 ~ n L^2 / 12
-    sig_dir = point_sigma / np.maximum(length * np.sqrt(n / 12.0), 1e-9)
-    rng = np.linalg.norm(c - origin_world, axis=1)
-    return WorldSegments(c, u, endpoints_world, virtual_sigma / np.sqrt(2.0), sig_dir, rng, origin_world)
+    # one compiled pass (slam.frontend_kernels.segment_summaries): the numpy formulation's
+    # numbers to rounding
+    c, u, sig_c, sig_dir, rng = fk.segment_summaries(
+        np.ascontiguousarray(virtual_world, dtype=np.float64), np.ascontiguousarray(endpoints_world, dtype=np.float64),
+        np.ascontiguousarray(virtual_sigma, dtype=np.float64), float(point_sigma),
+        np.ascontiguousarray(n_points, dtype=np.int64), np.ascontiguousarray(origin_world, dtype=np.float64),
+    )
+    return WorldSegments(c, u, endpoints_world, sig_c, sig_dir, rng, origin_world)
 
 
 def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
@@ -106,7 +105,8 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     # the active planes' arrays in one pass over the map (world frame): normal, offset, offset
     # sigma, odometer when last seen, in-plane axes u and v
     ids = [p.id for p in active]
-    rows = np.array([(*p.normal, p.d, p.sigma_offset, p.last_seen_odometer, *p.u, *p.v) for p in active])
+    rows = np.array([[*p.normal.tolist(), p.d, p.sigma_offset, p.last_seen_odometer, *p.u.tolist(), *p.v.tolist()]
+                     for p in active])
     normals = np.ascontiguousarray(rows[:, 0:3])
     since = odometer - rows[:, 5]
     sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from slam import frontend_kernels as fk
+
 FloatArray = NDArray[np.float64]
 
 KIND_OTHER, KIND_WALL, KIND_FLOOR, KIND_CEILING = 0, 1, 2, 3
@@ -98,10 +100,11 @@ class PlaneMap:
         )
 
     def cells_of(self, pid: int, points_world: FloatArray) -> NDArray[np.int64]:
-        """Cell indices (m, 2) of points in the plane's (u, v) frame."""
+        """Cell indices (m, 2) of points (m, 3), world frame, in the plane's (u, v) frame:
+        ``floor((p . u, p . v) / cell_size)`` (compiled, slam.frontend_kernels.plane_cells)."""
         p = self.planes[pid]
-        uv = np.column_stack((points_world @ p.u, points_world @ p.v))
-        return np.floor(uv / self.cell_size).astype(np.int64)
+        return fk.plane_cells(np.ascontiguousarray(points_world, dtype=np.float64), np.ascontiguousarray(p.u, dtype=np.float64),
+                              np.ascontiguousarray(p.v, dtype=np.float64), float(self.cell_size))
 
     def extend(self, pid: int, points_world: FloatArray) -> None:
         """Add the cells of ``points_world`` (m, 3), world frame, to the plane's extent."""
