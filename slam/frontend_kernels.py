@@ -495,7 +495,7 @@ def association_gates(
     sigma_direction: FloatArray, seg_range: FloatArray, origin: FloatArray, normals: FloatArray, offsets: FloatArray,
     sigma_plane: FloatArray, sigma_drift: FloatArray, plane_u: FloatArray, plane_v: FloatArray, cell_size: float,
     sigma_pose: float, sigma_rotation: float, sigma_lever: float, max_endpoint_distance: float, chi2: float,
-) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray, IntArray]:
+) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray, IntArray, IntArray, IntArray]:
     """The per-pair tests of ``slam.frontend.association.associate`` for k world segments against
     P planes (world frame), which documents them.
 
@@ -505,8 +505,9 @@ def association_gates(
     (P,) (m), in-plane axes ``plane_u``, ``plane_v`` (P, 3) and the extent's ``cell_size`` (m).
     Returns ``ok`` (k, P), whether the pair passes the chi-square, end-point and facing gates,
     the squared Mahalanobis distance ``m2`` (k, P), the centroid's signed distance ``dist`` (k, P)
-    and its variance ``sig_d2`` (k, P) (m^2), and the extent cells ``cells`` (k, P, 3, 2) of the
-    two end points and the centroid in each plane's (u, v) frame.
+    and its variance ``sig_d2`` (k, P) (m^2), the extent cells ``cells`` (k, P, 3, 2) of the
+    two end points and the centroid in each plane's (u, v) frame, and per segment its
+    ``count`` (k,) passing planes, ``order[k, :count[k]]`` (k, P), by increasing ``m2``.
     """
     k_n, p_n = centroid.shape[0], normals.shape[0]
     ok = np.zeros((k_n, p_n), dtype=np.bool_)
@@ -539,7 +540,22 @@ def association_gates(
                 pv = pts[q, 0] * plane_v[j, 0] + pts[q, 1] * plane_v[j, 1] + pts[q, 2] * plane_v[j, 2]
                 cells[k, j, q, 0] = int(np.floor(pu / cell_size))
                 cells[k, j, q, 1] = int(np.floor(pv / cell_size))
-    return ok, m2, dist, sig_d2, cells
+    order = np.empty((k_n, p_n), dtype=np.int64)
+    count = np.zeros(k_n, dtype=np.int64)
+    for k in range(k_n):
+        c_n = 0
+        for j in range(p_n):
+            if not ok[k, j]:
+                continue
+            # insertion by increasing m2 (few candidates), after the equal ones
+            q = c_n
+            while q > 0 and m2[k, order[k, q - 1]] > m2[k, j]:
+                order[k, q] = order[k, q - 1]
+                q -= 1
+            order[k, q] = j
+            c_n += 1
+        count[k] = c_n
+    return ok, m2, dist, sig_d2, cells, order, count
 
 
 @nb.njit(cache=True)
@@ -614,3 +630,16 @@ def plane_cells(points_world: FloatArray, u: FloatArray, v: FloatArray, cell_siz
         out[k, 0] = int(np.floor((x * u[0] + y * u[1] + z * u[2]) / cell_size))
         out[k, 1] = int(np.floor((x * v[0] + y * v[1] + z * v[2]) / cell_size))
     return out
+
+
+@nb.njit(cache=True)
+def near_cells(extent: IntArray, cells: IntArray, dilate: int) -> bool:
+    """Whether any of the ``cells`` (q, 2) lies within ``dilate`` cells (Chebyshev distance, both
+    axes) of any of the ``extent`` cells (n, 2): the dilated-extent test of
+    ``slam.frontend.planemap.PlaneMap.overlaps`` as one pass over the extent."""
+    for i in range(extent.shape[0]):
+        eu, ev = extent[i, 0], extent[i, 1]
+        for q in range(cells.shape[0]):
+            if abs(eu - cells[q, 0]) <= dilate and abs(ev - cells[q, 1]) <= dilate:
+                return True
+    return False

@@ -227,3 +227,54 @@ def test_plane_cells_match_the_numpy_floor() -> None:
     near = np.abs(uv - np.round(uv)) < 1e-12
     np.testing.assert_array_equal(got[~near], expected[~near])
     assert got.dtype == np.int64 and got.shape == (500, 2)
+
+
+def test_dilated_overlap_matches_the_window_scan() -> None:
+    """PlaneMap.overlaps' compiled pass over the extent answers as the scan of every cell within
+    ``dilate`` of the points' cells, also after the extent grew."""
+    rng = np.random.default_rng(11)
+    pmap = PlaneMap(cell_size=0.25)
+    pid = pmap.add(np.array([0.0, 1.0, 0.0]), -2.0, 1, 0.0, 0.0).id
+    pmap.extend(pid, rng.uniform(-1.0, 1.0, (40, 3)))
+
+    def scan(pts: np.ndarray, dilate: int) -> bool:
+        ext = pmap.planes[pid].cells
+        return any((cu + du, cv + dv) in ext for cu, cv in pmap.cells_of(pid, pts).tolist()
+                   for du in range(-dilate, dilate + 1) for dv in range(-dilate, dilate + 1))
+
+    for step in range(2):
+        for _ in range(300):
+            pts = rng.uniform(-4.0, 4.0, (3, 3))
+            dilate = int(rng.integers(0, 6))
+            assert pmap.overlaps(pid, pts, dilate) == scan(pts, dilate)
+        if step == 0:
+            pmap.extend(pid, rng.uniform(2.0, 3.0, (20, 3)))  # grows: the cached array follows
+
+
+def test_association_gates_order_the_candidates_by_m2() -> None:
+    rng = np.random.default_rng(12)
+    k, p = 40, 9
+    nrm = rng.normal(size=(p, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    off = rng.uniform(-0.05, 0.05, p)
+    ends = rng.normal(0.0, 0.02, (k, 2, 3))
+    c = ends.mean(axis=1)
+    u = (ends[:, 1] - ends[:, 0]) / np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)[:, None]
+    sc, sd, rg = rng.uniform(0.002, 0.01, k), rng.uniform(0.3, 1.0, k), rng.uniform(0.5, 5.0, k)
+    sp, sdr = rng.uniform(0.002, 0.01, p), rng.uniform(0.0, 0.02, p)
+    origin = np.array([0.0, 0.0, 1.0])
+    ok, m2, dist, sig_d2, _, order, count = fk.association_gates(
+        c, u, ends, sc, sd, rg, origin, nrm, off, sp, sdr, nrm[:, [1, 2, 0]], nrm[:, [2, 0, 1]], 0.25,
+        0.004, 0.005, 0.001, 0.05, 9.21)
+    ref_d2 = sc[:, None] ** 2 + sp[None] ** 2 + 0.004**2 + (0.001 * rg[:, None]) ** 2 + sdr[None] ** 2
+    ref_m2 = (c @ nrm.T + off) ** 2 / ref_d2 + (u @ nrm.T) ** 2 / (sd[:, None] ** 2 + 0.005**2 + (sdr[None] / 5.0) ** 2)
+    np.testing.assert_allclose(m2, ref_m2, rtol=1e-12, atol=0.0)
+    np.testing.assert_allclose(sig_d2, ref_d2, rtol=1e-12, atol=0.0)
+    np.testing.assert_allclose(dist, c @ nrm.T + off, rtol=0.0, atol=1e-15)
+    cap = 0.05 + 3.0 * sdr[None] + 3.0 * 0.001 * rg[:, None]
+    ref_ok = ((ref_m2 < 9.21) & (np.abs(ends[:, 0] @ nrm.T + off) < cap) & (np.abs(ends[:, 1] @ nrm.T + off) < cap)
+              & ((nrm @ origin + off) > 0.0)[None])
+    np.testing.assert_array_equal(ok, ref_ok)
+    assert 0 < ok.sum() < ok.size and (count > 1).any()
+    for i in range(k):
+        np.testing.assert_array_equal(order[i, : count[i]], np.flatnonzero(ok[i])[np.argsort(m2[i, ok[i]], kind="stable")])

@@ -110,14 +110,14 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     normals = np.ascontiguousarray(rows[:, 0:3])
     since = odometer - rows[:, 5]
     sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
-    ok, m2, dist_c, sig_d2, cells = fk.association_gates(
+    _, _, dist_c, sig_d2, cells, order, count = fk.association_gates(
         segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
         segs.origin, normals, np.ascontiguousarray(rows[:, 3]), np.ascontiguousarray(rows[:, 4]), sig_drift,
         np.ascontiguousarray(rows[:, 6:9]), np.ascontiguousarray(rows[:, 9:12]), float(pmap.cell_size),
         float(gates.sigma_pose), float(gates.sigma_rotation), float(gates.sigma_lever),
         float(gates.max_endpoint_distance), float(gates.chi2),
     )
-    hit = np.flatnonzero(ok.any(axis=1))
+    hit = np.flatnonzero(count)
     if hit.size == 0:
         return out
     cell = pmap.cell_size
@@ -125,11 +125,9 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
     same_normal = float(np.cos(np.radians(2.0)))
     for k in hit.tolist():
-        cand = np.flatnonzero(ok[k])
-        if cand.size > 1:
-            cand = cand[np.argsort(m2[k, cand])]
-        # the segment's two end points and centroid (world frame) against the extents
-        passing = [j for j in cand.tolist() if pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j])]
+        # the candidates by increasing m2; the segment's two end points and centroid (world
+        # frame) against their extents
+        passing = [j for j in order[k, : count[k]].tolist() if pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j])]
         if not passing:
             continue
         best = passing[0]

@@ -69,6 +69,9 @@ class PlaneMap:
     def __init__(self, cell_size: float = 0.25) -> None:
         self.cell_size = cell_size
         self.planes: list[Plane] = []
+        # per plane: its cell set (held, so that identity means the same set), the set's size then
+        # and the cells as an (n, 2) array
+        self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
 
     def __len__(self) -> int:
         return len(self.planes)
@@ -128,14 +131,20 @@ class PlaneMap:
         own = {(cu, cv) for cu, cv in cells}
         if not own.isdisjoint(ext):  # the usual answer: a point inside the extent itself
             return True
-        r = range(-dilate, dilate + 1)
-        for cu, cv in own:
-            for du in r:
-                u = cu + du
-                for dv in r:
-                    if (u, cv + dv) in ext:
-                        return True
-        return False
+        if dilate <= 0:
+            return False
+        # within dilate cells of one of the extent's: one compiled pass over the extent's cells
+        return bool(fk.near_cells(self._extent_array(pid), np.array(list(own), dtype=np.int64), int(dilate)))
+
+    def _extent_array(self, pid: int) -> NDArray[np.int64]:
+        """The plane's extent cells as an (n, 2) array, rebuilt when the set was replaced or has
+        grown (extents only grow, by ``extend``)."""
+        ext = self.planes[pid].cells
+        hit = self._extent_arrays.get(pid)
+        if hit is None or hit[0] is not ext or hit[1] != len(ext):
+            hit = (ext, len(ext), np.array(list(ext), dtype=np.int64).reshape(-1, 2))
+            self._extent_arrays[pid] = hit
+        return hit[2]
 
     def extents_touch(self, a: int, b: int, dilate: int) -> bool:
         """Whether two planes' extents are within ``dilate`` cells (measured in plane ``a``'s frame)."""
