@@ -54,6 +54,7 @@ from slam.frontend.edges import (
     break_pairs,
     break_sigma,
     is_flat,
+    recess_beyond,
     steep_enough,
     step_of,
     surface_end,
@@ -572,13 +573,16 @@ class SlamRunner:
         return lambda pid: self.pmap.planes[pid].kind == KIND_WALL and pid not in hosts
 
     def _host_map(self) -> dict[int, int]:
-        """Current (merged) plane id -> its current host wall id, for the tied doors and boards."""
+        """Current (merged) plane id -> its current host wall id, for the tied doors and boards.
+        Merges can fold a door into the plane its wall was merged with and the other way round;
+        of two planes tied either way the one with more segments is the wall (never a child)."""
         out = {}
         for child, host in self._host.items():
             c, h = self.pmap.resolve(child), self.pmap.resolve(host)
             if c != h:
                 out[c] = h
-        return out
+        planes = self.pmap.planes
+        return {c: h for c, h in out.items() if planes[c].n_segments <= planes[h].n_segments}
 
     def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
@@ -587,10 +591,12 @@ class SlamRunner:
         ep = self.emap.params
         segs = p.segs
         pairs = break_pairs(segs.first_beam, segs.n_points, ids, self._is_wall(hosts), ep.max_skipped_points)
-        if not pairs:
+        is_wall = self._is_wall(hosts)
+        walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
+        if not pairs and not walls:
             return []
         origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
-        out = []
+        out = self._recess_breaks(p, ids, walls, origin)
         for j_wall, j_other in pairs:
             if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
                 continue
@@ -605,6 +611,10 @@ class SlamRunner:
             )
             wall = int(ids[j_wall])
             n_wall = self.pmap.planes[wall].normal
+            if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall
+                d_wall = self.pmap.planes[wall].d
+                if abs(float(np.mean(w[4:6] @ n_wall)) + d_wall) > abs(float(np.mean(w[2:4] @ n_wall)) + d_wall):
+                    continue
             s1, s2 = step_of(n_wall, w[4:6], w[2:4])
             if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
                 continue
@@ -650,6 +660,65 @@ class SlamRunner:
             out.append(Break(wall, step, side, float(n_e @ x_world), pt_body, x_world, t,
                              break_sigma(spacing, ep.sigma), p.serial,
                              flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
+        return out
+
+    def _recess_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
+                       origin: FloatArray) -> list[Break]:
+        """Breaks where a wall segment ends into unsegmented returns a door's recess behind it
+        (``frontend.edges.recess_beyond``: a door seen obliquely is often left unsegmented); the
+        wall is the nearer surface, so its end is bracketed as for a segmented pair."""
+        assert self.emap is not None
+        ep = self.emap.params
+        segs = p.segs
+        n_beams = segs.beam_angles.shape[0]
+        owner = np.full(n_beams, -1, dtype=np.int64)
+        for j in range(segs.n_segments):
+            owner[segs.first_beam[j] : segs.last_beam[j] + 1] = j
+        T_bs = self._T_body_scanner[segs.scanner]
+        sigma = self._range_sigma[segs.scanner]
+        out = []
+        for j in walls:
+            if segs.n_points[j] < self.cfg.frontend.min_segment_points:
+                continue
+            wall = int(ids[j])
+            n_wall = self.pmap.planes[wall].normal
+            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
+            for direction in (1, -1):
+                k_end = int(segs.last_beam[j]) if direction == 1 else int(segs.first_beam[j])
+                near = owner[max(0, min(k_end + direction, k_end + 3 * direction)):
+                             max(k_end + direction, k_end + 3 * direction) + 1]
+                if np.any(near >= 0):  # a segment right there: the segment pairs handle it
+                    continue
+                found = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
+                                      c2, u2, ep.min_step, ep.max_step, ep.max_gap)
+                if found is None:
+                    continue
+                _, k_in, depth = found
+                k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
+                                    c2, u2, min(3.0 * sigma, 0.5 * depth))
+                k_next = k_end + direction
+                if not 0 <= k_next < n_beams:
+                    continue
+                got = bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]), c2, u2)
+                if got is None:
+                    continue
+                edge_scanner, spacing = got
+                r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
+                pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
+                                        [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
+                pts_body = pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3]
+                i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
+                t = float(segs.times[i_end])
+                w = self._place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
+                x_world = w[0]
+                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
+                    continue
+                n_e = along_wall(n_wall)
+                side = 1 if float(n_e @ (w[1] - x_world)) > 0.0 else -1
+                step = 1 if float(n_wall @ (w[1] - x_world)) > 0.0 else -1
+                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
+                                 break_sigma(spacing, ep.sigma), p.serial,
+                                 flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
         return out
 
     def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,

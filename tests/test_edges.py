@@ -15,6 +15,7 @@ from slam.frontend.edges import (
     break_sigma,
     is_flat,
     ray_on_line,
+    recess_beyond,
     steep_enough,
     step_of,
     surface_end,
@@ -51,6 +52,9 @@ def test_break_pairs_join_a_wall_and_its_neighbours() -> None:
     # a long segment in between is not skipped
     assert (3, 1) not in break_pairs(first, np.array([60, 40, 30, 50, 30, 20]), ids, walls.__contains__, 15)
     assert break_pairs(first, n_pts, ids, lambda pid: False, 15) == []
+    # a door that passed the wall's gates (same id): both orders, the caller picks by distance
+    same = break_pairs(np.array([0, 60]), np.array([60, 40]), np.array([1, 1]), walls.__contains__, 15)
+    assert set(same) == {(0, 1), (1, 0)}
 
 
 def test_step_cancels_a_common_offset() -> None:
@@ -197,3 +201,25 @@ def test_surface_end_walks_over_beams_still_on_the_surface() -> None:
     assert surface_end(last_board - 3, 1, angles, ranges, valid, c, u, 0.0025, max_beams=2) == last_board - 1
     valid[last_board - 1] = False  # an invalid return ends the walk
     assert surface_end(last_board - 3, 1, angles, ranges, valid, c, u, 0.0025) == last_board - 2
+
+
+def test_recess_beyond_finds_a_door_left_unsegmented() -> None:
+    """A wall y = 1 (scanner frame) up to x = 1.2, a door leaf 12 mm behind it beyond: returns
+    past the wall segment's end lie in the recess; a wall that simply goes on, or a corner far
+    behind, is no recess."""
+    rng = np.random.default_rng(3)
+    angles = np.radians(np.arange(90.0, 30.0, -0.25))
+    x = 1.0 / np.tan(angles)
+    c, u = np.array([0.5, 1.0]), np.array([1.0, 0.0])
+    valid = np.ones(angles.size, dtype=bool)
+    k_end = int(np.flatnonzero(x <= 1.2)[-1])
+    noise = rng.normal(0.0, 0.001, angles.size)
+    door = np.where(x <= 1.2, 1.0, 1.012) / np.sin(angles) + noise
+    got = recess_beyond(k_end, 1, angles, door, valid, c, u, 0.004, 0.04, 0.08)
+    assert got is not None and got[0] == k_end + 1 and abs(got[2] - 0.012) < 0.003
+    flat = 1.0 / np.sin(angles) + noise
+    assert recess_beyond(k_end, 1, angles, flat, valid, c, u, 0.004, 0.04, 0.08) is None
+    deep = np.where(x <= 1.2, 1.0, 1.3) / np.sin(angles)  # a corner 30 cm behind: no door
+    assert recess_beyond(k_end, 1, angles, deep, valid, c, u, 0.004, 0.04, 0.5) is None
+    valid[k_end + 1 : k_end + 9] = False  # nothing valid beyond: no recess
+    assert recess_beyond(k_end, 1, angles, door, valid, c, u, 0.004, 0.04, 0.08) is None

@@ -120,8 +120,10 @@ def break_pairs(
     is_wall: Callable[[int], bool], max_skipped_points: int,
 ) -> list[tuple[int, int]]:
     """Neighbouring segments of one scan in beam order, ``(j_wall, j_other)``, where ``j_wall`` is
-    associated with a wall and ``j_other`` is not on that wall; one segment of at most
-    ``max_skipped_points`` points between them may be skipped. Geometry is checked by the caller."""
+    associated with a wall; one segment of at most ``max_skipped_points`` points between them may
+    be skipped. Two neighbours on the same wall give both orders: a door set 1 cm in can pass the
+    wall's association gates, and only the step between the two segments tells it (the caller
+    keeps the order whose ``j_wall`` lies nearer the plane). Geometry is checked by the caller."""
     order = [int(j) for j in np.argsort(first_beam, kind="stable")]
     out = []
     for i, a in enumerate(order):
@@ -129,8 +131,6 @@ def break_pairs(
             if b != order[i + 1] and n_points[order[i + 1]] > max_skipped_points:
                 break
             pa, pb = int(plane_ids[a]), int(plane_ids[b])
-            if pa == pb and pa >= 0:
-                continue
             if pa >= 0 and is_wall(pa):
                 out.append((a, b))
             if pb >= 0 and is_wall(pb):
@@ -175,6 +175,45 @@ def surface_end(k_end: int, step: int, angles: FloatArray, ranges: FloatArray, v
             break
         k = j
     return k
+
+
+def recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray, valid: NDArray[np.bool_],
+                  centroid: FloatArray, direction: FloatArray, min_step: float, max_step: float,
+                  max_gap: float, n_beams: int = 8, min_returns: int = 3) -> tuple[int, int, float] | None:
+    """Whether the returns just past a wall segment's end (beam ``k_end``, walking ``step``) lie a
+    door's recess behind the wall's fitted 2D line (scanner frame): a door seen obliquely is
+    often left unsegmented, so there is no segment to pair the wall with, yet the wall still ends
+    at the door's edge. Of the next ``n_beams`` beams, at least ``min_returns`` valid returns must
+    lie ``min_step``-``max_step`` behind the line (away from the scanner; their median too), the
+    first within ``max_gap`` of the wall's last return. Returns (the first valid beam past the
+    end, the last beam inside the recess, the median depth in m), or None."""
+    normal = np.array([-direction[1], direction[0]])
+    away = 1.0 if float(normal @ centroid) > 0.0 else -1.0
+    last = ranges[k_end] * np.array([np.cos(angles[k_end]), np.sin(angles[k_end])])
+    depths: list[float] = []
+    beams: list[int] = []
+    first = None
+    for i in range(1, n_beams + 1):
+        j = k_end + i * step
+        if not 0 <= j < angles.shape[0]:
+            break
+        if not valid[j]:
+            continue
+        q = ranges[j] * np.array([np.cos(angles[j]), np.sin(angles[j])])
+        if first is None:
+            if float(np.linalg.norm(q - last)) > max_gap:
+                return None
+            first = j
+        depths.append(away * float(normal @ (q - centroid)))
+        beams.append(j)
+    if first is None or len(depths) < min_returns:
+        return None
+    dep = np.array(depths)
+    inside = (dep >= min_step) & (dep <= max_step)
+    median = float(np.median(dep))
+    if int(inside.sum()) < min_returns or not min_step <= median <= max_step:
+        return None
+    return first, beams[int(np.flatnonzero(inside)[-1])], median
 
 
 def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
