@@ -223,3 +223,24 @@ def test_recess_beyond_finds_a_door_left_unsegmented() -> None:
     assert recess_beyond(k_end, 1, angles, deep, valid, c, u, 0.004, 0.04, 0.5) is None
     valid[k_end + 1 : k_end + 9] = False  # nothing valid beyond: no recess
     assert recess_beyond(k_end, 1, angles, door, valid, c, u, 0.004, 0.04, 0.08) is None
+
+
+def test_host_map_never_makes_the_bigger_tied_plane_a_door() -> None:
+    """Merges can tie a wall and its door either way round (wall 0 -> door 1 via a merged child
+    and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count."""
+    from backpack_slam.rig import resolve_rig
+    from slam.config import SlamConfig
+    from slam.frontend.planemap import KIND_WALL
+    from slam.pipeline import SlamRunner
+
+    runner = SlamRunner(resolve_rig("itc_backpack"), SlamConfig())
+    n = np.array([0.0, 1.0, 0.0])
+    wall = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    door = runner.pmap.add(n, -4.99, KIND_WALL, 0.0, 0.0)
+    other = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    wall.n_segments, door.n_segments, other.n_segments = 900, 60, 10
+    runner.pmap.merge(wall.id, other.id)  # a plane once tied to the door is now the wall
+    runner._host = {door.id: wall.id, other.id: door.id}
+    hosts = runner._host_map()
+    assert hosts == {door.id: wall.id}
+    assert runner._is_wall(hosts)(wall.id) and not runner._is_wall(hosts)(door.id)
