@@ -191,7 +191,6 @@ class Backend:
         # knot (plane priors and ties), and the exact summaries of the blocks that left the window
         self._by_knot: dict[int, list[int]] = {}
         self._knotless: list[int] = []
-        self._block_top: dict[int, int] = {}  # block id -> highest knot it touches
         self._summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self._summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self._summarized_upto = 0  # blocks whose highest knot is below this are summarised
@@ -345,8 +344,8 @@ class Backend:
     def _add_block(self, bid: int, block: ObservationBlock) -> None:
         self._blocks[bid] = block
         self._plane_blocks[block.plane_id].add(bid)
-        self._block_top[bid] = block.knot + (1 if block.alphas is not None else 0)
-        if self._block_top[bid] < self._summarized_upto:  # its poses are held by the window already
+        top = block.knot + (1 if block.alphas is not None else 0)  # the highest knot it touches
+        if top < self._summarized_upto:  # its poses are held by the window already
             self._summarize_block(bid)
 
     def replace_observations(self, block_id: int, points: ArrayLike, alphas: ArrayLike | None,
@@ -364,7 +363,6 @@ class Backend:
         blk = self._get_block(block_id)
         self._remove_factor(block_id)
         del self._blocks[block_id]
-        del self._block_top[block_id]
         self._plane_blocks[blk.plane_id].discard(block_id)
         key = (blk.knot, blk.plane_id, blk.scanner, blk.alphas is not None)
         if self._open_blocks.get(key) == block_id:

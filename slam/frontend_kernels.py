@@ -149,6 +149,15 @@ def _interpolated_into(T: FloatArray, i: int, a: float, phi: FloatArray, E: Floa
 
 
 @nb.njit(cache=True)
+def _interval_log_into(T: FloatArray, i: int, D: FloatArray, phi: FloatArray) -> None:
+    """``phi = Log(R_i^T R_{i+1})`` of knot interval ``i`` (``D`` is scratch, 3x3)."""
+    for r in range(3):
+        for c in range(3):
+            D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
+    so3_log_into(D, phi)
+
+
+@nb.njit(cache=True)
 def interval_poses(T: FloatArray, idx: IntArray, alpha: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Rotations (m, 3, 3) and positions (m, 3) of ``T_world_body`` at the fractions ``alpha`` (m,)
     of the knot intervals ``idx`` (m,) of the knots ``T`` (K, 4, 4); one rotation logarithm per
@@ -163,10 +172,7 @@ def interval_poses(T: FloatArray, idx: IntArray, alpha: FloatArray) -> tuple[Flo
     for k in range(m):
         i = idx[k]
         if i != last:
-            for r in range(3):
-                for c in range(3):
-                    D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
-            so3_log_into(D, phi)
+            _interval_log_into(T, i, D, phi)
             last = i
         _interpolated_into(T, i, alpha[k], phi, E, R[k], t[k])
     return R, t
@@ -186,10 +192,7 @@ def place(T: FloatArray, idx: IntArray, alpha: FloatArray, points_body: FloatArr
     for k in range(m):
         i = idx[k]
         if i != last:
-            for r in range(3):
-                for c in range(3):
-                    D[r, c] = T[i, 0, r] * T[i + 1, 0, c] + T[i, 1, r] * T[i + 1, 1, c] + T[i, 2, r] * T[i + 1, 2, c]
-            so3_log_into(D, phi)
+            _interval_log_into(T, i, D, phi)
             last = i
         a = alpha[k]
         vx, vy, vz = a * phi[0], a * phi[1], a * phi[2]

@@ -634,13 +634,7 @@ class SlamRunner:
                 direction = 1 if higher_is_lo else -1
                 # half the step: a return on the lower surface stays off the higher one's line
                 tol = min(3.0 * self._range_sigma[segs.scanner], 0.5 * abs(0.5 * (s1 + s2)))
-                k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
-                                    segs.line_centroid[j_high], segs.line_direction[j_high], tol)
-                k_next = k_end + direction
-                if not 0 <= k_next < segs.beam_angles.shape[0]:
-                    continue
-                got = bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]),
-                                    segs.line_centroid[j_high], segs.line_direction[j_high])
+                got = _bracket_end(segs, j_high, k_end, direction, tol)
                 if got is None:
                     continue
                 edge_scanner, spacing = got
@@ -694,12 +688,7 @@ class SlamRunner:
                 if found is None:
                     continue
                 _, k_in, depth = found
-                k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
-                                    c2, u2, min(3.0 * sigma, 0.5 * depth))
-                k_next = k_end + direction
-                if not 0 <= k_next < n_beams:
-                    continue
-                got = bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]), c2, u2)
+                got = _bracket_end(segs, j, k_end, direction, min(3.0 * sigma, 0.5 * depth))
                 if got is None:
                     continue
                 edge_scanner, spacing = got
@@ -1087,6 +1076,19 @@ class SlamRunner:
 
     def kind_name(self, pid: int) -> str:
         return KIND_NAMES[self.pmap.planes[pid].kind]
+
+
+def _bracket_end(segs: ScanSegments, j: int, k_end: int, direction: int,
+                 tolerance: float) -> tuple[FloatArray, float] | None:
+    """The edge where segment ``j``'s surface ends at beam ``k_end`` (walking ``direction``):
+    the end walked over beams still on its line within ``tolerance`` (``surface_end``), then
+    bracketed with the next beam (``bracket_point``); (point (2,) scanner frame, spacing) or None."""
+    c2, u2 = segs.line_centroid[j], segs.line_direction[j]
+    k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid, c2, u2, tolerance)
+    k_next = k_end + direction
+    if not 0 <= k_next < segs.beam_angles.shape[0]:
+        return None
+    return bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]), c2, u2)
 
 
 def run_stream(
