@@ -19,7 +19,8 @@ Metrics (each defined where it is computed):
   Angle error = angle between the normals (deg, sign-free); offset error = signed distance of
   the estimated patch's centre to the true plane (m).
 - Cloud: unsigned distance of each (aligned) cloud point to the true mesh
-  (open3d ``RaycastingScene.compute_distance``).
+  (open3d ``RaycastingScene.compute_distance``), for every k-th point (at most
+  ``max_cloud_points``); cloud.ply is read a chunk at a time and only those points are kept.
 - Association: a segment's true plane is the majority of its beams' true plane ids; an
   estimated plane's true plane is the majority over its segments; a segment is correct when
   it is associated and both agree.
@@ -41,6 +42,7 @@ from slam.export import (
     OutputFileError,
     PlaneRecord,
     SegmentTable,
+    cloud_ply_layout,
     read_cloud_ply,
     read_json,
     read_planes_json,
@@ -639,15 +641,19 @@ class CloudEval:
 
 
 def mesh_distances(
-    points: FloatArray, vertices: FloatArray, triangles: NDArray[np.integer]
+    points: FloatArray, vertices: FloatArray, triangles: NDArray[np.integer], chunk: int = 1 << 20
 ) -> FloatArray:
     """Unsigned distance (m) of each point (N,3) to the triangle mesh, with open3d.
 
     Coordinates are shifted to the mesh's centre before the float32 conversion open3d needs,
-    so that far-from-origin worlds keep sub-millimetre precision.
+    so that far-from-origin worlds keep sub-millimetre precision. The points are queried
+    ``chunk`` at a time (each point's distance does not depend on the others), so the float32
+    copies open3d needs stay small.
     """
     import open3d as o3d
 
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
     centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
     mesh = o3d.t.geometry.TriangleMesh()
     mesh.vertex.positions = o3d.core.Tensor.from_numpy(
@@ -658,24 +664,36 @@ def mesh_distances(
     )
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
-    q = o3d.core.Tensor.from_numpy(np.ascontiguousarray(points - centre, dtype=np.float32))
-    return scene.compute_distance(q).numpy().astype(np.float64)
+    out = np.empty(points.shape[0], dtype=np.float64)
+    for a in range(0, points.shape[0], chunk):
+        q = np.ascontiguousarray(points[a : a + chunk] - centre, dtype=np.float32)
+        out[a : a + q.shape[0]] = scene.compute_distance(o3d.core.Tensor.from_numpy(q)).numpy()
+    return out
 
 
 def cloud_errors(
-    cloud: CloudRecord,
+    cloud: CloudRecord | str | Path,
     T_align: FloatArray,
     vertices: FloatArray,
     triangles: NDArray[np.integer],
     max_points: int = 2_000_000,
 ) -> CloudEval:
-    """Distances of the aligned cloud to the mesh; a regular stride caps the points evaluated."""
-    step = max(1, -(-len(cloud) // max_points))
-    pts = transform_points(T_align, cloud.points_world[::step])
+    """Distances of the aligned cloud to the mesh; a regular stride caps the points evaluated.
+
+    ``cloud`` is a cloud in memory or a cloud.ply's path; a file is read a chunk at a time and
+    only the evaluated points are kept (``read_cloud_ply`` with the stride)."""
+    if isinstance(cloud, CloudRecord):
+        n = len(cloud)
+        step = max(1, -(-n // max_points))
+        sample = CloudRecord(cloud.points_world[::step], cloud.scanner[::step], cloud.time[::step],
+                             cloud.plane_id[::step])
+    else:
+        n, _ = cloud_ply_layout(cloud)
+        sample = read_cloud_ply(cloud, step=max(1, -(-n // max_points)))
     return CloudEval(
-        distances=mesh_distances(pts, vertices, triangles),
-        associated=cloud.plane_id[::step] >= 0,
-        n_points_total=len(cloud),
+        distances=mesh_distances(transform_points(T_align, sample.points_world), vertices, triangles),
+        associated=sample.plane_id >= 0,
+        n_points_total=n,
     )
 
 
@@ -825,12 +843,12 @@ def evaluate(
     elif not (gt.folder / "mesh.ply").is_file():
         skipped["cloud"] = f"{gt.folder / 'mesh.ply'} missing"
     else:
-        c = read_cloud_ply(run / "cloud.ply")
-        if len(c) == 0:
+        n_points, _ = cloud_ply_layout(run / "cloud.ply")
+        if n_points == 0:
             skipped["cloud"] = f"{run / 'cloud.ply'} has no points"
         else:
             v, f = gt.mesh()
-            cloud = cloud_errors(c, T_map, v, f, max_points=max_cloud_points)
+            cloud = cloud_errors(run / "cloud.ply", T_map, v, f, max_points=max_cloud_points)
 
     return EvalResult(str(run), str(gt.folder), map_alignment, traj, planes, cloud, assoc, skipped)
 

@@ -8,7 +8,9 @@ Files of a run folder ``DIR``:
   The ground truth's ``planes.json`` reads with the same reader.
 - ``cloud.ply``: every valid point in the world frame with per-point ``scanner`` (int32),
   ``time`` (float64, s) and ``plane_id`` (int32, -1 = unassociated): a binary PLY in open3d's
-  layout (read back with open3d's tensor API).
+  layout (x, y, z, scanner, time, plane_id; open3d's tensor API reads it). Its header has a
+  fixed length (the comment line is padded), so a run writes the points as they come and the
+  header last; it is read back with numpy, whole or a chunk at a time.
 - ``segments.npz``: one row per segment (scanner index, scan index, stamp, inclusive beam range,
   plane id).
 - ``summary.json``: free-form run summary (config, counts, timings, residuals).
@@ -337,15 +339,24 @@ _PLY_PROPERTIES = (
     ("plane_id", "<i4", "int"),
 )
 _PLY_VERTEX = np.dtype([(name, dtype) for name, dtype, _ in _PLY_PROPERTIES])
-_PLY_CHUNK = 1 << 20  # points packed and written at a time
+_PLY_CHUNK = 1 << 20  # points packed and written, or read, at a time
+_PLY_COUNT_DIGITS = 15  # the header has room for a point count of up to this many digits
+_PLY_END = b"end_header\n"
+_PLY_MAX_HEADER = 1 << 16  # bytes searched for the end of a header
 
 
 def _ply_header(n: int) -> bytes:
-    """The header of a binary little-endian PLY of ``n`` cloud points."""
+    """The header of a binary little-endian PLY of ``n`` cloud points.
+
+    Its length does not depend on ``n`` (the comment line is padded with spaces), so that the
+    points can be written after room for the header and the header, with the count, last."""
+    digits = len(str(n))
+    if digits > _PLY_COUNT_DIGITS:
+        raise OutputFileError(f"{n} points: too many for a cloud.ply")
     props = "".join(f"property {ply} {name}\n" for name, _, ply in _PLY_PROPERTIES)
     return (
-        "ply\nformat binary_little_endian 1.0\ncomment written by backpack-slam (slam.export)\n"
-        f"element vertex {n}\n{props}end_header\n"
+        "ply\nformat binary_little_endian 1.0\ncomment written by backpack-slam (slam.export)"
+        f"{' ' * (_PLY_COUNT_DIGITS - digits)}\nelement vertex {n}\n{props}end_header\n"
     ).encode("ascii")
 
 
@@ -358,6 +369,46 @@ def _write_ply_rows(f: BinaryIO, cloud: CloudRecord, start: int, stop: int, buf:
     rows["time"] = cloud.time[start:stop]
     rows["plane_id"] = cloud.plane_id[start:stop]
     f.write(rows.data)
+
+
+class CloudPlyWriter:
+    """Writes cloud points (world frame) into an open binary file, a chunk at a time, in
+    :func:`write_cloud_ply`'s layout; the header, with the final count, is written by
+    :meth:`finish`. Made by :func:`cloud_ply_writer`."""
+
+    def __init__(self, f: BinaryIO, what: str) -> None:
+        self._f = f
+        self._what = what
+        self._buf = np.empty(0, dtype=_PLY_VERTEX)
+        self.count = 0  # points written so far
+        f.write(b" " * len(_ply_header(0)))  # room for the header
+
+    def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike) -> None:
+        """Append points (N,3) in the world frame with their scanner, time (s) and plane id (N,)."""
+        cloud = _as_cloud(points_world, scanner, time, plane_id, self._what)
+        n = len(cloud)
+        if self._buf.shape[0] < min(n, _PLY_CHUNK):
+            self._buf = np.empty(min(n, _PLY_CHUNK), dtype=_PLY_VERTEX)
+        for start in range(0, n, _PLY_CHUNK):
+            _write_ply_rows(self._f, cloud, start, min(n, start + _PLY_CHUNK), self._buf)
+        self.count += n
+
+    def finish(self) -> None:
+        """Write the header (with the number of points written) at the start of the file."""
+        self._f.seek(0)
+        self._f.write(_ply_header(self.count))
+
+
+@contextmanager
+def cloud_ply_writer(path: str | Path) -> Iterator[CloudPlyWriter]:
+    """A :class:`CloudPlyWriter` onto a temporary name beside ``path``, renamed onto ``path``
+    when the block succeeds (and removed on any exception): a cloud written as it comes,
+    without holding it, e.g. ``with cloud_ply_writer(p) as w: w.write(...)``."""
+    target = Path(path)
+    with atomic_path(target) as tmp, tmp.open("wb") as f:
+        writer = CloudPlyWriter(f, str(target))
+        yield writer
+        writer.finish()
 
 
 def write_cloud_ply(
@@ -373,7 +424,7 @@ def write_cloud_ply(
     ``voxel`` (m) thins the cloud to one real point per voxel (see :func:`voxel_thin`). The file
     has open3d's layout (x, y, z and time as doubles, scanner and plane_id as ints); it is
     written with numpy, a chunk of points at a time (open3d's writer took longer, and its
-    import alone half a second).
+    import alone half a second); :func:`cloud_ply_writer` writes the same file from chunks.
     """
     target = Path(path)
     cloud = _as_cloud(points_world, scanner, time, plane_id, str(target))
@@ -384,34 +435,94 @@ def write_cloud_ply(
         cloud = CloudRecord(
             cloud.points_world[keep], cloud.scanner[keep], cloud.time[keep], cloud.plane_id[keep]
         )
-    n = len(cloud)
-    buf = np.empty(min(n, _PLY_CHUNK), dtype=_PLY_VERTEX)
-    with atomic_path(target) as tmp, tmp.open("wb") as f:
-        f.write(_ply_header(n))
-        for start in range(0, n, _PLY_CHUNK):
-            _write_ply_rows(f, cloud, start, min(n, start + _PLY_CHUNK), buf)
-    return n
+    with cloud_ply_writer(target) as w:
+        w.write(cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id)
+    return len(cloud)
 
 
-def read_cloud_ply(path: str | Path) -> CloudRecord:
-    """Read a cloud written by :func:`write_cloud_ply` (points in the world frame)."""
-    import open3d as o3d
-
+def cloud_ply_layout(path: str | Path) -> tuple[int, int]:
+    """(number of points, byte offset of the first) of a cloud.ply; a file that is not a binary
+    little-endian PLY with :func:`write_cloud_ply`'s vertex properties (open3d's layout), or is
+    truncated, is an OutputFileError naming it."""
     p = Path(path)
     if not p.is_file():
         raise OutputFileError(f"{p}: no such file")
-    pc = o3d.t.io.read_point_cloud(p)
-    if "positions" not in pc.point:
-        raise OutputFileError(f"{p}: no points (unreadable or empty PLY)")
-    missing = [k for k in ("scanner", "time", "plane_id") if k not in pc.point]
-    if missing:
-        raise OutputFileError(f"{p}: missing point attribute(s) {', '.join(missing)}")
-    return CloudRecord(
-        points_world=pc.point["positions"].numpy().astype(np.float64, copy=False),
-        scanner=pc.point["scanner"].numpy().ravel().astype(np.int32, copy=False),
-        time=pc.point["time"].numpy().ravel().astype(np.float64, copy=False),
-        plane_id=pc.point["plane_id"].numpy().ravel().astype(np.int32, copy=False),
-    )
+    with p.open("rb") as f:
+        head = f.read(_PLY_MAX_HEADER)
+    end = head.find(_PLY_END)
+    if not head.startswith(b"ply\n") or end < 0:
+        raise OutputFileError(f"{p}: not a PLY file (no 'ply' ... 'end_header' header)")
+    lines = [
+        ln.strip()
+        for ln in head[:end].decode("ascii", errors="replace").split("\n")[1:]
+        if ln.strip() and not ln.startswith(("comment", "obj_info"))
+    ]
+    want = [f"property {ply} {name}" for name, _, ply in _PLY_PROPERTIES]
+    fmt, element, props = (lines[0] if lines else ""), (lines[1].split() if len(lines) > 1 else []), lines[2:]
+    if fmt != "format binary_little_endian 1.0":
+        raise OutputFileError(f"{p}: '{fmt}' is not cloud.ply's format (binary_little_endian 1.0)")
+    if len(element) != 3 or element[:2] != ["element", "vertex"] or not element[2].isdigit() or props != want:
+        raise OutputFileError(
+            f"{p}: not cloud.ply's layout (one vertex element of {', '.join(w.split()[2] for w in want)} "
+            f"as {', '.join(w.split()[1] for w in want)})"
+        )
+    n, offset = int(element[2]), end + len(_PLY_END)
+    size = p.stat().st_size
+    if size != offset + n * _PLY_VERTEX.itemsize:
+        raise OutputFileError(
+            f"{p}: {size - offset} bytes of points where {n} points take {n * _PLY_VERTEX.itemsize} (truncated?)"
+        )
+    return n, offset
+
+
+def _cloud_of_rows(rows: NDArray[np.void]) -> CloudRecord:
+    """The cloud of PLY rows, as views into them (no copy)."""
+    n = rows.shape[0]
+    x = rows["x"]
+    points = np.lib.stride_tricks.as_strided(x, shape=(n, 3), strides=(x.strides[0], x.itemsize), writeable=False)
+    return CloudRecord(points_world=points, scanner=rows["scanner"], time=rows["time"], plane_id=rows["plane_id"])
+
+
+def _ply_rows(path: str | Path, chunk: int) -> Iterator[NDArray[np.void]]:
+    """The rows of a cloud.ply, ``chunk`` at a time (each read into its own array)."""
+    n, offset = cloud_ply_layout(path)
+    with Path(path).open("rb") as f:
+        f.seek(offset)
+        for start in range(0, n, chunk):
+            want = min(chunk, n - start)
+            rows = np.fromfile(f, dtype=_PLY_VERTEX, count=want)
+            if rows.shape[0] != want:
+                raise OutputFileError(f"{path}: truncated at point {start + rows.shape[0]} of {n}")
+            yield rows
+
+
+def iter_cloud_ply(path: str | Path, chunk: int = _PLY_CHUNK) -> Iterator[CloudRecord]:
+    """The points of a cloud.ply (world frame) in file order, ``chunk`` points at a time: a
+    pass over a cloud that is not held (only the current chunk is in memory)."""
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    for rows in _ply_rows(path, chunk):
+        yield _cloud_of_rows(rows)
+
+
+def read_cloud_ply(path: str | Path, step: int = 1, chunk: int = _PLY_CHUNK) -> CloudRecord:
+    """Read a cloud written by :func:`write_cloud_ply` (points in the world frame): every point,
+    or with ``step`` > 1 every ``step``-th one (points 0, step, 2 step, ...), read ``chunk``
+    points at a time so that only the kept points are held. The columns are views into one
+    array of the file's rows (40 bytes a point)."""
+    if step < 1 or chunk < 1:
+        raise ValueError(f"step and chunk must be >= 1, got {step} and {chunk}")
+    n, _ = cloud_ply_layout(path)
+    if step == 1:
+        kept = list(_ply_rows(path, max(n, 1)))  # one read of all the rows
+    else:
+        kept, start = [], 0
+        for rows in _ply_rows(path, chunk):
+            kept.append(rows[(-start) % step :: step].copy())  # a copy: the chunk is not kept
+            start += rows.shape[0]
+    if len(kept) == 1:
+        return _cloud_of_rows(kept[0])
+    return _cloud_of_rows(np.concatenate(kept) if kept else np.zeros(0, dtype=_PLY_VERTEX))
 
 
 # -------------------------------------------------------------------------------- segments

@@ -33,7 +33,8 @@ from slam.export import (
     OutputFileError,
     PlaneRecord,
     atomic_path,
-    read_cloud_ply,
+    cloud_ply_layout,
+    iter_cloud_ply,
     read_planes_json,
     read_trajectory_tum,
 )
@@ -105,13 +106,103 @@ def _frames(times: FloatArray, t0: float, period: float) -> tuple[FloatArray, ND
     return (t0 + frame_ids * period).astype(np.float64), lengths.astype(np.int64)
 
 
+@dataclass(frozen=True)
+class CloudView:
+    """The part of a cloud (world frame) that the recording shows: per scanner index its points
+    in time order, every ``step``-th (``scans``, by increasing scanner index), every
+    ``step``-th point of the whole cloud (``cloud``), ``step`` from :class:`MapOptions`'
+    caps, and the earliest point time ``t0`` (s), where the scans' frames start."""
+
+    t0: float
+    scans: tuple[tuple[int, CloudRecord], ...]
+    cloud: CloudRecord
+
+
+def _take(cloud: CloudRecord, sel: NDArray[np.integer] | slice) -> CloudRecord:
+    return CloudRecord(cloud.points_world[sel], cloud.scanner[sel], cloud.time[sel], cloud.plane_id[sel])
+
+
+def view_of_cloud(cloud: CloudRecord, options: MapOptions | None = None) -> CloudView:
+    """The :class:`CloudView` of a cloud in memory (a non-empty one)."""
+    opt = options or MapOptions()
+    step = _stride(len(cloud), opt.max_scan_points)
+    scans = []
+    for s in np.unique(cloud.scanner):
+        sel = np.flatnonzero(cloud.scanner == s)
+        t = cloud.time[sel]
+        if not np.all(t[1:] >= t[:-1]):  # a scanner's points usually come in time order already
+            sel = sel[np.argsort(t, kind="stable")]
+        scans.append((int(s), _take(cloud, sel[::step])))
+    return CloudView(float(np.min(cloud.time)), tuple(scans),
+                     _take(cloud, slice(None, None, _stride(len(cloud), opt.max_cloud_points))))
+
+
+def view_of_cloud_ply(path: str | Path, options: MapOptions | None = None, chunk: int = 1 << 20) -> CloudView:
+    """The :class:`CloudView` of a (non-empty) cloud.ply, the same as :func:`view_of_cloud` of the
+    cloud read whole, from one pass over the file ``chunk`` points at a time (only the shown
+    points are kept); a scanner whose points are not in time order takes two more passes."""
+    opt = options or MapOptions()
+    n, _ = cloud_ply_layout(path)
+    step, cloud_step = _stride(n, opt.max_scan_points), _stride(n, opt.max_cloud_points)
+    t0 = math.inf
+    count: dict[int, int] = {}  # points of each scanner so far
+    last: dict[int, float] = {}  # time of its last point
+    parts: dict[int, list[CloudRecord]] = {}
+    unsorted: set[int] = set()
+    cloud_parts = []
+    start = 0
+    for c in iter_cloud_ply(path, chunk):
+        t0 = min(t0, float(np.min(c.time)))
+        cloud_parts.append(_copy(c, slice((-start) % cloud_step, None, cloud_step)))
+        start += len(c)
+        for s in np.unique(c.scanner).tolist():
+            sel = np.flatnonzero(c.scanner == s)
+            t = c.time[sel]
+            if not np.all(t[1:] >= t[:-1]) or t[0] < last.get(s, -math.inf):
+                unsorted.add(s)
+            k = count.get(s, 0)
+            parts.setdefault(s, []).append(_copy(c, sel[(-k) % step :: step]))
+            count[s], last[s] = k + sel.size, float(t[-1])
+    for s in unsorted:
+        parts[s] = [_time_ordered(path, s, step, chunk)]
+    scans = tuple((s, _concat(parts[s])) for s in sorted(parts))
+    return CloudView(t0, scans, _concat(cloud_parts))
+
+
+def _copy(cloud: CloudRecord, sel: NDArray[np.integer] | slice) -> CloudRecord:
+    """Points ``sel`` of a chunk, copied (so that the chunk itself is not kept)."""
+    return CloudRecord(np.ascontiguousarray(cloud.points_world[sel]), np.ascontiguousarray(cloud.scanner[sel]),
+                       np.ascontiguousarray(cloud.time[sel]), np.ascontiguousarray(cloud.plane_id[sel]))
+
+
+def _concat(parts: Sequence[CloudRecord]) -> CloudRecord:
+    return CloudRecord(np.concatenate([p.points_world for p in parts]), np.concatenate([p.scanner for p in parts]),
+                       np.concatenate([p.time for p in parts]), np.concatenate([p.plane_id for p in parts]))
+
+
+def _time_ordered(path: str | Path, scanner: int, step: int, chunk: int) -> CloudRecord:
+    """Every ``step``-th point of ``scanner`` in (stable) time order, from a cloud.ply: a pass for
+    its times, a pass for the chosen points."""
+    times = np.concatenate([c.time[c.scanner == scanner] for c in iter_cloud_ply(path, chunk)])
+    pick = np.argsort(times, kind="stable")[::step]  # ranks among the scanner's points, time order
+    del times
+    wanted = np.sort(pick)
+    got, k = [], 0
+    for c in iter_cloud_ply(path, chunk):
+        sel = np.flatnonzero(c.scanner == scanner)
+        lo, hi = np.searchsorted(wanted, [k, k + sel.size])
+        got.append(_copy(c, sel[wanted[lo:hi] - k]))
+        k += sel.size
+    return _take(_concat(got), np.searchsorted(wanted, pick))
+
+
 def write_map_rrd(
     path: str | Path,
     *,
     times: FloatArray,
     T_world_body: FloatArray,
     planes: Sequence[PlaneRecord] = (),
-    cloud: CloudRecord | None = None,
+    cloud: CloudRecord | CloudView | None = None,
     scanner_names: Sequence[str] = (),
     segments: SegmentLines | None = None,
     options: MapOptions | None = None,
@@ -120,7 +211,9 @@ def write_map_rrd(
 
     ``times`` (N,) and ``T_world_body`` (N,4,4) are the trajectory; ``cloud`` (world frame)
     gives both the scans over time (grouped per scanner by the points' own times) and the
-    final cloud; ``scanner_names`` names the cloud's scanner indices (else ``scanner_<i>``).
+    final cloud, either whole or as its :class:`CloudView` (e.g. of a cloud.ply, from
+    :func:`view_of_cloud_ply`); ``scanner_names`` names the cloud's scanner indices (else
+    ``scanner_<i>``).
     """
     opt = options or MapOptions()
     target = Path(path)
@@ -136,9 +229,11 @@ def write_map_rrd(
             rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
             _log_trajectory(rec, t, T, opt)
             _log_planes(rec, planes, opt)
-            if cloud is not None and len(cloud) > 0:
+            if isinstance(cloud, CloudRecord) and len(cloud) > 0:
+                cloud = view_of_cloud(cloud, opt)
+            if isinstance(cloud, CloudView) and len(cloud.cloud) > 0:
                 _log_scans(rec, cloud, scanner_names, opt)
-                _log_cloud(rec, cloud, opt)
+                _log_cloud(rec, cloud.cloud, opt)
             if segments is not None and segments.stamp.shape[0] > 0:
                 _log_segments(rec, segments, float(t[0]), opt)
             rec.flush()
@@ -187,39 +282,25 @@ def _log_planes(rec: rr.RecordingStream, planes: Sequence[PlaneRecord], opt: Map
         )
 
 
-def _log_scans(
-    rec: rr.RecordingStream, cloud: CloudRecord, names: Sequence[str], opt: MapOptions
-) -> None:
-    step = _stride(len(cloud), opt.max_scan_points)
-    t0 = float(np.min(cloud.time))
-    for s in np.unique(cloud.scanner):
-        sel = np.flatnonzero(cloud.scanner == s)
-        t = cloud.time[sel]
-        if not np.all(t[1:] >= t[:-1]):  # a scanner's points usually come in time order already
-            sel = sel[np.argsort(t, kind="stable")]
-        sel = sel[::step]
-        if sel.size == 0:
+def _log_scans(rec: rr.RecordingStream, view: CloudView, names: Sequence[str], opt: MapOptions) -> None:
+    for s, pts in view.scans:
+        if len(pts) == 0:
             continue
-        frame_t, lengths = _frames(cloud.time[sel], t0, opt.frame_period)
+        frame_t, lengths = _frames(pts.time, view.t0, opt.frame_period)
         name = names[s] if 0 <= s < len(names) else f"scanner_{s}"
         rec.send_columns(
             f"world/scans/{name}",
             indexes=[rr.TimeColumn("sensor", timestamp=frame_t)],
             columns=rr.Points3D.columns(
-                positions=cloud.points_world[sel], colors=plane_colors(cloud.plane_id[sel])
+                positions=pts.points_world, colors=plane_colors(pts.plane_id)
             ).partition(lengths),
         )
 
 
-def _log_cloud(rec: rr.RecordingStream, cloud: CloudRecord, opt: MapOptions) -> None:
-    step = _stride(len(cloud), opt.max_cloud_points)
+def _log_cloud(rec: rr.RecordingStream, shown: CloudRecord, opt: MapOptions) -> None:
     rec.log(
         "world/cloud",
-        rr.Points3D(
-            cloud.points_world[::step],
-            colors=plane_colors(cloud.plane_id[::step]),
-            radii=[opt.point_radius / 2],
-        ),
+        rr.Points3D(shown.points_world, colors=plane_colors(shown.plane_id), radii=[opt.point_radius / 2]),
         static=True,
     )
 
@@ -248,12 +329,15 @@ def write_map_from_dir(
 ) -> Path:
     """Build ``map.rrd`` from a run folder's trajectory.tum, planes.json and cloud.ply.
 
-    planes.json and cloud.ply are optional; the trajectory is required.
+    planes.json and cloud.ply are optional; the trajectory is required. The cloud is read a
+    chunk at a time (:func:`view_of_cloud_ply`).
     """
     d = Path(run_dir)
     times, T = read_trajectory_tum(d / "trajectory.tum")
     planes = read_planes_json(d / "planes.json") if (d / "planes.json").is_file() else []
-    cloud = read_cloud_ply(d / "cloud.ply") if (d / "cloud.ply").is_file() else None
+    cloud = None
+    if (d / "cloud.ply").is_file() and cloud_ply_layout(d / "cloud.ply")[0] > 0:
+        cloud = view_of_cloud_ply(d / "cloud.ply", options)
     return write_map_rrd(
         Path(out) if out is not None else d / "map.rrd",
         times=times,

@@ -11,11 +11,16 @@ output):
 - ``cloud.ply``: every valid point placed by the final trajectory and the
   rig's extrinsics (world frame), with scanner index, time and plane id;
 - ``map.rrd``: the rerun recording; ``summary.json``: config, counts,
-  timings, residual statistics.
+  timings, residual statistics, peak memory after the estimation and after the export.
+
+The cloud is written as it is placed, never held: the export's memory does not grow with the
+walk's length (beyond the segments' end points and the recording's capped subsets).
 """
 
 from __future__ import annotations
 
+import resource
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -27,10 +32,12 @@ from tqdm import tqdm
 from backpack_slam.rig import Rig
 from slam.config import SlamConfig
 from slam.export import (
-    CloudRecord,
+    CloudPlyWriter,
     PlaneRecord,
     atomic_dir,
+    cloud_ply_writer,
     make_segment_table,
+    read_cloud_ply,
     write_cloud_ply,
     write_planes_json,
     write_segments_npz,
@@ -42,7 +49,7 @@ from slam.io.bag import read_imu, read_scans, topics
 from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
 from slam.placement import place_points
-from slam.rerun_map import MapOptions, SegmentLines, write_map_rrd
+from slam.rerun_map import MapOptions, SegmentLines, view_of_cloud_ply, write_map_rrd
 
 FloatArray = NDArray[np.float64]
 
@@ -59,6 +66,7 @@ def bag_time_range(path: str | Path) -> tuple[float, float]:
 
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
 _PLACE_CHUNK = 4096  # cloud points per place_points call: its (m, 3, 3) temporaries stay in cache (~2x faster)
+_EXPORT_BATCH = 1 << 18  # cloud points placed and written at a time (~10 MB of body points)
 
 
 def load_imu(bag: str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> ImuSamples | None:
@@ -85,6 +93,18 @@ def load_imu(bag: str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> 
                               ic.topic)
         return None
     return samples
+
+
+MEMORY_DEFINITION = ("peak resident memory (ru_maxrss, GB) of the process so far, after the estimation "
+                     "(runner.result) and after the export; it never decreases, so the stage whose "
+                     "figure rises is the one that sets the peak")
+
+
+def peak_rss_gb() -> float:
+    """The peak resident memory of this process so far (GB): ``ru_maxrss``, KiB on Linux and
+    bytes on macOS."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak * (1 if sys.platform == "darwin" else 1024) / 1e9
 
 
 def run_slam(
@@ -118,11 +138,14 @@ def run_slam(
     bar.close()
     runner.finish()
     res = runner.result(batch=cfg.backend.final_batch)
+    memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}
 
     with atomic_dir(out) as tmp:
         t0 = time.perf_counter()
         summary = _write_outputs(tmp, bag, rig, cfg, res, runner, progress, voxel)
         res.timings["export"] = time.perf_counter() - t0
+        memory["peak_rss_gb_after_export"] = peak_rss_gb()
+        summary["memory"] = {k: round(v, 3) for k, v in memory.items()} | {"definition": MEMORY_DEFINITION}
         summary["timings"] = {k: round(v, 3) for k, v in res.timings.items()}
         summary["timings"]["wall"] = round(time.perf_counter() - t_wall, 3)
         summary["data_duration"] = t_end - t_start
@@ -155,15 +178,52 @@ def _plane_records(res: SlamResult, runner: SlamRunner, with_cov: bool) -> list[
     return recs
 
 
-def _cloud(
-    bag: str | Path, rig: Rig, res: SlamResult, progress: bool
-) -> tuple[FloatArray, NDArray[np.int32], FloatArray, NDArray[np.int32], SegmentLines]:
-    """Second pass over the bag: every valid point in the world with the final trajectory,
-    and the associated segments' end points for display.
+class _CloudBatch:
+    """Scans' points (body frame) gathered until there are enough to place together; then placed
+    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written."""
 
-    The points (body frame) of all scans are placed together, in chunks of ``_PLACE_CHUNK``
-    (``place_points`` gives every point the same numbers however the points are batched)."""
+    def __init__(self, res: SlamResult, writer: CloudPlyWriter) -> None:
+        self._kt, self._T = res.knot_times, res.T_world_body
+        self._writer = writer
+        self._cols: list[tuple[FloatArray, NDArray[np.uint8], FloatArray, NDArray[np.int32]]] = []
+        self._ends: list[int] = []  # the batch's segments' first and last point indices
+        self.n = 0  # points in the batch
+        self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
+
+    def add(self, points_body: FloatArray, scanner: int, times: FloatArray, plane_id: NDArray[np.int32],
+            ends: list[int]) -> None:
+        """A scan's points (body frame) with their times (s) and plane ids; ``ends`` indexes
+        its segments' first and last points in the scan."""
+        self._cols.append((points_body, np.full(times.shape[0], scanner, dtype=np.uint8), times, plane_id))
+        self._ends.extend(self.n + e for e in ends)
+        self.n += times.shape[0]
+        if self.n >= _EXPORT_BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._cols:
+            return
+        pb, sc, tm, pid = (np.concatenate(c) for c in zip(*self._cols, strict=True))
+        pw = np.empty_like(pb)
+        for a in range(0, self.n, _PLACE_CHUNK):
+            b = min(a + _PLACE_CHUNK, self.n)
+            pw[a:b] = place_points(self._kt, self._T, tm[a:b], pb[a:b])
+        self._writer.write(pw, sc, tm, pid)
+        self.endpoints_world.append(pw[np.asarray(self._ends, dtype=np.int64)])
+        self._cols, self._ends, self.n = [], [], 0
+
+
+def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool) -> tuple[int, SegmentLines]:
+    """Second pass over the bag: every valid point placed in the world with the final
+    trajectory and written to the cloud.ply ``ply`` as it comes (so that the cloud is never
+    held), and the associated segments' end points (world frame) for display; returns the
+    number of points and the segments.
+
+    Points are placed a batch of scans at a time, in chunks of ``_PLACE_CHUNK`` (``place_points``
+    gives every point the same numbers however the points are batched)."""
     names = res.scanner_names
+    if len(names) > 256:
+        raise ValueError(f"{bag}: {len(names)} scanners, at most 256 fit a cloud's scanner index")
     index = {n: i for i, n in enumerate(names)}
     T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
     rows = res.segment_rows
@@ -171,57 +231,48 @@ def _cloud(
     key = rows["scanner"].astype(np.int64) * (1 << 40) + rows["scan_index"].astype(np.int64)
     order = np.argsort(key, kind="stable")
     key_sorted = key[order]
-    kt, T = res.knot_times, res.T_world_body
-    pb_all, sc_all, tm_all, pid_all = [], [], [], []
+    kt = res.knot_times
     seg_stamp: list[float] = []
-    seg_ends: list[int] = []  # indices of the segments' first and last points in the cloud
     seg_pid: list[int] = []
     counters = [0] * len(names)
-    n_points = 0
-    for line in tqdm(read_scans(bag, rig=rig), desc="cloud", disable=not progress, leave=False):
-        s = index[line.scanner_id]
-        si = counters[s]
-        counters[s] += 1
-        if line.n_valid == 0:
-            continue
-        times = line.times[line.valid_index]
-        inside = (times >= kt[0]) & (times <= kt[-1])
-        if not inside.any():
-            continue
-        p2 = line.points_xy[inside]
-        p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
-        p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
-        beams = line.valid_index[inside]
-        plane = np.full(beams.shape[0], -1, dtype=np.int32)
-        k = s * (1 << 40) + si
-        lo, hi = np.searchsorted(key_sorted, [k, k + 1])
-        for r in order[lo:hi]:
-            if rows["plane_id"][r] >= 0:
-                m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
-                if m.size:
-                    plane[m] = rows["plane_id"][r]
-                    seg_stamp.append(line.stamp)
-                    seg_ends.extend((n_points + int(m[0]), n_points + int(m[-1])))
-                    seg_pid.append(int(rows["plane_id"][r]))
-        pb_all.append(p_b)
-        sc_all.append(np.full(p_b.shape[0], s, dtype=np.int32))
-        tm_all.append(times[inside])
-        pid_all.append(plane)
-        n_points += p_b.shape[0]
-    if not pb_all:
-        lines = SegmentLines(np.zeros(0), np.zeros((0, 2, 3)), np.zeros(0, np.int32))
-        return np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), lines
-    pb, tm = np.concatenate(pb_all), np.concatenate(tm_all)
-    pw = np.empty_like(pb)
-    for a in range(0, n_points, _PLACE_CHUNK):
-        b = min(a + _PLACE_CHUNK, n_points)
-        pw[a:b] = place_points(kt, T, tm[a:b], pb[a:b])
+    with cloud_ply_writer(ply) as writer:
+        batch = _CloudBatch(res, writer)
+        for line in tqdm(read_scans(bag, rig=rig), desc="cloud", disable=not progress, leave=False):
+            s = index[line.scanner_id]
+            si = counters[s]
+            counters[s] += 1
+            if line.n_valid == 0:
+                continue
+            times = line.times[line.valid_index]
+            inside = (times >= kt[0]) & (times <= kt[-1])
+            if not inside.any():
+                continue
+            p2 = line.points_xy[inside]
+            p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
+            p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
+            beams = line.valid_index[inside]
+            plane = np.full(beams.shape[0], -1, dtype=np.int32)
+            ends: list[int] = []  # the scan's segments' first and last points
+            k = s * (1 << 40) + si
+            lo, hi = np.searchsorted(key_sorted, [k, k + 1])
+            for r in order[lo:hi]:
+                if rows["plane_id"][r] >= 0:
+                    m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
+                    if m.size:
+                        plane[m] = rows["plane_id"][r]
+                        seg_stamp.append(line.stamp)
+                        ends.extend((int(m[0]), int(m[-1])))
+                        seg_pid.append(int(rows["plane_id"][r]))
+            batch.add(p_b, s, times[inside], plane, ends)
+        batch.flush()
+        n_points = writer.count
+    endpoints = np.concatenate(batch.endpoints_world) if batch.endpoints_world else np.zeros((0, 3))
     lines = SegmentLines(
         np.asarray(seg_stamp, dtype=np.float64),
-        pw[np.asarray(seg_ends, dtype=np.int64)].reshape(-1, 2, 3),
+        endpoints.reshape(-1, 2, 3),
         np.asarray(seg_pid, dtype=np.int32),
     )
-    return pw, np.concatenate(sc_all), tm, np.concatenate(pid_all), lines
+    return n_points, lines
 
 
 def _write_outputs(
@@ -243,22 +294,30 @@ def _write_outputs(
     )
     write_segments_npz(out / "segments.npz", table)
     n_cloud = 0
-    cloud = None
+    view = None
     lines = None
     if cfg.output.cloud or cfg.output.rerun:
-        pts, sc, tm, pid, lines = _cloud(bag, rig, res, progress)
         v = voxel if voxel is not None else (cfg.output.voxel or None)
+        # every point goes to a file as it is placed; the recording and the voxel thinning
+        # read it back (the recording a chunk at a time)
+        every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
+        n_every, lines = _cloud(bag, rig, res, every, progress)
+        if cfg.output.rerun and n_every > 0:
+            view = view_of_cloud_ply(every, MapOptions())
         if cfg.output.cloud:
-            n_cloud = write_cloud_ply(out / "cloud.ply", pts, sc, tm, pid, voxel=v)
-        if cfg.output.rerun:
-            cloud = CloudRecord(pts, sc, tm, pid)
+            n_cloud = n_every
+            if v is not None:
+                c = read_cloud_ply(every)
+                n_cloud = write_cloud_ply(out / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id, voxel=v)
+        if every.name != "cloud.ply":
+            every.unlink()
     if cfg.output.rerun:
         write_map_rrd(
             out / "map.rrd",
             times=res.knot_times,
             T_world_body=res.T_world_body,
             planes=planes,
-            cloud=cloud,
+            cloud=view,
             scanner_names=res.scanner_names,
             segments=lines,
             options=MapOptions(),

@@ -19,6 +19,7 @@ from slam.rerun_map import (
     _log_scans,
     fan_triangles,
     plane_colors,
+    view_of_cloud,
     write_map_from_dir,
     write_map_rrd,
 )
@@ -170,16 +171,17 @@ class _Columns:
 
 
 def test_scans_in_time_order_or_not_log_the_same_columns() -> None:
-    """_log_scans sorts a scanner's points by time only when they are not in order already."""
+    """The view sorts a scanner's points by time only when they are not in order already."""
     t, _ = _walk()
     c = _cloud(t)
     rng = np.random.default_rng(1)
     shuffled = rng.permutation(len(c))
     mixed = CloudRecord(c.points_world[shuffled], c.scanner[shuffled], c.time[shuffled], c.plane_id[shuffled])
     logged = []
+    opt = MapOptions(max_scan_points=1000)
     for cloud in (c, mixed):
         rec = _Columns()
-        _log_scans(rec, cloud, ["top", "left", "right"], MapOptions(max_scan_points=1000))  # type: ignore[arg-type]
+        _log_scans(rec, view_of_cloud(cloud, opt), ["top", "left", "right"], opt)  # type: ignore[arg-type]
         logged.append(rec.sent)
     assert logged[0].keys() == logged[1].keys() and len(logged[0]) == 3
     for entity, arrays in logged[0].items():

@@ -1,0 +1,286 @@
+"""The cloud written as it comes (slam.run, slam.export) and read a chunk at a time (slam.evaluate,
+slam.rerun_map): the same numbers as holding it whole."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import slam.run
+from backpack_slam.rig import resolve_rig
+from simulation.run import SimulationResult, simulate
+from slam.config import SlamConfig
+from slam.evaluate import cloud_errors, mesh_distances
+from slam.export import (
+    CloudRecord,
+    OutputFileError,
+    cloud_ply_layout,
+    cloud_ply_writer,
+    iter_cloud_ply,
+    read_cloud_ply,
+    read_summary_json,
+    write_cloud_ply,
+)
+from slam.io.bag import read_scans
+from slam.pipeline import SlamResult, SlamRunner
+from slam.placement import place_points
+from slam.rerun_map import CloudView, MapOptions, view_of_cloud, view_of_cloud_ply
+from tests.test_slam_pipeline import BOX_WORLD
+
+
+def _cloud(n: int, seed: int = 0, shuffled: bool = False) -> CloudRecord:
+    rng = np.random.default_rng(seed)
+    time = 1.7e9 + np.sort(rng.uniform(0, 60, n))
+    order = rng.permutation(n) if shuffled else np.arange(n)
+    return CloudRecord(rng.uniform(-40, 40, (n, 3))[order], rng.integers(0, 3, n).astype(np.int32)[order],
+                       time[order], rng.integers(-1, 30, n).astype(np.int32)[order])
+
+
+def _same(a: CloudRecord, b: CloudRecord) -> None:
+    for name in ("points_world", "scanner", "time", "plane_id"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+# ------------------------------------------------------------------------------ PLY in chunks
+
+
+def test_writer_in_pieces_writes_the_whole_cloud_file(tmp_path: Path) -> None:
+    c = _cloud(2500)
+    write_cloud_ply(tmp_path / "whole.ply", c.points_world, c.scanner, c.time, c.plane_id)
+    with cloud_ply_writer(tmp_path / "pieces.ply") as w:
+        for a, b in ((0, 7), (7, 7), (7, 1300), (1300, 2500)):
+            w.write(c.points_world[a:b], c.scanner[a:b].astype(np.uint8), c.time[a:b], c.plane_id[a:b])
+    assert w.count == 2500
+    assert (tmp_path / "pieces.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    assert cloud_ply_layout(tmp_path / "pieces.ply")[0] == 2500
+    _same(read_cloud_ply(tmp_path / "pieces.ply"), c)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pieces.ply", "whole.ply"]
+
+
+def test_header_length_does_not_depend_on_the_count(tmp_path: Path) -> None:
+    offsets = set()
+    for n in (0, 1, 99, 12345):
+        c = _cloud(n)
+        write_cloud_ply(tmp_path / f"{n}.ply", c.points_world, c.scanner, c.time, c.plane_id)
+        count, offset = cloud_ply_layout(tmp_path / f"{n}.ply")
+        assert count == n
+        offsets.add(offset)
+    assert len(offsets) == 1
+
+
+def test_failed_streamed_write_leaves_nothing(tmp_path: Path) -> None:
+    c = _cloud(10)
+    with pytest.raises(OutputFileError, match=r"cloud\.ply: non-finite"), cloud_ply_writer(tmp_path / "cloud.ply") as w:
+        w.write(c.points_world, c.scanner, c.time, c.plane_id)
+        w.write(np.full((2, 3), np.nan), [0, 0], [1.0, 2.0], [0, 0])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_strided_and_chunked_reads_equal_the_whole_read(tmp_path: Path) -> None:
+    c = _cloud(1001)
+    path = tmp_path / "cloud.ply"
+    write_cloud_ply(path, c.points_world, c.scanner, c.time, c.plane_id)
+    whole = read_cloud_ply(path)
+    assert whole.time.dtype == np.float64 and whole.plane_id.dtype == np.int32
+    chunks = list(iter_cloud_ply(path, chunk=128))
+    assert [len(x) for x in chunks] == [128] * 7 + [105]
+    _same(CloudRecord(*(np.concatenate([getattr(x, f) for x in chunks])
+                        for f in ("points_world", "scanner", "time", "plane_id"))), c)  # fmt: skip
+    for step in (2, 3, 7, 128, 1001, 5000):
+        for chunk in (1, 100, 1001, 1 << 20):
+            s = read_cloud_ply(path, step=step, chunk=chunk)
+            _same(s, CloudRecord(c.points_world[::step], c.scanner[::step], c.time[::step], c.plane_id[::step]))
+
+
+def test_reader_takes_open3d_files_and_rejects_foreign_ones(tmp_path: Path) -> None:
+    import open3d as o3d
+
+    c = _cloud(50)
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor.from_numpy(c.points_world))
+    for name, col in (("scanner", c.scanner), ("time", c.time), ("plane_id", c.plane_id)):
+        pc.point[name] = o3d.core.Tensor.from_numpy(np.ascontiguousarray(col[:, None]))
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "open3d.ply"), pc, write_ascii=False)
+    _same(read_cloud_ply(tmp_path / "open3d.ply"), c)
+    # open3d reads ours (the padded comment line included)
+    write_cloud_ply(tmp_path / "ours.ply", c.points_world, c.scanner, c.time, c.plane_id)
+    back = o3d.t.io.read_point_cloud(str(tmp_path / "ours.ply"))
+    np.testing.assert_array_equal(back.point["positions"].numpy(), c.points_world)
+    np.testing.assert_array_equal(back.point["plane_id"].numpy().ravel(), c.plane_id)
+
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "ascii.ply"), pc, write_ascii=True)
+    with pytest.raises(OutputFileError, match=r"ascii\.ply: 'format ascii 1\.0' is not cloud\.ply's format"):
+        read_cloud_ply(tmp_path / "ascii.ply")
+    floats = o3d.t.geometry.PointCloud(o3d.core.Tensor.from_numpy(c.points_world.astype(np.float32)))
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "floats.ply"), floats, write_ascii=False)
+    with pytest.raises(OutputFileError, match=r"floats\.ply: not cloud\.ply's layout"):
+        read_cloud_ply(tmp_path / "floats.ply")
+    data = (tmp_path / "ours.ply").read_bytes()
+    (tmp_path / "short.ply").write_bytes(data[:-3])
+    with pytest.raises(OutputFileError, match=r"short\.ply: .* \(truncated\?\)"):
+        read_cloud_ply(tmp_path / "short.ply", step=3)
+    (tmp_path / "text.ply").write_text("hello\n")
+    with pytest.raises(OutputFileError, match=r"text\.ply: not a PLY file"):
+        cloud_ply_layout(tmp_path / "text.ply")
+    with pytest.raises(OutputFileError, match=r"none\.ply: no such file"):
+        read_cloud_ply(tmp_path / "none.ply")
+
+
+# ---------------------------------------------------------------------- evaluation in chunks
+
+
+def _box_mesh() -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_box(10.0, 8.0, 3.0)
+    m.translate([-5.0, -4.0, 0.0])
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.triangles, dtype=np.int64)
+
+
+def test_distances_in_chunks_equal_one_query() -> None:
+    v, f = _box_mesh()
+    pts = np.random.default_rng(3).uniform([-6, -5, -1], [6, 5, 4], (5000, 3))
+    one = mesh_distances(pts, v, f, chunk=1 << 20)
+    for chunk in (1, 333, 4999):
+        np.testing.assert_array_equal(mesh_distances(pts, v, f, chunk=chunk), one)
+    assert np.all(one >= 0) and one.max() > 0.5
+
+
+def test_cloud_errors_from_the_file_equal_those_in_memory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import slam.export
+
+    v, f = _box_mesh()
+    c = _cloud(3001, seed=5)
+    path = tmp_path / "cloud.ply"
+    write_cloud_ply(path, c.points_world / 8, c.scanner, c.time, c.plane_id)
+    c = read_cloud_ply(path)
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    monkeypatch.setattr(slam.export, "_PLY_CHUNK", 256)  # the file is read in 12 chunks
+    for max_points in (3001, 1000, 7):
+        mem, disk = cloud_errors(c, T, v, f, max_points), cloud_errors(path, T, v, f, max_points)
+        np.testing.assert_array_equal(disk.distances, mem.distances)
+        np.testing.assert_array_equal(disk.associated, mem.associated)
+        assert disk.n_points_total == mem.n_points_total == 3001
+        assert disk.to_json() == mem.to_json()
+    assert cloud_errors(path, T, v, f, 1000).distances.size == 751  # every 4th of 3001
+
+
+# --------------------------------------------------------------------- the recording's view
+
+
+def _same_view(a: CloudView, b: CloudView) -> None:
+    assert a.t0 == b.t0
+    assert [s for s, _ in a.scans] == [s for s, _ in b.scans]
+    for (_, x), (_, y) in zip(a.scans, b.scans, strict=True):
+        _same(x, y)
+    _same(a.cloud, b.cloud)
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_view_of_the_file_equals_the_view_in_memory(tmp_path: Path, shuffled: bool) -> None:
+    c = _cloud(4000, seed=2, shuffled=shuffled)
+    path = tmp_path / "cloud.ply"
+    write_cloud_ply(path, c.points_world, c.scanner, c.time, c.plane_id)
+    for opt in (MapOptions(max_scan_points=300, max_cloud_points=170), MapOptions()):
+        mem = view_of_cloud(c, opt)
+        for chunk in (97, 4000):
+            _same_view(view_of_cloud_ply(path, opt, chunk=chunk), mem)
+    assert len(view_of_cloud(c, MapOptions(max_scan_points=300)).scans[0][1]) < 110
+
+
+# ------------------------------------------------------------------ the run's streamed export
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    folder = tmp_path_factory.mktemp("box")
+    (folder / "box.yaml").write_text(BOX_WORLD)
+    return simulate(folder / "box.yaml", "itc_backpack", duration=2.0, seed=3, out=folder / "box.bag",
+                    progress=False)
+
+
+@pytest.fixture(scope="module")
+def estimate(walk: SimulationResult) -> SlamResult:
+    rig = resolve_rig("itc_backpack")
+    cfg = SlamConfig()
+    runner = SlamRunner(rig, cfg, None)
+    for line in read_scans(walk.bag, rig=rig):
+        runner.add_scan(line)
+    runner.finish()
+    return runner.result(batch=cfg.backend.final_batch)
+
+
+def _reference_cloud(bag: Path, res: SlamResult) -> tuple[CloudRecord, np.ndarray]:
+    """The cloud held whole and placed in one call: every valid point within the knots, with the
+    plane id of the associated segment covering its beam, and those segments' end points."""
+    rig = resolve_rig("itc_backpack")
+    rows = res.segment_rows
+    names = list(res.scanner_names)
+    T_bs = {s.name: s.T_body_scanner.matrix() for s in rig.scanners}
+    kt = res.knot_times
+    pb, sc, tm, pid, ends = [], [], [], [], []
+    scan_index = dict.fromkeys(names, -1)
+    n = 0
+    for line in read_scans(bag, rig=rig):
+        s = names.index(line.scanner_id)
+        scan_index[line.scanner_id] += 1
+        t = line.times[line.valid_index]
+        ok = (t >= kt[0]) & (t <= kt[-1])
+        beams = line.valid_index[ok]
+        xyz = np.column_stack((line.points_xy[ok], np.zeros(beams.size)))
+        T = T_bs[line.scanner_id]
+        pb.append(xyz @ T[:3, :3].T + T[:3, 3])
+        plane = np.full(beams.size, -1, dtype=np.int32)
+        mine = np.flatnonzero((rows["scanner"] == s) & (rows["scan_index"] == scan_index[line.scanner_id])
+                              & (rows["plane_id"] >= 0))
+        for r in mine:
+            hit = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
+            if hit.size:
+                plane[hit] = rows["plane_id"][r]
+                ends += [n + hit[0], n + hit[-1]]
+        sc.append(np.full(beams.size, s, dtype=np.int32))
+        tm.append(t[ok])
+        pid.append(plane)
+        n += beams.size
+    t_all = np.concatenate(tm)
+    pw = place_points(kt, res.T_world_body, t_all, np.concatenate(pb))
+    return CloudRecord(pw, np.concatenate(sc), t_all, np.concatenate(pid)), pw[np.asarray(ends, dtype=np.int64)]
+
+
+def _streamed(walk: SimulationResult, res: SlamResult, ply: Path) -> tuple[int, Any]:
+    return slam.run._cloud(walk.bag, resolve_rig("itc_backpack"), res, ply, progress=False)
+
+
+def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, estimate: SlamResult, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    ref, ref_ends = _reference_cloud(walk.bag, estimate)
+    assert len(ref) > 50_000 and ref_ends.shape[0] > 100
+    n, lines = _streamed(walk, estimate, tmp_path / "default.ply")
+    assert n == len(ref)
+    _same(read_cloud_ply(tmp_path / "default.ply"), ref)
+    np.testing.assert_array_equal(lines.endpoints_world.reshape(-1, 3), ref_ends)
+    assert lines.stamp.shape[0] == lines.plane_id.shape[0] == ref_ends.shape[0] // 2
+    # batches that end inside a scan's worth of points, placed in odd chunks: the same file
+    monkeypatch.setattr(slam.run, "_EXPORT_BATCH", 1500)
+    monkeypatch.setattr(slam.run, "_PLACE_CHUNK", 333)
+    _, small = _streamed(walk, estimate, tmp_path / "small.ply")
+    assert (tmp_path / "small.ply").read_bytes() == (tmp_path / "default.ply").read_bytes()
+    np.testing.assert_array_equal(small.endpoints_world, lines.endpoints_world)
+
+
+def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> None:
+    cfg = SlamConfig()
+    cfg = cfg.model_copy(update={"output": cfg.output.model_copy(update={"voxel": 0.05})})
+    summary = slam.run.run_slam(walk.bag, resolve_rig("itc_backpack"), cfg, tmp_path / "run", progress=False)
+    mem = read_summary_json(tmp_path / "run" / "summary.json")["memory"]
+    assert mem == summary["memory"]
+    assert 0.05 < mem["peak_rss_gb_after_estimation"] <= mem["peak_rss_gb_after_export"] < 64
+    assert "ru_maxrss" in mem["definition"]
+    # the thinned cloud and the recording; the file of every point is gone
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [
+        "cloud.ply", "map.rrd", "planes.json", "segments.npz", "summary.json", "trajectory.tum"]
+    n = summary["counts"]["cloud_points"]
+    assert 0 < n == cloud_ply_layout(tmp_path / "run" / "cloud.ply")[0]
