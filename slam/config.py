@@ -63,6 +63,9 @@ class FrontEndConfig(StrictModel):
     sigma_rotation_deg: float = Field(0.3, gt=0, description="rotation uncertainty in the angle test (deg)")
     sigma_lever_deg: float = Field(0.05, gt=0, description="rotation uncertainty times range in the distance test (deg)")
     drift_rate: float = Field(0.003, ge=0, description="offset uncertainty per metre walked since a plane was seen")
+    drift_rate_vertical: float = Field(
+        0.0003, ge=0, description="the same for floors and ceilings: height drifts far less than the walls' "
+        "offsets (floors and ceilings are in view all the time, gravity levels the rig)")
     tracking_loosen: float = Field(8.0, ge=1, description="gate factor of the tracking (pre-)association")
     tracking_iterations: int = Field(3, ge=0)
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
@@ -83,7 +86,7 @@ class FrontEndConfig(StrictModel):
     parallel_max_angle_deg: float = Field(
         6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off")
     parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
-    merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift since seen)")
+    merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift over the distance walked between their sightings)")
     vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
 
 

@@ -69,6 +69,7 @@ from slam.frontend.plane_init import (
     tilt_sigma,
 )
 from slam.frontend.planemap import (
+    HORIZONTAL_KINDS,
     KIND_CEILING,
     KIND_FLOOR,
     KIND_NAMES,
@@ -154,6 +155,7 @@ class SlamRunner:
             sigma_rotation=np.radians(fe.sigma_rotation_deg),
             sigma_lever=np.radians(fe.sigma_lever_deg),
             drift_rate=fe.drift_rate,
+            drift_rate_vertical=fe.drift_rate_vertical,
             extent_margin_cells=fe.extent_margin_cells,
         )
         self.loose = self.gates.loosened(fe.tracking_loosen)
@@ -990,8 +992,8 @@ class SlamRunner:
                     continue
                 if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall
                     continue
-                since = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
-                tol = fe.merge_distance + fe.drift_rate * since
+                rate = fe.drift_rate_vertical if a.kind in HORIZONTAL_KINDS else fe.drift_rate
+                tol = fe.merge_distance + rate * self.pmap.unseen_between(a.id, b.id)
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
                     continue
                 # the offset difference over the smaller plane's extent (where both are seen), so

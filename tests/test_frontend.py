@@ -191,6 +191,20 @@ def test_extending_a_plane_adds_each_cell_once() -> None:
     assert pmap.overlaps(pid, pts[:1], 0) and not pmap.overlaps(pid, pts[:1] + 10.0, 2)
 
 
+def test_drift_between_sightings_counts_only_the_gap_between_observation_spans() -> None:
+    pmap = PlaneMap()
+    wall = pmap.add(np.array([0.0, 1.0, 0.0]), -2.0, 1, 0.0, 0.0)
+    door = pmap.add(np.array([0.0, 1.0, 0.0]), -1.98, 1, 5.0, 12.0)
+    wall.last_seen_odometer = 30.0  # the wall is still being seen while the door is passed
+    door.last_seen_odometer = 18.0
+    assert pmap.unseen_between(wall.id, door.id) == 0.0
+    again = pmap.add(np.array([0.0, 1.0, 0.0]), -2.01, 1, 60.0, 95.0)  # the door's place seen again
+    assert pmap.unseen_between(door.id, again.id) == 95.0 - 18.0
+    assert pmap.unseen_between(again.id, door.id) == 95.0 - 18.0
+    pmap.merge(door.id, again.id)
+    assert (door.first_seen_odometer, door.last_seen_odometer) == (12.0, 95.0)
+
+
 def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> None:
     """slam.placement takes one rotation logarithm per knot interval (compiled): the same world
     points and poses as interpolate_trajectory's pose per point, to rounding (1e-12 m)."""

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam import frontend_kernels as fk
-from slam.frontend.planemap import PlaneMap
+from slam.frontend.planemap import HORIZONTAL_KINDS, PlaneMap
 
 FloatArray = NDArray[np.float64]
 CHI2_2DOF_99 = 9.21
@@ -57,6 +57,7 @@ class Gates:
     sigma_rotation: float = np.radians(0.3)  # rad, in the angle test
     sigma_lever: float = np.radians(0.05)  # rad, rotation error times range in the distance test
     drift_rate: float = 0.003  # m of offset uncertainty per m walked since the plane was seen
+    drift_rate_vertical: float = 0.0003  # the same for floors and ceilings
     extent_margin_cells: int = 2
     max_extra_cells: int = 8  # cap of the drift-grown extent margin
     max_drift_sigma: float = 0.05  # m, cap of the drift-grown offset uncertainty
@@ -69,6 +70,7 @@ class Gates:
             self.sigma_rotation * factor,
             self.sigma_lever * factor,
             self.drift_rate,
+            self.drift_rate_vertical,
             self.extent_margin_cells,
             self.max_extra_cells,
             self.max_drift_sigma,
@@ -109,7 +111,8 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
                      for p in active])
     normals = np.ascontiguousarray(rows[:, 0:3])
     since = odometer - rows[:, 5]
-    sig_drift = np.minimum(gates.drift_rate * np.maximum(since, 0.0), gates.max_drift_sigma)
+    rate = np.array([gates.drift_rate_vertical if p.kind in HORIZONTAL_KINDS else gates.drift_rate for p in active])
+    sig_drift = np.minimum(rate * np.maximum(since, 0.0), gates.max_drift_sigma)
     _, _, dist_c, sig_d2, cells, order, count = fk.association_gates(
         segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
         segs.origin, normals, np.ascontiguousarray(rows[:, 3]), np.ascontiguousarray(rows[:, 4]), sig_drift,

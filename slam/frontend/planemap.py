@@ -20,6 +20,7 @@ from slam import frontend_kernels as fk
 FloatArray = NDArray[np.float64]
 
 KIND_OTHER, KIND_WALL, KIND_FLOOR, KIND_CEILING = 0, 1, 2, 3
+HORIZONTAL_KINDS = (KIND_FLOOR, KIND_CEILING)
 KIND_NAMES = {KIND_OTHER: "other", KIND_WALL: "wall", KIND_FLOOR: "floor", KIND_CEILING: "ceiling"}
 
 
@@ -58,6 +59,7 @@ class Plane:
     n_segments: int = 0
     last_seen_time: float = 0.0
     last_seen_odometer: float = 0.0
+    first_seen_odometer: float = 0.0
     sigma_offset: float = 0.005
     active: bool = True
     merged_into: int = -1
@@ -80,7 +82,8 @@ class PlaneMap:
         n = np.asarray(normal, dtype=np.float64)
         n = n / np.linalg.norm(n)
         u, v = plane_basis(n)
-        p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer)
+        p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer,
+                  first_seen_odometer=odometer)
         self.planes.append(p)
         return p
 
@@ -182,6 +185,15 @@ class PlaneMap:
         corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]], [lo[0], lo[1]]])
         return corners[:, :1] * p.u + corners[:, 1:] * p.v - p.d * p.normal
 
+    def unseen_between(self, a: int, b: int) -> float:
+        """Distance walked (m) between the sightings of planes ``a`` and ``b``: 0 when their
+        observation spans (by odometer) overlap, so that the two were measured against one
+        another without drift in between (a door and its wall), else the gap between the spans
+        (a plane seen again on a return to an old place)."""
+        pa, pb = self.planes[a], self.planes[b]
+        return max(0.0, max(pa.first_seen_odometer, pb.first_seen_odometer)
+                   - min(pa.last_seen_odometer, pb.last_seen_odometer))
+
     def merge(self, keep: int, drop: int) -> None:
         """Fold plane ``drop`` into ``keep``: union of extents and counts; ``drop`` becomes inactive."""
         pk, pd = self.planes[keep], self.planes[drop]
@@ -190,6 +202,7 @@ class PlaneMap:
         pk.n_segments += pd.n_segments
         pk.last_seen_time = max(pk.last_seen_time, pd.last_seen_time)
         pk.last_seen_odometer = max(pk.last_seen_odometer, pd.last_seen_odometer)
+        pk.first_seen_odometer = min(pk.first_seen_odometer, pd.first_seen_odometer)
         pd.active = False
         pd.merged_into = keep
 
