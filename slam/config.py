@@ -120,6 +120,10 @@ class EdgeSection(StrictModel):
         0.15, ge=0, description="m, a new edge's breaks span this in height (vertical edges), unless all come "
         "from nearly horizontal scanlines")
     perpendicular_sigma_deg: float = Field(0.02, gt=0, description="sigma of the edge plane's tie across its wall")
+    inline: bool = Field(True, description="also find steps inside wall segments (a poster 5 mm proud is left "
+                         "in its wall's segment)")
+    inline_window: int = Field(25, ge=5, description="points either side of a split compared for a step inside a segment")
+    inline_z: float = Field(5.0, gt=0, description="standard errors a step inside a segment needs")
 
 
 class BackEndConfig(StrictModel):

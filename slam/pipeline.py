@@ -57,6 +57,7 @@ from slam.frontend.edges import (
     recess_beyond,
     steep_enough,
     step_of,
+    steps_within,
     surface_end,
 )
 from slam.frontend.observations import ScanSegments, scan_segments
@@ -599,6 +600,8 @@ class SlamRunner:
             return []
         origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
         out = self._recess_breaks(p, ids, walls, origin)
+        if self.cfg.edges.inline:
+            out += self._inline_breaks(p, ids, walls, origin)
         for j_wall, j_other in pairs:
             if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
                 continue
@@ -710,6 +713,64 @@ class SlamRunner:
                 out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
                                  break_sigma(spacing, ep.sigma), p.serial,
                                  flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
+        return out
+
+    def _inline_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
+                       origin: FloatArray) -> list[Break]:
+        """Breaks at steps inside wall segments (``frontend.edges.steps_within``): a poster 5 mm
+        proud, or a door 1 cm deep seen at a slant, is often left in its wall's segment, and it may
+        be the only mark along a corridor. The surface nearer the scanner is bracketed as for a
+        segmented pair, on the line through its own window of points."""
+        assert self.emap is not None
+        ep, ec = self.emap.params, self.cfg.edges
+        segs = p.segs
+        T_bs = self._T_body_scanner[segs.scanner]
+        sigma = self._range_sigma[segs.scanner]
+        W = ec.inline_window
+        out = []
+        for j in walls:
+            if segs.n_points[j] < 2 * W:
+                continue
+            beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
+            a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
+            xy = np.column_stack((r * np.cos(a), r * np.sin(a)))
+            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
+            steps = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)
+            if not steps:
+                continue
+            wall = int(ids[j])
+            n_wall, d_wall = self.pmap.planes[wall].normal, self.pmap.planes[wall].d
+            normal2 = np.array([-u2[1], u2[0]])
+            toward_scanner = float(normal2 @ (-c2))  # the scanner's side of the line
+            for k, depth in steps:
+                left, right = xy[k + 1 - W : k + 1], xy[k + 1 : k + 1 + W]
+                right_high = (depth > 0.0) == (toward_scanner > 0.0)
+                high = right if right_high else left
+                k_end, direction = (int(beams[k + 1]), -1) if right_high else (int(beams[k]), 1)
+                got = _bracket_on_line(segs, high.mean(axis=0), u2, k_end, direction,
+                                       min(3.0 * sigma, 0.5 * abs(depth)))
+                if got is None:
+                    continue
+                edge_scanner, spacing = got
+                pts_scanner = np.zeros((3, 3))
+                pts_scanner[:, :2] = (edge_scanner, left.mean(axis=0), right.mean(axis=0))
+                pts_body = pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3]
+                i_k = int(segs.offsets[j]) + k
+                t = float(segs.times[i_k])
+                w = self._place(pts_body, np.full(3, t))
+                x_world = w[0]
+                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
+                    continue
+                # of the two sides the one on the wall's plane is the wall, the other the step
+                on_wall = np.abs(w[1:] @ n_wall + d_wall)
+                other = w[2] if on_wall[0] <= on_wall[1] else w[1]
+                base = w[1] if on_wall[0] <= on_wall[1] else w[2]
+                n_e = along_wall(n_wall)
+                side = 1 if float(n_e @ (other - x_world)) > 0.0 else -1
+                step = 1 if float(n_wall @ (other - base)) > 0.0 else -1
+                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
+                                 break_sigma(spacing, ep.sigma), p.serial,
+                                 flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope)))
         return out
 
     def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
@@ -1082,10 +1143,16 @@ class SlamRunner:
 
 def _bracket_end(segs: ScanSegments, j: int, k_end: int, direction: int,
                  tolerance: float) -> tuple[FloatArray, float] | None:
-    """The edge where segment ``j``'s surface ends at beam ``k_end`` (walking ``direction``):
-    the end walked over beams still on its line within ``tolerance`` (``surface_end``), then
-    bracketed with the next beam (``bracket_point``); (point (2,) scanner frame, spacing) or None."""
-    c2, u2 = segs.line_centroid[j], segs.line_direction[j]
+    """The edge where segment ``j``'s surface ends at beam ``k_end`` (walking ``direction``)."""
+    return _bracket_on_line(segs, segs.line_centroid[j], segs.line_direction[j], k_end, direction, tolerance)
+
+
+def _bracket_on_line(segs: ScanSegments, c2: FloatArray, u2: FloatArray, k_end: int, direction: int,
+                     tolerance: float) -> tuple[FloatArray, float] | None:
+    """The edge where the surface on the 2D line (``c2``, ``u2``; scanner frame) ends at beam
+    ``k_end`` (walking ``direction``): the end walked over beams still on the line within
+    ``tolerance`` (``surface_end``), then bracketed with the next beam (``bracket_point``);
+    (point (2,) scanner frame, spacing) or None."""
     k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid, c2, u2, tolerance)
     k_next = k_end + direction
     if not 0 <= k_next < segs.beam_angles.shape[0]:

@@ -216,6 +216,61 @@ def recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray,
     return first, beams[int(np.flatnonzero(inside)[-1])], median
 
 
+def steps_within(points_xy: FloatArray, centroid: FloatArray, direction: FloatArray, sigma: float,
+                 window: int, min_step: float, max_step: float, min_z: float) -> list[tuple[int, float]]:
+    """Steps inside one segment: where its points (n, 2, beam order, scanner frame) switch between
+    two parallel lines ``min_step``-``max_step`` apart, as at the edge of a 5 mm poster that the
+    segmenter left in its wall's segment. Their offsets from the fitted line (``centroid``,
+    ``direction``) are compared over ``window`` points either side of every split; a split whose
+    difference of means is at least ``min_z`` standard errors (point noise ``sigma``) and the
+    largest within ``window`` points is a step. Returns (index of the last point before the step,
+    the offset after minus before along the line's normal ``(-u_y, u_x)`` in m), by index."""
+    n = points_xy.shape[0]
+    if n < 2 * window:
+        return []
+    normal = np.array([-direction[1], direction[0]])
+    r = (points_xy - centroid) @ normal
+    c = np.concatenate(([0.0], np.cumsum(r)))
+    k = np.arange(window - 1, n - window)  # last index of the left window
+    before = (c[k + 1] - c[k + 1 - window]) / window
+    after = (c[k + 1 + window] - c[k + 1]) / window
+    depth = after - before
+    z = np.abs(depth) / (sigma * np.sqrt(2.0 / window))
+    ok = (np.abs(depth) >= min_step) & (np.abs(depth) <= max_step)
+    out: list[tuple[int, float]] = []
+    taken = np.zeros(k.shape[0], dtype=bool)
+    for i in np.argsort(-z, kind="stable"):
+        if z[i] < min_z:
+            break
+        if taken[i]:
+            continue
+        # the largest difference within the window decides: a step outside the bounds there is
+        # not re-found as a smaller one beside it
+        taken[max(0, i - window) : i + window + 1] = True
+        if ok[i]:
+            out.append(_refine_split(r, int(k[i]), window))
+    return sorted(out)
+
+
+def _refine_split(r: FloatArray, k0: int, window: int) -> tuple[int, float]:
+    """The maximum-likelihood split of offsets ``r`` into two constant levels within ``window``
+    points of ``k0`` (the difference of window means peaks broadly, a few points off at a 5 mm
+    step in 3 mm noise): (last index before the split, offset after minus before)."""
+    lo, hi = max(0, k0 + 1 - 2 * window), min(r.shape[0], k0 + 1 + 2 * window)
+    seg = r[lo:hi]
+    c = np.cumsum(seg)
+    n = seg.shape[0]
+    n_left = np.arange(1, n)
+    mean_left = c[:-1] / n_left
+    mean_right = (c[-1] - c[:-1]) / (n - n_left)
+    gain = n_left * (n - n_left) / n * (mean_right - mean_left) ** 2
+    near = np.abs(lo + n_left - 1 - k0) <= window
+    i = int(np.argmax(np.where(near, gain, -1.0)))
+    k = lo + i
+    w_lo, w_hi = max(0, k + 1 - window), min(r.shape[0], k + 1 + window)
+    return k, float(np.mean(r[k + 1 : w_hi]) - np.mean(r[w_lo : k + 1]))
+
+
 def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
                   direction: FloatArray) -> tuple[FloatArray, float] | None:
     """The edge of a surface (its fitted 2D line, scanner frame) whose last beam is ``angle_end``
