@@ -743,7 +743,7 @@ class SlamRunner:
             normal2 = np.array([-u2[1], u2[0]])
             toward_scanner = float(normal2 @ (-c2))  # the scanner's side of the line
             for k, depth in steps:
-                left, right = xy[k + 1 - W : k + 1], xy[k + 1 : k + 1 + W]
+                left, right = xy[max(0, k + 1 - W) : k + 1], xy[k + 1 : k + 1 + W]
                 right_high = (depth > 0.0) == (toward_scanner > 0.0)
                 high = right if right_high else left
                 k_end, direction = (int(beams[k + 1]), -1) if right_high else (int(beams[k]), 1)

@@ -263,6 +263,10 @@ def test_steps_within_find_a_5_mm_poster_inside_a_wall_segment() -> None:
     big = _wall_scan(rng, 0.06, -0.9, -0.3)
     assert steps_within(big, big.mean(axis=0), u, 0.003, 25, 0.004, 0.04, 5.0) == []
     assert steps_within(big[:40], big[:40].mean(axis=0), u, 0.003, 25, 0.004, 0.04, 5.0) == []
+    # a step 30 points from the segment's start: the split keeps half a window on either side
+    near = _wall_scan(rng, 0.005, -0.9, -0.3)[270:]
+    for k, _ in steps_within(near, near.mean(axis=0), u, 0.003, 25, 0.004, 0.04, 5.0):
+        assert k + 1 >= 12 and near.shape[0] - k - 1 >= 12
 
 
 def test_host_map_never_makes_the_bigger_tied_plane_a_door() -> None:

@@ -264,7 +264,9 @@ def _refine_split(r: FloatArray, k0: int, window: int) -> tuple[int, float]:
     mean_left = c[:-1] / n_left
     mean_right = (c[-1] - c[:-1]) / (n - n_left)
     gain = n_left * (n - n_left) / n * (mean_right - mean_left) ** 2
-    near = np.abs(lo + n_left - 1 - k0) <= window
+    split = lo + n_left - 1  # the last index before each candidate split
+    # within the window of k0, with half a window of points on either side for the caller
+    near = (np.abs(split - k0) <= window) & (split + 1 >= window // 2) & (r.shape[0] - split - 1 >= window // 2)
     i = int(np.argmax(np.where(near, gain, -1.0)))
     k = lo + i
     w_lo, w_hi = max(0, k + 1 - window), min(r.shape[0], k + 1 + window)
