@@ -86,7 +86,7 @@ def _child_eval(out: str, gt: str) -> dict[str, Any]:
 
 def _spawn(tree: Path, *args: str) -> dict[str, Any]:
     """Run this script's child mode with ``tree``'s packages first on the path; its row."""
-    env = dict(os.environ, PYTHONPATH=str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     proc = subprocess.run([sys.executable, __file__, "--child", *args], stdout=subprocess.PIPE, text=True,
                           env=env, cwd=tree, check=False)
     line = next((ln for ln in proc.stdout.splitlines() if ln.startswith(_ROW)), None)
