@@ -25,7 +25,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.factors import RobustKernel, point_plane_terms, robust_residual, robust_weights
+from slam.factors import RobustKernel, point_plane_terms, robust_rows, robust_rows_dim, scaled_rows
 
 FloatArray = NDArray[np.float64]
 
@@ -64,22 +64,23 @@ def timed_scanner_plane_factor(
         t = point_plane_terms(T_a, T_b, v.atOrientedPlane3(plane_key), p_b, al + delta / interval,
                               H is not None)
         e = t.residuals * inv_s
+        out, sw = robust_rows(e, kern, H is not None)
         if H is None:
-            return robust_residual(e, kern)
+            return out
         assert t.H_a is not None and t.H_b is not None and t.H_plane is not None
-        assert t.normal_beam is not None
-        sw = np.sqrt(robust_weights(e, kern))
+        assert t.normal_beam is not None and sw is not None
         f = (sw * inv_s)[:, None]
-        H[0], H[1], H[2] = t.H_a * f, t.H_b * f, t.H_plane * f
+        H[0], H[1], H[2] = scaled_rows(t.H_a, f, rows), scaled_rows(t.H_b, f, rows), scaled_rows(t.H_plane, f, rows)
         m_k = t.normal_beam
         m_s = m_k @ R_bs
         He = np.empty((n, 6))
         He[:, :3] = np.cross(pts, m_s)
         He[:, 3:] = m_s
-        H[3] = He * f
+        H[3] = scaled_rows(He, f, rows)
         assert t.dres_dalpha is not None
-        H[4] = (t.dres_dalpha / interval)[:, None] * f
-        return sw * e
+        H[4] = scaled_rows((t.dres_dalpha / interval)[:, None], f, rows)
+        return out
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n),
+    rows = robust_rows_dim(n, kern)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows),
                               [key_a, key_b, plane_key, extrinsic_key, offset_key], error)

@@ -103,6 +103,45 @@ def robust_residual(e: FloatArray, kernel: RobustKernel) -> FloatArray:
     return np.sign(e) * np.sqrt(2.0 * robust_loss(e, kernel))
 
 
+def robust_rows(e: FloatArray, kernel: RobustKernel, linearize: bool) -> tuple[FloatArray, FloatArray | None]:
+    """The residual vector a robust block returns for whitened residuals ``e`` (N,), and the
+    IRLS row scales ``sqrt(w)`` (N,) of its Jacobian when linearising (else None).
+
+    Without a kernel: ``e``, ``1``. With one, N + 1 rows: for an error evaluation the robust
+    residuals ``sign(e) sqrt(2 rho(e))`` and 0; when linearising the IRLS rows ``sqrt(w) e``
+    (Gauss-Newton steps of iteratively reweighted least squares) and one row with no Jacobian,
+    ``sqrt(2 sum(rho - w e^2 / 2))`` (>= 0 for Huber and Cauchy), so that a linearisation's
+    ``0.5 ||b||^2`` is the robust cost at its point: the solver takes an accepted step's error
+    from the linearisation it needs next anyway (:mod:`slam.solver`)."""
+    if kernel.name == "none":
+        return e, (np.ones_like(e) if linearize else None)
+    out = np.empty(e.shape[0] + 1)
+    if not linearize:
+        out[:-1] = robust_residual(e, kernel)
+        out[-1] = 0.0
+        return out, None
+    w = robust_weights(e, kernel)
+    sw = np.sqrt(w)
+    out[:-1] = sw * e
+    out[-1] = np.sqrt(max(0.0, 2.0 * float(np.sum(robust_loss(e, kernel) - 0.5 * w * e * e))))
+    return out, sw
+
+
+def robust_rows_dim(n: int, kernel: RobustKernel) -> int:
+    """Rows of a robust block of ``n`` points (:func:`robust_rows`)."""
+    return n if kernel.name == "none" else n + 1
+
+
+def scaled_rows(J: FloatArray, f: FloatArray, rows: int) -> FloatArray:
+    """``J * f`` (N, d) with zero rows appended up to ``rows`` (the correction row of
+    :func:`robust_rows`), in one allocation."""
+    n = J.shape[0]
+    out = np.empty((rows, J.shape[1]))
+    np.multiply(J, f, out=out[:n])
+    out[n:] = 0.0
+    return out
+
+
 @dataclass
 class PointPlaneTerms:
     """Unwhitened residuals (N,) [m] and their Jacobians for one block at one linearisation point.
@@ -272,23 +311,24 @@ def _block_factor(
         t = point_plane_terms(_shifted(v.atPose3(key_a), anchor), T_b, v.atOrientedPlane3(plane_key),
                               p_b, alphas, H is not None)
         e = t.residuals * inv_s
+        out, sw = robust_rows(e, kernel, H is not None)
         if H is None:  # error evaluation only: the robust cost
-            return robust_residual(e, kernel)
-        sw = np.sqrt(robust_weights(e, kernel))
-        assert t.H_a is not None and t.H_plane is not None and t.normal_beam is not None
+            return out
+        assert sw is not None and t.H_a is not None and t.H_plane is not None and t.normal_beam is not None
         f = (sw * inv_s)[:, None]
-        H[0] = t.H_a * f
+        H[0] = scaled_rows(t.H_a, f, rows)
         j = 1
         if t.H_b is not None:
-            H[1] = t.H_b * f
+            H[1] = scaled_rows(t.H_b, f, rows)
             j = 2
-        H[j] = t.H_plane * f
+        H[j] = scaled_rows(t.H_plane, f, rows)
         if extrinsic_key is not None:
             m_s = t.normal_beam @ R_bs  # plane normal in the scanner frame at each beam time
             He = np.empty((points.shape[0], 6))
             He[:, :3] = np.cross(points, m_s)
             He[:, 3:] = m_s
-            H[j + 1] = He * f
-        return sw * e
+            H[j + 1] = scaled_rows(He, f, rows)
+        return out
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(points.shape[0]), keys, error)
+    rows = robust_rows_dim(points.shape[0], kernel)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)

@@ -45,20 +45,34 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
     whose failure raises RuntimeError."""
     hold = {int(k) for k in fixed}
     damping = [(int(k), int(d), HOLD if int(k) in hold else DAMPING) for k, d in values.dims().items()]
+    zero = values.zeroVectors()
     err0 = err = float("nan")
     try:
-        err0 = err = graph.error(values)
+        # a linearisation's 0.5 ||b||^2 is the graph's error at its point (the robust blocks carry
+        # a correction row: slam.factors.robust_rows), so an accepted step's linearisation also
+        # gives its error
+        lin: gtsam.GaussianFactorGraph | None = graph.linearize(values)
+        assert lin is not None
+        err0 = err = lin.error(zero)
         it = 0
         for it in range(1, max_iterations + 1):
-            lin = graph.linearize(values)
+            if lin is None:
+                lin = graph.linearize(values)
             for k, d, w in damping:
                 lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
             delta = lin.optimize()
+            lin = None
             step = 1.0
             for _ in range(10):
                 trial = values.retract(delta if step == 1.0 else delta.scale(step))
-                new_err = graph.error(trial)
+                lin_trial: gtsam.GaussianFactorGraph | None = None
+                if step == 1.0 and it < max_iterations:
+                    lin_trial = graph.linearize(trial)
+                    new_err = lin_trial.error(zero)
+                else:
+                    new_err = graph.error(trial)
                 if new_err <= err:
+                    lin = lin_trial
                     break
                 step *= 0.5
             else:

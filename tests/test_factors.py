@@ -100,6 +100,7 @@ def test_point_plane_factor_jacobians(motion: float) -> None:
 
 @pytest.mark.parametrize("kernel", KERNELS[1:], ids=lambda k: k.name)
 def test_robust_linearization_is_irls_and_error_is_robust_cost(kernel: RobustKernel) -> None:
+    """IRLS Gauss-Newton rows whose linearisation error is the robust cost (``robust_rows``)."""
     rng = np.random.default_rng(5)
     v = _block_values(rng, 0.05)
     pts = rng.normal(size=(40, 3)) * 2
@@ -115,9 +116,12 @@ def test_robust_linearization_is_irls_and_error_is_robust_cost(kernel: RobustKer
         e = -b0
         sw = np.sqrt(robust_weights(e, kernel))
         assert np.mean(sw < 0.9) > 0.2  # the kernel is active on part of the points
-        np.testing.assert_allclose(A1, sw[:, None] * A0, rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(b1, sw * b0, rtol=1e-12, atol=1e-12)
+        # IRLS rows, then one correction row without Jacobian: 0.5 ||b||^2 is the robust cost
+        assert A1.shape == (A0.shape[0] + 1, A0.shape[1]) and not np.any(A1[-1])
+        np.testing.assert_allclose(A1[:-1], sw[:, None] * A0, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(b1[:-1], sw * b0, rtol=1e-12, atol=1e-12)
         assert robust.error(v) == pytest.approx(robust_loss(e, kernel).sum(), rel=1e-12)
+        assert 0.5 * float(b1 @ b1) == pytest.approx(robust.error(v), rel=1e-12)
         np.testing.assert_allclose(0.5 * robust_residual(e, kernel) ** 2, robust_loss(e, kernel))
 
 

@@ -223,6 +223,30 @@ def test_door_edges_observe_the_corridor_direction(door_corridor: SimulationResu
     assert err_off > 2 * err, f"without edges {err_off:.3f} m, with {err:.3f} m"
 
 
+def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult, rig: Any) -> None:
+    """The solver takes an accepted step's error from its linearisation (``slam.solver``): on a
+    whole SLAM graph (robust blocks, edge planes, ties, IMU, priors) ``0.5 ||b||^2`` of the
+    linearisation equals the graph's error."""
+    from slam.io.bag import read_scans
+    from slam.pipeline import SlamRunner
+    from slam.run import bag_time_range, load_imu
+
+    cfg = SlamConfig()
+    t0, t1 = bag_time_range(door_corridor.bag)
+    runner = SlamRunner(rig, cfg, load_imu(door_corridor.bag, cfg, t0, t1))
+    for line in read_scans(door_corridor.bag, rig=rig):
+        if line.stamp - t0 > 3.0:
+            break
+        runner.add_scan(line)
+    runner.finish()
+    be = runner.backend
+    graph = be._graph()
+    values = be._used_values(graph)
+    assert be.num_knots > 40 and graph.size() > 100
+    lin = graph.linearize(values)
+    assert lin.error(values.zeroVectors()) == pytest.approx(graph.error(values), rel=1e-9)
+
+
 def test_imu_on_without_imu_topic_is_one_line(box_noisy: SimulationResult, rig: Any, tmp_path: Path) -> None:
     cfg = _fast(SlamConfig.model_validate({"imu": {"use": "on"}}))
     with pytest.raises(ValueError, match=r"topic /imu: has no IMU messages") as e:
