@@ -47,7 +47,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam.factors import (
     RobustKernel,
-    _shifted,
     point_plane_factor,
     point_plane_terms,
     robust_weights,
@@ -389,9 +388,9 @@ class Backend:
             Es = v.atPose3(E(blk.scanner)).matrix()
             pts = pts @ Es[:3, :3].T + Es[:3, 3]
         a = self._anchors.get(blk.plane_id)
-        T_b = _shifted(v.atPose3(X(blk.knot + 1)), a) if blk.alphas is not None else None
-        terms = point_plane_terms(_shifted(v.atPose3(X(blk.knot)), a), T_b,
-                                  v.atOrientedPlane3(P(blk.plane_id)), pts, blk.alphas, jacobians=False)
+        T_b = v.atPose3(X(blk.knot + 1)) if blk.alphas is not None else None
+        terms = point_plane_terms(v.atPose3(X(blk.knot)), T_b, v.atOrientedPlane3(P(blk.plane_id)), pts,
+                                  blk.alphas, jacobians=False, anchor=a)
         e = terms.residuals / blk.sigmas
         return e, robust_weights(e, self.config.kernel)
 

@@ -112,3 +112,34 @@ def two_pose_terms(
         Hp[k, 1] = qB[1] + taB[1] + a * dtB[1]
         dra[k] = g[0] * phi[0] + g[1] * phi[1] + g[2] * phi[2] + dn
     return res, Ha, Hb, Hp, mk, dra
+
+
+@nb.njit(cache=True)
+def robust_rows(e: FloatArray, huber: bool, k: float, linearize: bool) -> tuple[FloatArray, FloatArray]:
+    """Compiled :func:`slam.factors.robust_rows` for the Huber (``huber``) or Cauchy kernel of
+    threshold ``k``: the N + 1 rows and the IRLS scales ``sqrt(w)`` (N,) (empty unless
+    ``linearize``). One pass; the numpy formulation costs ~30 us a block in ``np.where`` calls."""
+    n = e.shape[0]
+    out = np.empty(n + 1)
+    sw = np.empty(n if linearize else 0)
+    correction = 0.0
+    for i in range(n):
+        x = e[i]
+        a = abs(x)
+        if huber:
+            rho = 0.5 * x * x if a <= k else k * a - 0.5 * k * k
+            w = 1.0 if a <= k else k / a
+        else:
+            u = (x / k) ** 2
+            rho = 0.5 * k * k * math.log1p(u)
+            w = 1.0 / (1.0 + u)
+        if linearize:
+            s = math.sqrt(w)
+            sw[i] = s
+            out[i] = s * x
+            correction += rho - 0.5 * w * x * x
+        else:
+            r = math.sqrt(2.0 * rho)
+            out[i] = r if x >= 0.0 else -r
+    out[n] = math.sqrt(max(0.0, 2.0 * correction)) if linearize else 0.0
+    return out, sw

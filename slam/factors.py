@@ -52,6 +52,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from slam import factor_kernels as _fk
 from slam.factor_kernels import two_pose_terms
 from slam.interpolation import hat3
 
@@ -115,16 +116,9 @@ def robust_rows(e: FloatArray, kernel: RobustKernel, linearize: bool) -> tuple[F
     from the linearisation it needs next anyway (:mod:`slam.solver`)."""
     if kernel.name == "none":
         return e, (np.ones_like(e) if linearize else None)
-    out = np.empty(e.shape[0] + 1)
-    if not linearize:
-        out[:-1] = robust_residual(e, kernel)
-        out[-1] = 0.0
-        return out, None
-    w = robust_weights(e, kernel)
-    sw = np.sqrt(w)
-    out[:-1] = sw * e
-    out[-1] = np.sqrt(max(0.0, 2.0 * float(np.sum(robust_loss(e, kernel) - 0.5 * w * e * e))))
-    return out, sw
+    out, sw = _fk.robust_rows(np.ascontiguousarray(e, dtype=np.float64), kernel.name == "huber",
+                              float(kernel.threshold), linearize)
+    return out, (sw if linearize else None)
 
 
 def robust_rows_dim(n: int, kernel: RobustKernel) -> int:
@@ -167,15 +161,20 @@ def point_plane_terms(
     points_body: FloatArray,
     alphas: FloatArray | None,
     jacobians: bool = True,
+    anchor: FloatArray | None = None,
 ) -> PointPlaneTerms:
     """Signed distances of body-frame points (N, 3) placed by the interpolated pose to a world plane.
 
-    ``T_b`` None means a single-pose block (alphas ignored). See the module docstring for the
+    ``T_b`` None means a single-pose block (alphas ignored). ``anchor`` (3,), the plane's anchor
+    point, is subtracted from both poses' translations (poses in the plane's anchor frame; a
+    constant left translation leaves the right-perturbation Jacobians unchanged). See the module docstring for the
     formulas; the Jacobians are exact. Every per-point product with a shared vector is a matmul
     with a shared matrix (``np.cross`` costs ~15 us a call on small arrays).
     """
     Ma = T_a.matrix()
     Ra, ta = Ma[:3, :3], Ma[:3, 3]
+    if anchor is not None:  # poses in the plane's anchor frame (a constant left translation)
+        ta = ta - anchor
     n = plane.normal().point3()
     d0 = float(n @ ta) + plane.distance()
     m_a = Ra.T @ n  # plane normal in the body frame of knot i
@@ -194,8 +193,9 @@ def point_plane_terms(
 
     assert alphas is not None
     Mb = T_b.matrix()
+    tb = Mb[:3, 3] if anchor is None else Mb[:3, 3] - anchor
     res, H_a, H_b, H_plane, m_k, dra = two_pose_terms(
-        Ra, ta, Mb[:3, :3], Mb[:3, 3], n, float(plane.distance()), Bn,
+        Ra, ta, Mb[:3, :3], tb, n, float(plane.distance()), Bn,
         np.ascontiguousarray(points_body, dtype=float), np.ascontiguousarray(alphas, dtype=float), jacobians,
     )
     if not jacobians:
@@ -276,15 +276,6 @@ def _anchor(anchor: ArrayLike | None) -> FloatArray | None:
     return a if np.any(a != 0.0) else None
 
 
-def _shifted(T: gtsam.Pose3, anchor: FloatArray | None) -> gtsam.Pose3:
-    """``T`` with the anchor subtracted from its translation: poses in the plane's anchor frame.
-
-    A constant left translation leaves the right-perturbation Jacobians unchanged."""
-    if anchor is None:
-        return T
-    return gtsam.Pose3(T.rotation(), T.translation() - anchor)
-
-
 def _block_factor(
     key_a: int,
     key_b: int | None,
@@ -307,9 +298,9 @@ def _block_factor(
             E = v.atPose3(extrinsic_key).matrix()
             R_bs = E[:3, :3]
             p_b = points @ R_bs.T + E[:3, 3]
-        T_b = _shifted(v.atPose3(key_b), anchor) if key_b is not None else None
-        t = point_plane_terms(_shifted(v.atPose3(key_a), anchor), T_b, v.atOrientedPlane3(plane_key),
-                              p_b, alphas, H is not None)
+        T_b = v.atPose3(key_b) if key_b is not None else None
+        t = point_plane_terms(v.atPose3(key_a), T_b, v.atOrientedPlane3(plane_key), p_b, alphas, H is not None,
+                              anchor)
         e = t.residuals * inv_s
         out, sw = robust_rows(e, kernel, H is not None)
         if H is None:  # error evaluation only: the robust cost

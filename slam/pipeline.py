@@ -107,6 +107,9 @@ class _Pending:
     loose_ids: NDArray[np.int64] | None = None
     # breaks matched to known edges by the tracking pre-association: body points, times, edge ids, sigmas
     loose_edges: tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray] | None = None
+    # per wall segment, the scan-only part of the edge tests (recesses, steps inside it): the
+    # tracking pre-association and the observation both ask
+    edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -688,8 +691,11 @@ class SlamRunner:
                              max(k_end + direction, k_end + 3 * direction) + 1]
                 if np.any(near >= 0):  # a segment right there: the segment pairs handle it
                     continue
-                found = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
-                                      c2, u2, ep.min_step, ep.max_step, ep.max_gap)
+                key = (j, direction)
+                if key not in p.edge_tests:
+                    p.edge_tests[key] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
+                                                      segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
+                found = p.edge_tests[key]
                 if found is None:
                     continue
                 _, k_in, depth = found
@@ -735,7 +741,9 @@ class SlamRunner:
             a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
             xy = np.column_stack((r * np.cos(a), r * np.sin(a)))
             c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-            steps = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)
+            if (j, 0) not in p.edge_tests:
+                p.edge_tests[(j, 0)] = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)
+            steps = p.edge_tests[(j, 0)]
             if not steps:
                 continue
             wall = int(ids[j])

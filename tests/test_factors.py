@@ -13,6 +13,7 @@ from slam.factors import (
     point_plane_terms,
     robust_loss,
     robust_residual,
+    robust_rows,
     robust_weights,
     scanner_point_plane_factor,
 )
@@ -123,6 +124,21 @@ def test_robust_linearization_is_irls_and_error_is_robust_cost(kernel: RobustKer
         assert robust.error(v) == pytest.approx(robust_loss(e, kernel).sum(), rel=1e-12)
         assert 0.5 * float(b1 @ b1) == pytest.approx(robust.error(v), rel=1e-12)
         np.testing.assert_allclose(0.5 * robust_residual(e, kernel) ** 2, robust_loss(e, kernel))
+
+
+@pytest.mark.parametrize("kernel", KERNELS[1:], ids=lambda k: k.name)
+def test_compiled_robust_rows_match_their_numpy_formulation(kernel: RobustKernel) -> None:
+    e = np.concatenate((np.random.default_rng(8).normal(0.0, 5.0, 200), [0.0, -0.0, 1e-9, 40.0, -300.0]))
+    w = robust_weights(e, kernel)
+    lin, sw = robust_rows(e, kernel, True)
+    assert sw is not None
+    np.testing.assert_allclose(sw, np.sqrt(w), rtol=1e-14, atol=0.0)
+    np.testing.assert_allclose(lin[:-1], np.sqrt(w) * e, rtol=1e-14, atol=0.0)
+    np.testing.assert_allclose(lin[-1], np.sqrt(2.0 * np.sum(robust_loss(e, kernel) - 0.5 * w * e * e)), rtol=1e-12)
+    ev, none = robust_rows(e, kernel, False)
+    assert none is None and ev[-1] == 0.0
+    np.testing.assert_allclose(ev[:-1], robust_residual(e, kernel), rtol=1e-14, atol=0.0)
+    assert 0.5 * float(lin @ lin) == pytest.approx(float(robust_loss(e, kernel).sum()), rel=1e-12)
 
 
 def test_point_plane_residual_is_signed_distance_of_interpolated_point() -> None:
