@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam.factors import (
     RobustKernel,
+    check_block,
     point_plane_factor,
     point_plane_terms,
     robust_weights,
@@ -911,9 +912,8 @@ class Backend:
         s = np.asarray(sigmas, dtype=float)
         if pts.ndim == 2 and s.ndim == 0:
             s = np.full(pts.shape[0], float(s))
-        blk = ObservationBlock(i, j, pts, al, s, None if scanner is None else int(scanner))
-        self._block_factor(blk)  # validates shapes and values with clear messages
-        return blk
+        pts, al, s = check_block(pts, al, s, al is not None, "points_body" if scanner is None else "points_scanner")
+        return ObservationBlock(i, j, pts, al, s, None if scanner is None else int(scanner))
 
     def _get_block(self, block_id: int) -> ObservationBlock:
         if block_id not in self._blocks:

@@ -203,8 +203,10 @@ def point_plane_terms(
     return PointPlaneTerms(res, H_a, H_b, H_plane, m_k, dra)
 
 
-def _check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, two_poses: bool,
+def check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, two_poses: bool,
                  name: str) -> tuple[FloatArray, FloatArray | None, FloatArray]:
+    """A block's points (N, 3), alphas (N,) or None and sigmas (N,) as arrays, or a ValueError
+    naming what is wrong (``name``: the points' argument name)."""
     p = np.ascontiguousarray(points, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
         raise ValueError(f"{name}: expected a non-empty (N, 3) array, got shape {p.shape}")
@@ -243,7 +245,7 @@ def point_plane_factor(
     ``pose_key_b`` is None (then alphas must be None or all 0). ``sigmas`` (N,) or scalar [m]:
     point-to-plane standard deviations from the scanner noise model. Error dimension N.
     """
-    p, al, s = _check_block(points_body, alphas, sigmas, pose_key_b is not None, "points_body")
+    p, al, s = check_block(points_body, alphas, sigmas, pose_key_b is not None, "points_body")
     return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel or RobustKernel(),
                          _anchor(anchor))
 
@@ -261,7 +263,7 @@ def scanner_point_plane_factor(
 ) -> gtsam.CustomFactor:
     """Like :func:`point_plane_factor` with points (N, 3) in the scanner frame and
     ``T_body_scanner`` the Pose3 variable ``extrinsic_key`` (last key; right perturbation)."""
-    p, al, s = _check_block(points_scanner, alphas, sigmas, pose_key_b is not None,
+    p, al, s = check_block(points_scanner, alphas, sigmas, pose_key_b is not None,
                             "points_scanner")
     return _block_factor(pose_key_a, pose_key_b, plane_key, extrinsic_key, p, al, s,
                          kernel or RobustKernel(), _anchor(anchor))
