@@ -1062,7 +1062,11 @@ class SlamRunner:
                 if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall
                     continue
                 rate = fe.drift_rate_vertical if a.kind in HORIZONTAL_KINDS else fe.drift_rate
-                tol = fe.merge_distance + rate * self.pmap.unseen_between(a.id, b.id)
+                if fe.merge_drift_over == "gap":
+                    walked = self.pmap.unseen_between(a.id, b.id)
+                else:
+                    walked = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
+                tol = fe.merge_distance + rate * walked
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
                     continue
                 # the offset difference over the smaller plane's extent (where both are seen), so
