@@ -88,8 +88,10 @@ class FrontEndConfig(StrictModel):
     parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
     merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift over the distance walked between their sightings)")
     merge_drift_over: Literal["gap", "since_seen"] = Field(
-        "gap", description="distance the merge tolerance's drift grows over: the gap between the two planes' "
-        "observation spans (0 for a door seen with its wall), or the distance walked since the older was last seen")
+        "since_seen", description="distance the merge tolerance's drift grows over: walked since the older of the "
+        "two planes was last seen (duplicates of a long wall, split by heading drift, keep merging), or only the "
+        "gap between their observation spans (0 for a door seen with its wall; office 10 min: 282 mm ATE "
+        "against 20 mm)")
     vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
 
 
