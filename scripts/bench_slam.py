@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -38,12 +37,12 @@ def _child(bag: str, gt: str, method: str, out: str) -> None:
     from backpack_slam.rig import resolve_rig
     from slam.config import SlamConfig
     from slam.evaluate import Stats, evaluate
-    from slam.run import run_slam
+    from slam.run import peak_rss_gb, run_slam
 
     cfg = SlamConfig.model_validate({"segmenter": {"method": method}})
     summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=True)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
     res = evaluate(out, gt)
+    peak = peak_rss_gb() * 1e9  # SLAM and evaluation in this one process
     tr = res.trajectory
     row: dict[str, Any] = {
         "method": method,

@@ -86,7 +86,7 @@ class FrontEndConfig(StrictModel):
     parallel_max_angle_deg: float = Field(
         6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off")
     parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
-    merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift over the distance walked between their sightings)")
+    merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift, see merge_drift_over)")
     merge_drift_over: Literal["gap", "since_seen"] = Field(
         "since_seen", description="distance the merge tolerance's drift grows over: walked since the older of the "
         "two planes was last seen (duplicates of a long wall, split by heading drift, keep merging), or only the "

@@ -107,8 +107,9 @@ class _Pending:
     loose_ids: NDArray[np.int64] | None = None
     # breaks matched to known edges by the tracking pre-association: body points, times, edge ids, sigmas
     loose_edges: tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray] | None = None
-    # per wall segment, the scan-only part of the edge tests (recesses, steps inside it): the
-    # tracking pre-association and the observation both ask
+    # per wall segment, the scan-only part of the edge tests, asked by both the tracking
+    # pre-association and the observation: (segment, +-1) its recess beyond either end,
+    # (segment, 0) the steps inside it
     edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
 
 
@@ -736,6 +737,8 @@ class SlamRunner:
         out = []
         for j in walls:
             if segs.n_points[j] < 2 * W:
+                continue
+            if p.edge_tests.get((j, 0)) == []:  # asked before: no step
                 continue
             beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
             a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
