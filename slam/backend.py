@@ -50,6 +50,7 @@ from slam.factors import (
     check_block,
     point_plane_factor,
     point_plane_terms,
+    point_planes_factor,
     robust_weights,
     scanner_point_plane_factor,
 )
@@ -195,6 +196,7 @@ class Backend:
         self._summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self._summarized_upto = 0  # blocks whose highest knot is below this are summarised
         self._open_blocks: dict[tuple[int, int, int | None, bool], int] = {}  # coalesce_blocks
+        self._groups: dict[int, tuple[tuple[int, ...], gtsam.NonlinearFactor]] = {}  # knot -> group
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike,
@@ -408,6 +410,7 @@ class Backend:
             old = self._blocks[bid]
             self._open_blocks.pop((old.knot, drop, old.scanner, old.alphas is not None), None)
             new = ObservationBlock(old.knot, keep, old.points, old.alphas, old.sigmas, old.scanner)
+            self._groups.pop(old.knot, None)
             factor = self._block_factor(new)
             self._records[bid] = _Record(factor, tuple(int(k) for k in factor.keys()))
             self._blocks[bid] = new
@@ -648,16 +651,22 @@ class Backend:
         graph = gtsam.NonlinearFactorGraph()
         used: set[int] = set()
         planes: set[int] = set()
+        groups: dict[int, list[int]] = {}
         for k in range(first, n):
             for fid in self._by_knot.get(k, ()):
                 rec = self._records.get(fid)
                 if rec is None:
                     continue
-                graph.add(rec.factor)
                 used.update(rec.keys)
                 blk = self._blocks.get(fid)
                 if blk is not None:
                     planes.add(blk.plane_id)
+                    if _groupable(blk):
+                        groups.setdefault(blk.knot, []).append(fid)
+                        continue
+                graph.add(rec.factor)
+        for knot, bids in groups.items():
+            graph.add(self._group_factor(knot, bids))
         active.update(int(P(j)) for j in planes)
         for fid in self._knotless:
             rec = self._records.get(fid)
@@ -873,14 +882,49 @@ class Backend:
         self._pending_removals = []
 
     def _graph(self, kernel: RobustKernel | None = None) -> gtsam.NonlinearFactorGraph:
-        """All live factors; observation blocks rebuilt with ``kernel`` if given."""
+        """All live factors, the observation blocks between two knots grouped per interval
+        (:meth:`_group_factor`); observation blocks rebuilt with ``kernel`` if given."""
         graph = gtsam.NonlinearFactorGraph()
+        groups: dict[int, list[int]] = {}
         for fid in sorted(self._records):
-            if kernel is not None and fid in self._blocks:
-                graph.add(self._block_factor(self._blocks[fid], kernel))
+            blk = self._blocks.get(fid)
+            if blk is not None and _groupable(blk):
+                groups.setdefault(blk.knot, []).append(fid)
+            elif kernel is not None and blk is not None:
+                graph.add(self._block_factor(blk, kernel))
             else:
                 graph.add(self._records[fid].factor)
+        for knot, bids in groups.items():
+            graph.add(self._group_factor(knot, bids, kernel))
         return graph
+
+    def _group_factor(self, knot: int, bids: list[int],
+                      kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
+        """One factor for the blocks ``bids`` of interval ``knot`` (:func:`point_planes_factor`:
+        one Python call per linearisation instead of one per block; the same rows). The factor
+        of the configured kernel is kept until the interval's blocks change."""
+        key = tuple(sorted(bids))
+        if kernel is None:
+            hit = self._groups.get(knot)
+            if hit is not None and hit[0] == key:
+                return hit[1]
+        blks = [self._blocks[b] for b in key]
+        if len(blks) == 1 and kernel is None:
+            factor = self._records[key[0]].factor
+        else:
+            plane_ids = sorted({b.plane_id for b in blks})
+            slot = {j: i for i, j in enumerate(plane_ids)}
+            alphas = [b.alphas for b in blks]
+            assert all(a is not None for a in alphas)
+            factor = point_planes_factor(
+                X(knot), X(knot + 1), [P(j) for j in plane_ids],
+                np.concatenate([np.full(b.points.shape[0], slot[b.plane_id]) for b in blks]),
+                np.concatenate([b.points for b in blks]), np.concatenate(alphas),  # type: ignore[arg-type]
+                np.concatenate([b.sigmas for b in blks]), kernel or self.config.kernel,
+                np.array([self._anchors[j] for j in plane_ids]))
+        if kernel is None:
+            self._groups[knot] = (key, factor)
+        return factor
 
     def _used_values(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
         out = gtsam.Values()
@@ -933,6 +977,11 @@ class Backend:
         if j not in self._plane_blocks:
             raise ValueError(f"plane_id: no plane {j}")
         return j
+
+
+def _groupable(blk: ObservationBlock) -> bool:
+    """Whether a block joins its interval's group factor: between two knots, no extrinsic."""
+    return blk.alphas is not None and blk.scanner is None
 
 
 def _plane_id(plane_id: int) -> int:

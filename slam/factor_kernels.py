@@ -48,6 +48,22 @@ def _log_so3(R: FloatArray) -> FloatArray:
 
 
 @nb.njit(cache=True)
+def _relative_rotation(RaT: FloatArray, Rb: FloatArray) -> tuple[FloatArray, FloatArray, float, FloatArray,
+                                                                  FloatArray, FloatArray]:
+    """``D = Ra^T Rb``, ``phi = Log(D)``, ``|phi|``, ``hat(phi)``, its square and ``Jr(phi)^-1``."""
+    D = RaT @ Rb
+    phi = _log_so3(D)
+    th = math.sqrt(phi[0] ** 2 + phi[1] ** 2 + phi[2] ** 2)
+    K = _hat(phi)
+    KK = K @ K
+    if th < 1e-4:
+        ci = 1.0 / 12.0 + th * th / 720.0
+    else:
+        ci = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+    return D, phi, th, K, KK, np.eye(3) + 0.5 * K + ci * KK
+
+
+@nb.njit(cache=True)
 def two_pose_terms(
     Ra: FloatArray, ta: FloatArray, Rb: FloatArray, tb: FloatArray, n: FloatArray, dist: float,
     Bn: FloatArray, P: FloatArray, al: FloatArray, jacobians: bool,
@@ -62,19 +78,9 @@ def two_pose_terms(
     Bn = np.ascontiguousarray(Bn)
     m_a = RaT @ n
     d0 = n[0] * ta[0] + n[1] * ta[1] + n[2] * ta[2] + dist
-    D = RaT @ Rb
-    phi = _log_so3(D)
-    th = math.sqrt(phi[0] ** 2 + phi[1] ** 2 + phi[2] ** 2)
+    D, phi, th, K, KK, Jinv = _relative_rotation(RaT, Rb)
     dtw = tb - ta
     dn = n[0] * dtw[0] + n[1] * dtw[1] + n[2] * dtw[2]
-    K = _hat(phi)
-    KK = K @ K
-    # Jr(phi)^-1
-    if th < 1e-4:
-        ci = 1.0 / 12.0 + th * th / 720.0
-    else:
-        ci = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
-    Jinv = np.eye(3) + 0.5 * K + ci * KK
     RaTB = RaT @ Bn
     taB = ta @ Bn
     dtB = dtw @ Bn
@@ -143,3 +149,97 @@ def robust_rows(e: FloatArray, huber: bool, k: float, linearize: bool) -> tuple[
             out[i] = r if x >= 0.0 else -r
     out[n] = math.sqrt(max(0.0, 2.0 * correction)) if linearize else 0.0
     return out, sw
+
+
+@nb.njit(cache=True)
+def group_rows(
+    Ra: FloatArray, ta: FloatArray, Rb: FloatArray, tb: FloatArray, normals: FloatArray, dists: FloatArray,
+    bases: FloatArray, anchors: FloatArray, plane: NDArray[np.int64], P: FloatArray, al: FloatArray,
+    inv_s: FloatArray, kernel: int, k: float, linearize: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The whitened rows of one knot interval's points on several planes (one factor).
+
+    Point m (body frame ``P[m]`` at fraction ``al[m]`` between the poses (Ra, ta), (Rb, tb)) lies
+    on plane ``plane[m]``: ``normals[j] . (x - anchors[j]) + dists[j] = 0`` with tangent basis
+    ``bases[j]`` (3 x 2). ``kernel``: 0 none, 1 Huber, 2 Cauchy of threshold ``k`` (sigmas).
+    Returns (rows (N + r,), H_a (N + r, 6), H_b (N + r, 6), H_planes (J, N + r, 3)) with r = 1 for
+    a robust kernel (:func:`robust_rows`'s correction row) else 0: the same rows, point for
+    point, as one block per plane (:func:`two_pose_terms` and :func:`robust_rows`); a plane's
+    Jacobian is zero on the other planes' rows. Without ``linearize`` only ``rows`` is filled
+    (the robust residuals ``sign(e) sqrt(2 rho(e))``)."""
+    N = P.shape[0]
+    J = normals.shape[0]
+    r = 0 if kernel == 0 else 1
+    RaT = np.ascontiguousarray(Ra.T)
+    Rb = np.ascontiguousarray(Rb)
+    D, phi, th, K, KK, Jinv = _relative_rotation(RaT, Rb)
+    dtw = tb - ta
+    # per plane: normal in knot a's body frame, offset at knot a, and the chained bases
+    m_a = np.empty((J, 3))
+    mD = np.empty((J, 3))
+    d0 = np.empty(J)
+    dn = np.empty(J)
+    RaTB = np.empty((J, 3, 2))
+    taB = np.empty((J, 2))
+    dtB = np.empty((J, 2))
+    for j in range(J):
+        n = np.ascontiguousarray(normals[j])
+        Bn = np.ascontiguousarray(bases[j])
+        m_a[j] = RaT @ n
+        mD[j] = m_a[j] @ D
+        tj = ta - anchors[j]
+        d0[j] = n[0] * tj[0] + n[1] * tj[1] + n[2] * tj[2] + dists[j]
+        dn[j] = n[0] * dtw[0] + n[1] * dtw[1] + n[2] * dtw[2]
+        RaTB[j] = RaT @ Bn
+        taB[j] = tj @ Bn
+        dtB[j] = dtw @ Bn
+    rows = np.empty(N + r)
+    nr = N + r if linearize else 0
+    Ha = np.zeros((nr, 6))
+    Hb = np.zeros((nr, 6))
+    Hp = np.zeros((J if linearize else 0, nr, 3))
+    correction = 0.0
+    for m in range(N):
+        j = plane[m]
+        a = al[m]
+        A, B, C = _coefficients(a * th)
+        E = np.eye(3) + (A * a) * K + (B * a * a) * KK  # Exp(a phi)
+        p = P[m]
+        q = E @ p
+        mj = m_a[j]
+        e = (q[0] * mj[0] + q[1] * mj[1] + q[2] * mj[2] + d0[j] + a * dn[j]) * inv_s[m]
+        x = abs(e)
+        if kernel == 0:
+            rho, w = 0.5 * e * e, 1.0
+        elif kernel == 1:
+            rho = 0.5 * e * e if x <= k else k * x - 0.5 * k * k
+            w = 1.0 if x <= k else k / x
+        else:
+            u2 = (e / k) ** 2
+            rho, w = 0.5 * k * k * math.log1p(u2), 1.0 / (1.0 + u2)
+        if not linearize:
+            s = math.sqrt(2.0 * rho)
+            rows[m] = s if e >= 0.0 else -s
+            continue
+        sw = math.sqrt(w)
+        rows[m] = sw * e
+        correction += rho - 0.5 * w * e * e
+        f = sw * inv_s[m]
+        mk = E.T @ mj
+        g = np.array([p[1] * mk[2] - p[2] * mk[1], p[2] * mk[0] - p[0] * mk[2], p[0] * mk[1] - p[1] * mk[0]])
+        Jr = np.eye(3) - (B * a) * K + (C * a * a) * KK  # Jr(a phi)
+        uu = a * (g @ Jr) @ Jinv
+        Eg = E @ g
+        uDt = uu @ D.T
+        for c in range(3):
+            Ha[m, c] = (Eg[c] - uDt[c]) * f
+            Hb[m, c] = uu[c] * f
+            Ha[m, 3 + c] = (1.0 - a) * mj[c] * f
+            Hb[m, 3 + c] = a * mD[j, c] * f
+        qB = q @ RaTB[j]
+        Hp[j, m, 0] = (qB[0] + taB[j, 0] + a * dtB[j, 0]) * f
+        Hp[j, m, 1] = (qB[1] + taB[j, 1] + a * dtB[j, 1]) * f
+        Hp[j, m, 2] = f
+    if r:
+        rows[N] = math.sqrt(max(0.0, 2.0 * correction)) if linearize else 0.0
+    return rows, Ha, Hb, Hp

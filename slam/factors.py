@@ -14,6 +14,10 @@ point in the body frame at its beam time (scanner extrinsic already applied). Va
 * :func:`point_plane_factor` with ``pose_key_b=None``: keys ``(X(i), P(j))``; every alpha is 0.
 * :func:`scanner_point_plane_factor`: points in the scanner frame and ``T_body_scanner`` a
   variable ``E(s)``: keys ``(X(i)[, X(i+1)], P(j), E(s))`` (for calibration).
+* :func:`point_planes_factor`: the points of one knot interval on several planes, keys
+  ``(X(i), X(i+1), P(j1), ..., P(jJ))``: the same rows as one block per plane, in one factor
+  (one Python call per linearisation instead of one per plane: the call, not the arithmetic,
+  is the cost of a block of a few points).
 
 Jacobians are analytic and exact (no small-motion approximation): with right perturbations of
 both poses (gtsam's ``Pose3`` retract: ``R Exp(w)``, ``t + R v``), ``D = R_i^T R_{i+1}``,
@@ -45,6 +49,7 @@ associated with the wrong surface stops pulling; Huber keeps a constant pull and
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -325,3 +330,64 @@ def _block_factor(
 
     rows = robust_rows_dim(points.shape[0], kernel)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
+
+
+_KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2}
+
+
+def point_planes_factor(
+    pose_key_a: int,
+    pose_key_b: int,
+    plane_keys: Sequence[int],
+    plane_index: ArrayLike,
+    points_body: ArrayLike,
+    alphas: ArrayLike,
+    sigmas: ArrayLike,
+    kernel: RobustKernel | None = None,
+    anchors: ArrayLike | None = None,
+) -> gtsam.CustomFactor:
+    """One factor for the N body-frame points (N, 3) [m] seen between knots a and b on several
+    planes: point m on plane ``plane_keys[plane_index[m]]`` at fraction ``alphas[m]``, sigma
+    ``sigmas[m]`` [m]; ``anchors`` (J, 3) the planes' anchor points (world frame; None: zero).
+    Keys ``(pose_key_a, pose_key_b, *plane_keys)``. Its rows are those of one
+    :func:`point_plane_factor` per plane concatenated (one robust correction row for all), so
+    the error and every Gauss-Newton step are the same; a plane's Jacobian is zero on the other
+    planes' rows."""
+    pk = [int(k) for k in plane_keys]
+    J = len(pk)
+    if J == 0 or len(set(pk)) != J:
+        raise ValueError(f"plane_keys: expected distinct keys, got {pk}")
+    p, al, s = check_block(points_body, alphas, sigmas, True, "points_body")
+    idx = np.ascontiguousarray(plane_index, dtype=np.int64).reshape(-1)
+    if idx.shape != (p.shape[0],) or idx.min() < 0 or idx.max() >= J:
+        raise ValueError(f"plane_index: expected {p.shape[0]} indices in [0, {J})")
+    anc = np.zeros((J, 3)) if anchors is None else np.ascontiguousarray(anchors, dtype=float).reshape(J, 3)
+    if not np.all(np.isfinite(anc)):
+        raise ValueError("anchors: must be finite")
+    assert al is not None
+    kern = kernel or RobustKernel()
+    code, thr = _KERNEL_CODE[kern.name], float(kern.threshold)
+    inv_s = 1.0 / s
+    keys = [int(pose_key_a), int(pose_key_b), *pk]
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
+        Ma, Mb = v.atPose3(pose_key_a).matrix(), v.atPose3(pose_key_b).matrix()
+        normals = np.empty((J, 3))
+        dists = np.empty(J)
+        bases = np.empty((J, 3, 2))
+        for j, key in enumerate(pk):
+            pl = v.atOrientedPlane3(key)
+            u = pl.normal()
+            normals[j] = u.point3()
+            dists[j] = pl.distance()
+            bases[j] = u.basis()
+        rows, Ha, Hb, Hp = _fk.group_rows(Ma[:3, :3], Ma[:3, 3].copy(), Mb[:3, :3], Mb[:3, 3].copy(), normals, dists,
+                                          bases, anc, idx, p, al, inv_s, code, thr, H is not None)
+        if H is not None:
+            H[0] = Ha
+            H[1] = Hb
+            for j in range(J):
+                H[2 + j] = Hp[j]
+        return rows
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(robust_rows_dim(p.shape[0], kern)), keys, error)

@@ -11,6 +11,7 @@ from slam.factors import (
     RobustKernel,
     point_plane_factor,
     point_plane_terms,
+    point_planes_factor,
     robust_loss,
     robust_residual,
     robust_rows,
@@ -97,6 +98,52 @@ def test_point_plane_factor_jacobians(motion: float) -> None:
         _check_jacobians(point_plane_factor(X(0), None, P(0), pts, None, sig, none), v)
         _check_jacobians(scanner_point_plane_factor(X(0), X(1), P(0), E(0), pts, al, sig, none), v)
         _check_jacobians(scanner_point_plane_factor(X(0), None, P(0), E(0), pts, None, sig, none), v)
+
+
+@pytest.mark.parametrize("motion", [1e-7, 0.3])
+def test_point_planes_factor_jacobians(motion: float) -> None:
+    rng = np.random.default_rng(12)
+    v = _block_values(rng, motion)
+    for j in range(1, 4):
+        v.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), rng.normal()))
+    n = 30
+    idx = np.concatenate((np.arange(4), rng.integers(0, 4, n - 4)))
+    al = rng.uniform(0.0, 1.0, n)
+    al[:2] = [0.0, 1.0]
+    f = point_planes_factor(X(0), X(1), [P(j) for j in range(4)], idx, rng.normal(size=(n, 3)) * 3.0, al,
+                            rng.uniform(0.5, 2.0, n), RobustKernel("none"), rng.normal(size=(4, 3)))
+    _check_jacobians(f, v)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: k.name)
+def test_point_planes_factor_is_the_blocks_of_its_planes(kernel: RobustKernel) -> None:
+    """One factor for an interval's points on several planes: the error and the Gauss-Newton
+    system of one block per plane (the back end's grouping changes no step)."""
+    rng = np.random.default_rng(13)
+    v = _block_values(rng, 0.05)
+    J = 3
+    for j in range(1, J):
+        v.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), rng.normal()))
+    n = 40
+    idx = np.concatenate((np.arange(J), rng.integers(0, J, n - J)))
+    pts, al, sig = rng.normal(size=(n, 3)) * 2, rng.uniform(0, 1, n), np.full(n, 0.3)
+    anchors = rng.normal(size=(J, 3))
+    group = gtsam.NonlinearFactorGraph()
+    group.add(point_planes_factor(X(0), X(1), [P(j) for j in range(J)], idx, pts, al, sig, kernel, anchors))
+    blocks = gtsam.NonlinearFactorGraph()
+    for j in range(J):
+        m = idx == j
+        blocks.add(point_plane_factor(X(0), X(1), P(j), pts[m], al[m], sig[m], kernel, anchors[j]))
+    assert group.error(v) == pytest.approx(blocks.error(v), rel=1e-12)
+    lg, lb = group.linearize(v), blocks.linearize(v)
+    assert lg.error(v.zeroVectors()) == pytest.approx(blocks.error(v), rel=1e-12)
+    (Hg, gg), (Hb, gb) = lg.hessian(), lb.hessian()
+    np.testing.assert_allclose(Hg, Hb, rtol=1e-12, atol=1e-9 * np.abs(Hb).max())
+    np.testing.assert_allclose(gg, gb, rtol=1e-12, atol=1e-9 * np.abs(gb).max())
+    with pytest.raises(ValueError, match="plane_index"):
+        point_planes_factor(X(0), X(1), [P(0), P(1)], np.full(n, 2), pts, al, sig, kernel)
+    with pytest.raises(ValueError, match="plane_keys"):
+        point_planes_factor(X(0), X(1), [P(0), P(0)], np.zeros(n), pts, al, sig, kernel)
 
 
 @pytest.mark.parametrize("kernel", KERNELS[1:], ids=lambda k: k.name)
