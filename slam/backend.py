@@ -1012,39 +1012,35 @@ def _perpendicular_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> F
 
 
 def _plane_residual(a: gtsam.OrientedPlane3, b: gtsam.OrientedPlane3, anchor_a: FloatArray,
-                    anchor_b: FloatArray) -> FloatArray:
-    """Difference of plane b from plane a (normal in a's tangent, offset at a's anchor)."""
-    na = a.normal().point3()
-    nb = b.normal().point3()
-    db = b.distance() + float(nb @ (anchor_a - anchor_b))  # b's offset about a's anchor
-    if float(na @ nb) < 0.0:  # the same plane with the opposite orientation
-        nb, db = -nb, -db
-    B = a.normal().basis()
-    return np.array([*(B.T @ nb), db - a.distance()])
+                    anchor_b: FloatArray, H: Any = None) -> FloatArray:
+    """Difference of plane b from plane a (normal in a's tangent, offset at a's anchor) and, into
+    ``H`` (a list of two), its analytic Jacobians wrt both planes' retract coordinates:
+    ``r = (s B_a^T n_b, s (d_b + n_b . (anchor_a - anchor_b)) - d_a)`` with ``s = -1`` for the same
+    plane with the opposite orientation (``n_a . n_b < 0``), else 1."""
+    ua, ub = a.normal(), b.normal()
+    nb = ub.point3()
+    s = -1.0 if float(ua.point3() @ nb) < 0.0 else 1.0
+    delta = anchor_a - anchor_b
+    r = np.empty(3)
+    if H is None:
+        r[:2] = s * ua.errorVector(ub)
+    else:
+        Hp, Hq = np.zeros((2, 2), order="F"), np.zeros((2, 2), order="F")
+        r[:2] = s * ua.errorVector(ub, Hp, Hq)  # B_a^T n_b and its Jacobians
+        Ha, Hb = np.zeros((3, 3)), np.zeros((3, 3))
+        Ha[:2, :2], Ha[2, 2] = s * Hp, -1.0
+        Hb[:2, :2], Hb[2, :2], Hb[2, 2] = s * Hq, s * (delta @ ub.basis()), s
+        H[0], H[1] = Ha, Hb
+    r[2] = s * (b.distance() + float(nb @ delta)) - a.distance()
+    return r
 
 
 def _plane_equality(anchor_a: FloatArray, anchor_b: FloatArray) -> Any:
-    """Error function of the equality of two (anchored) planes, 3 residuals; Jacobians by central
-    differences on the manifold (few such factors: cheaper to write than the Unit3 chain rule)."""
+    """Error function of the equality of two (anchored) planes, 3 residuals (:func:`_plane_residual`)."""
 
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
-        ka, kb = this.keys()[0], this.keys()[1]
-        a, b = v.atOrientedPlane3(ka), v.atOrientedPlane3(kb)
-        e = _plane_residual(a, b, anchor_a, anchor_b)
-        if H is not None:
-            h = 1e-7
-            Ha = np.zeros((3, 3))
-            Hb = np.zeros((3, 3))
-            for i in range(3):
-                d = np.zeros(3)
-                d[i] = h
-                Ha[:, i] = (_plane_residual(a.retract(d), b, anchor_a, anchor_b)
-                            - _plane_residual(a.retract(-d), b, anchor_a, anchor_b)) / (2 * h)
-                Hb[:, i] = (_plane_residual(a, b.retract(d), anchor_a, anchor_b)
-                            - _plane_residual(a, b.retract(-d), anchor_a, anchor_b)) / (2 * h)
-            H[0] = Ha
-            H[1] = Hb
-        return e
+        keys = this.keys()
+        return _plane_residual(v.atOrientedPlane3(keys[0]), v.atOrientedPlane3(keys[1]), anchor_a, anchor_b, H)
 
     return error
 

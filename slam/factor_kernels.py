@@ -172,7 +172,7 @@ def group_rows(
     r = 0 if kernel == 0 else 1
     RaT = np.ascontiguousarray(Ra.T)
     Rb = np.ascontiguousarray(Rb)
-    D, phi, th, K, KK, Jinv = _relative_rotation(RaT, Rb)
+    D, _phi, th, K, KK, Jinv = _relative_rotation(RaT, Rb)
     dtw = tb - ta
     # per plane: normal in knot a's body frame, offset at knot a, and the chained bases
     m_a = np.empty((J, 3))
@@ -199,15 +199,26 @@ def group_rows(
     Hb = np.zeros((nr, 6))
     Hp = np.zeros((J if linearize else 0, nr, 3))
     correction = 0.0
+    E = np.empty((3, 3))
+    Jr = np.empty((3, 3))
+    q = np.empty(3)
+    mk = np.empty(3)
+    g = np.empty(3)
+    gJ = np.empty(3)
+    uu = np.empty(3)
+    Eg = np.empty(3)
     for m in range(N):
         j = plane[m]
         a = al[m]
         A, B, C = _coefficients(a * th)
-        E = np.eye(3) + (A * a) * K + (B * a * a) * KK  # Exp(a phi)
-        p = P[m]
-        q = E @ p
-        mj = m_a[j]
-        e = (q[0] * mj[0] + q[1] * mj[1] + q[2] * mj[2] + d0[j] + a * dn[j]) * inv_s[m]
+        ea, eb = A * a, B * a * a  # Exp(a phi) = I + ea K + eb K^2
+        for r1 in range(3):
+            for c in range(3):
+                E[r1, c] = ea * K[r1, c] + eb * KK[r1, c] + (1.0 if r1 == c else 0.0)
+        p0, p1, p2 = P[m, 0], P[m, 1], P[m, 2]
+        for r1 in range(3):
+            q[r1] = E[r1, 0] * p0 + E[r1, 1] * p1 + E[r1, 2] * p2
+        e = (q[0] * m_a[j, 0] + q[1] * m_a[j, 1] + q[2] * m_a[j, 2] + d0[j] + a * dn[j]) * inv_s[m]
         x = abs(e)
         if kernel == 0:
             rho, w = 0.5 * e * e, 1.0
@@ -225,20 +236,31 @@ def group_rows(
         rows[m] = sw * e
         correction += rho - 0.5 * w * e * e
         f = sw * inv_s[m]
-        mk = E.T @ mj
-        g = np.array([p[1] * mk[2] - p[2] * mk[1], p[2] * mk[0] - p[0] * mk[2], p[0] * mk[1] - p[1] * mk[0]])
-        Jr = np.eye(3) - (B * a) * K + (C * a * a) * KK  # Jr(a phi)
-        uu = a * (g @ Jr) @ Jinv
-        Eg = E @ g
-        uDt = uu @ D.T
+        for c in range(3):  # E^T m_a
+            mk[c] = E[0, c] * m_a[j, 0] + E[1, c] * m_a[j, 1] + E[2, c] * m_a[j, 2]
+        g[0] = p1 * mk[2] - p2 * mk[1]
+        g[1] = p2 * mk[0] - p0 * mk[2]
+        g[2] = p0 * mk[1] - p1 * mk[0]
+        ja, jb = -B * a, C * a * a  # Jr(a phi) = I + ja K + jb K^2
+        for r1 in range(3):
+            for c in range(3):
+                Jr[r1, c] = ja * K[r1, c] + jb * KK[r1, c] + (1.0 if r1 == c else 0.0)
         for c in range(3):
-            Ha[m, c] = (Eg[c] - uDt[c]) * f
+            gJ[c] = g[0] * Jr[0, c] + g[1] * Jr[1, c] + g[2] * Jr[2, c]
+        for c in range(3):
+            uu[c] = a * (gJ[0] * Jinv[0, c] + gJ[1] * Jinv[1, c] + gJ[2] * Jinv[2, c])
+        for r1 in range(3):
+            Eg[r1] = E[r1, 0] * g[0] + E[r1, 1] * g[1] + E[r1, 2] * g[2]
+        for c in range(3):
+            uDt = uu[0] * D[c, 0] + uu[1] * D[c, 1] + uu[2] * D[c, 2]
+            Ha[m, c] = (Eg[c] - uDt) * f
             Hb[m, c] = uu[c] * f
-            Ha[m, 3 + c] = (1.0 - a) * mj[c] * f
+            Ha[m, 3 + c] = (1.0 - a) * m_a[j, c] * f
             Hb[m, 3 + c] = a * mD[j, c] * f
-        qB = q @ RaTB[j]
-        Hp[j, m, 0] = (qB[0] + taB[j, 0] + a * dtB[j, 0]) * f
-        Hp[j, m, 1] = (qB[1] + taB[j, 1] + a * dtB[j, 1]) * f
+        qB0 = q[0] * RaTB[j, 0, 0] + q[1] * RaTB[j, 1, 0] + q[2] * RaTB[j, 2, 0]
+        qB1 = q[0] * RaTB[j, 0, 1] + q[1] * RaTB[j, 1, 1] + q[2] * RaTB[j, 2, 1]
+        Hp[j, m, 0] = (qB0 + taB[j, 0] + a * dtB[j, 0]) * f
+        Hp[j, m, 1] = (qB1 + taB[j, 1] + a * dtB[j, 1]) * f
         Hp[j, m, 2] = f
     if r:
         rows[N] = math.sqrt(max(0.0, 2.0 * correction)) if linearize else 0.0

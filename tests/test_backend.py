@@ -364,6 +364,37 @@ def test_perpendicular_error_jacobians_match_numerical_differentiation() -> None
     assert np.abs(H[0]).max() > 0.1  # not trivially zero
 
 
+def test_plane_equality_jacobians_match_numerical_differentiation() -> None:
+    import gtsam
+
+    from slam.backend import _plane_equality
+
+    rng = np.random.default_rng(4)
+    n = rng.normal(size=3)
+    for flip in (1.0, -1.0):  # the same plane, and the same plane with the opposite orientation
+        a = gtsam.OrientedPlane3(gtsam.Unit3(n), 1.2)
+        b = gtsam.OrientedPlane3(gtsam.Unit3(flip * n + 0.1 * rng.normal(size=3)), -0.4)
+        error = _plane_equality(rng.normal(size=3), rng.normal(size=3))
+        factor = gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(3, 1.0), [1, 2], error)
+        values = gtsam.Values()
+        values.insert(1, a)
+        values.insert(2, b)
+        H = [np.zeros((3, 3)), np.zeros((3, 3))]
+        error(factor, values, H)
+        for k in (0, 1):
+            num = np.zeros((3, 3))
+            for i in range(3):
+                d = np.zeros(3)
+                d[i] = 1e-6
+                hi, lo = gtsam.Values(), gtsam.Values()
+                for v, sign in ((hi, 1.0), (lo, -1.0)):
+                    v.insert(1, a.retract(sign * d) if k == 0 else a)
+                    v.insert(2, b.retract(sign * d) if k == 1 else b)
+                num[:, i] = (error(factor, hi, None) - error(factor, lo, None)) / 2e-6
+            np.testing.assert_allclose(H[k], num, atol=1e-7)
+            assert np.abs(H[k]).max() > 0.1
+
+
 def gtsam_key_x(k: int) -> int:
     from gtsam.symbol_shorthand import X
 
