@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time as _time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -111,6 +111,9 @@ class _Pending:
     # pre-association and the observation: (segment, +-1) its recess beyond either end,
     # (segment, 0) the steps inside it
     edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
+    # the breaks found last with these plane ids and hosts (the tracking pre-association's are
+    # mostly the observation's: only their world placement changes with the tracked trajectory)
+    breaks_memo: tuple[bytes, dict[int, int], list[Break]] | None = None
 
 
 @dataclass
@@ -197,6 +200,7 @@ class SlamRunner:
                     point=ec.point,
                 ),
                 self.pmap.resolve,
+                generation=lambda: self.pmap.merges,
             )
             if ec.use
             else None
@@ -594,6 +598,25 @@ class SlamRunner:
     def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
         the world with the current trajectory."""
+        assert self.emap is not None
+        memo = p.breaks_memo
+        ids_key = ids.tobytes()
+        if memo is not None and memo[0] == ids_key and memo[1] == hosts:
+            return self._replaced(memo[2])
+        out = self._find_breaks(p, ids, hosts)
+        p.breaks_memo = (ids_key, dict(hosts), out)
+        return out
+
+    def _replaced(self, breaks: list[Break]) -> list[Break]:
+        """The breaks placed in the world with the current trajectory (the map is unchanged)."""
+        if not breaks:
+            return []
+        w = self._place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
+        return [replace(b, point_world=x, u=float(along_wall(self.pmap.planes[b.host].normal) @ x))
+                for b, x in zip(breaks, w, strict=True)]
+
+    def _find_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
+        """:meth:`_scan_breaks` computed."""
         assert self.emap is not None
         ep = self.emap.params
         segs = p.segs

@@ -128,6 +128,22 @@ def test_match_respects_key_side_and_gate() -> None:
     assert em.match(_break(2.0, 0, host=3)) is None  # another wall
 
 
+def test_match_with_an_index_follows_merges_and_new_edges() -> None:
+    merged: dict[int, int] = {}
+    gen = [0]
+    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
+    e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
+    assert em.match(_break(2.01, 0)) is e
+    assert em.match(_break(2.01, 0, host=5)) is None  # wall 5 is another wall ...
+    merged[5] = 1
+    gen[0] += 1
+    assert em.match(_break(2.01, 0, host=5)) is e  # ... until it is merged into wall 1
+    f = em.add(5, -1, 1, along_wall(WALL_N), u=3.0, time=1.0)
+    assert em.match(_break(3.01, 0)) is f  # a new edge is found at once
+    f.merged_into = e.id
+    assert em.match(_break(3.01, 0)) is None  # a merged edge is not matched
+
+
 def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
     em = EdgeMap(EdgeParams(gate=0.15, height_margin=0.1), resolve=lambda i: i)
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0, z_range=(0.5, 1.8))

@@ -35,6 +35,8 @@ to such an edge can put a few of them close together.
 
 from __future__ import annotations
 
+import math
+import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -111,8 +113,8 @@ class Edge:
 
 def along_wall(normal_wall: FloatArray) -> FloatArray:
     """The horizontal unit direction in a (vertical) wall: ``up x n_wall`` normalised (world)."""
-    e = np.cross(_UP, normal_wall)
-    return e / max(float(np.linalg.norm(e)), 1e-12)
+    x, y = float(normal_wall[0]), float(normal_wall[1])  # up x n = (-n_y, n_x, 0)
+    return np.array([-y, x, 0.0]) / max(math.hypot(x, y), 1e-12)
 
 
 def break_pairs(
@@ -187,9 +189,11 @@ def recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray,
     lie ``min_step``-``max_step`` behind the line (away from the scanner; their median too), the
     first within ``max_gap`` of the wall's last return. Returns (the first valid beam past the
     end, the last beam inside the recess, the median depth in m), or None."""
-    normal = np.array([-direction[1], direction[0]])
-    away = 1.0 if float(normal @ centroid) > 0.0 else -1.0
-    last = ranges[k_end] * np.array([np.cos(angles[k_end]), np.sin(angles[k_end])])
+    nx, ny = -float(direction[1]), float(direction[0])  # the line's normal
+    cx, cy = float(centroid[0]), float(centroid[1])
+    away = 1.0 if nx * cx + ny * cy > 0.0 else -1.0
+    r_end, a_end = float(ranges[k_end]), float(angles[k_end])
+    lx, ly = r_end * math.cos(a_end), r_end * math.sin(a_end)
     depths: list[float] = []
     beams: list[int] = []
     first = None
@@ -199,21 +203,21 @@ def recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray,
             break
         if not valid[j]:
             continue
-        q = ranges[j] * np.array([np.cos(angles[j]), np.sin(angles[j])])
+        r_j, a_j = float(ranges[j]), float(angles[j])
+        qx, qy = r_j * math.cos(a_j), r_j * math.sin(a_j)
         if first is None:
-            if float(np.linalg.norm(q - last)) > max_gap:
+            if math.hypot(qx - lx, qy - ly) > max_gap:
                 return None
             first = j
-        depths.append(away * float(normal @ (q - centroid)))
+        depths.append(away * (nx * (qx - cx) + ny * (qy - cy)))
         beams.append(j)
     if first is None or len(depths) < min_returns:
         return None
-    dep = np.array(depths)
-    inside = (dep >= min_step) & (dep <= max_step)
-    median = float(np.median(dep))
-    if int(inside.sum()) < min_returns or not min_step <= median <= max_step:
+    inside = [i for i, d in enumerate(depths) if min_step <= d <= max_step]
+    median = statistics.median(depths)
+    if len(inside) < min_returns or not min_step <= median <= max_step:
         return None
-    return first, beams[int(np.flatnonzero(inside)[-1])], median
+    return first, beams[inside[-1]], median
 
 
 def steps_within(points_xy: FloatArray, centroid: FloatArray, direction: FloatArray, sigma: float,
@@ -315,6 +319,10 @@ class EdgeMap:
     edges: dict[int, Edge] = field(default_factory=dict)
     pending: list[Break] = field(default_factory=list)
     _next: int = EDGE_ID_BASE
+    # what ``resolve`` gives changes only when this does (e.g. the plane map's merge count): with
+    # it, :meth:`match` keeps an index of the edges by key instead of testing every edge
+    generation: Callable[[], int] | None = None
+    _index: tuple[tuple[int, int], dict[tuple[int, int, int], list[Edge]]] | None = None
 
     def key(self, host: int, step: int, side: int) -> tuple[int, int, int]:
         return self.resolve(host), step, side
@@ -337,8 +345,8 @@ class EdgeMap:
         key = self.key(b.host, b.step, b.side)
         z, margin = float(b.point_world[2]), self.params.height_margin
         best: tuple[float, Edge] | None = None
-        for e in self.active():
-            if self.key(e.host, e.step, e.side) != key:
+        for e in self._candidates(key):
+            if e.merged_into is not None or self.key(e.host, e.step, e.side) != key:
                 continue
             # beyond the heights its breaks were seen at, a break may lie on the door's top edge,
             # anywhere along it; a flat scanline can only cross a vertical edge
@@ -348,6 +356,18 @@ class EdgeMap:
             if dist <= gate and (best is None or dist < best[0]):
                 best = (dist, e)
         return None if best is None else best[1]
+
+    def _candidates(self, key: tuple[int, int, int]) -> list[Edge]:
+        """The edges that may have ``key`` (all of them without ``generation``)."""
+        if self.generation is None:
+            return list(self.edges.values())
+        state = (self.generation(), len(self.edges))
+        if self._index is None or self._index[0] != state:
+            index: dict[tuple[int, int, int], list[Edge]] = {}
+            for e in self.edges.values():
+                index.setdefault(self.key(e.host, e.step, e.side), []).append(e)
+            self._index = (state, index)
+        return self._index[1].get(key, [])
 
     def expire(self, now: float) -> None:
         self.pending = [b for b in self.pending if now - b.time <= self.params.window]

@@ -71,6 +71,7 @@ class PlaneMap:
     def __init__(self, cell_size: float = 0.25) -> None:
         self.cell_size = cell_size
         self.planes: list[Plane] = []
+        self.merges = 0  # merges so far: what :meth:`resolve` gives changes only with it
         # per plane: its cell set (held, so that identity means the same set), the set's size then
         # and the cells as an (n, 2) array
         self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
@@ -205,6 +206,7 @@ class PlaneMap:
         pk.first_seen_odometer = min(pk.first_seen_odometer, pd.first_seen_odometer)
         pd.active = False
         pd.merged_into = keep
+        self.merges += 1
 
     def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
         """Copy a back-end estimate in, keeping the in-plane basis continuous."""
