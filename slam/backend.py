@@ -159,7 +159,7 @@ class OptimizeSummary:
 
 @dataclass
 class _Record:
-    factor: gtsam.NonlinearFactor
+    factor: gtsam.NonlinearFactor | None
     keys: tuple[int, ...]
     isam_index: int | None = None
 
@@ -337,7 +337,7 @@ class Backend:
                 None if block.alphas is None or old.alphas is None else np.concatenate((old.alphas, block.alphas)),
                 np.concatenate((old.sigmas, block.sigmas)), block.scanner)
             self.remove_observations(self._open_blocks[key])
-        bid = self._add_factor(self._block_factor(block))
+        bid = self._add_record(None, _block_keys(block))
         self._add_block(bid, block)
         if self.config.coalesce_blocks and bid not in self._summarized:
             self._open_blocks[key] = bid
@@ -356,7 +356,7 @@ class Backend:
         old = self._get_block(block_id)
         new = self._make_block(old.knot, old.plane_id, points, alphas, sigmas, old.scanner)
         self.remove_observations(block_id)
-        bid = self._add_factor(self._block_factor(new))
+        bid = self._add_record(None, _block_keys(new))
         self._add_block(bid, new)
         return bid
 
@@ -411,8 +411,7 @@ class Backend:
             self._open_blocks.pop((old.knot, drop, old.scanner, old.alphas is not None), None)
             new = ObservationBlock(old.knot, keep, old.points, old.alphas, old.sigmas, old.scanner)
             self._groups.pop(old.knot, None)
-            factor = self._block_factor(new)
-            self._records[bid] = _Record(factor, tuple(int(k) for k in factor.keys()))
+            self._records[bid] = _Record(None, _block_keys(new))
             self._blocks[bid] = new
             self._plane_blocks[keep].add(bid)
             C = self._summarized.get(bid)
@@ -544,7 +543,7 @@ class Backend:
             rec = self._records.get(fid)
             if rec is None:
                 continue
-            graph.add(rec.factor)
+            graph.add(self._factor(fid))
             ids.append(fid)
             for k in rec.keys:
                 if k not in self._isam_keys and not new_values.exists(k):
@@ -664,14 +663,14 @@ class Backend:
                     if _groupable(blk):
                         groups.setdefault(blk.knot, []).append(fid)
                         continue
-                graph.add(rec.factor)
+                graph.add(self._factor(fid))
         for knot, bids in groups.items():
             graph.add(self._group_factor(knot, bids))
         active.update(int(P(j)) for j in planes)
         for fid in self._knotless:
             rec = self._records.get(fid)
             if rec is not None and any(k in active for k in rec.keys):
-                graph.add(rec.factor)
+                graph.add(self._factor(fid))
                 used.update(rec.keys)
         for j in sorted(planes):
             M = self._summary.get(j)
@@ -835,9 +834,13 @@ class Backend:
 
     # ----------------------------------------------------------------- internals
     def _add_factor(self, factor: gtsam.NonlinearFactor) -> int:
+        return self._add_record(factor, tuple(int(k) for k in factor.keys()))
+
+    def _add_record(self, factor: gtsam.NonlinearFactor | None, keys: tuple[int, ...]) -> int:
+        """A new factor id for ``factor`` on ``keys`` (None: an observation block's, built when
+        first needed by :meth:`_factor`: the window and the batch use its interval's group)."""
         fid = self._next_id
         self._next_id += 1
-        keys = tuple(int(k) for k in factor.keys())
         self._records[fid] = _Record(factor, keys)
         top = _top_knot(keys)
         if top is None:
@@ -855,6 +858,13 @@ class Backend:
             self._pending_removals.append(rec.isam_index)
         self._marginals = None
         self._isam_fresh = False
+
+    def _factor(self, fid: int) -> gtsam.NonlinearFactor:
+        """The factor of record ``fid`` (an observation block's built on first use)."""
+        rec = self._records[fid]
+        if rec.factor is None:
+            rec.factor = self._block_factor(self._blocks[fid])
+        return rec.factor
 
     def _invalidate_isam(self) -> None:
         self._isam = None
@@ -893,7 +903,7 @@ class Backend:
             elif kernel is not None and blk is not None:
                 graph.add(self._block_factor(blk, kernel))
             else:
-                graph.add(self._records[fid].factor)
+                graph.add(self._factor(fid))
         for knot, bids in groups.items():
             graph.add(self._group_factor(knot, bids, kernel))
         return graph
@@ -910,7 +920,7 @@ class Backend:
                 return hit[1]
         blks = [self._blocks[b] for b in key]
         if len(blks) == 1 and kernel is None:
-            factor = self._records[key[0]].factor
+            factor = self._factor(key[0])
         else:
             plane_ids = sorted({b.plane_id for b in blks})
             slot = {j: i for i, j in enumerate(plane_ids)}
@@ -977,6 +987,12 @@ class Backend:
         if j not in self._plane_blocks:
             raise ValueError(f"plane_id: no plane {j}")
         return j
+
+
+def _block_keys(blk: ObservationBlock) -> tuple[int, ...]:
+    """The keys of a block's factor (:meth:`Backend._block_factor`)."""
+    keys = [X(blk.knot)] + ([X(blk.knot + 1)] if blk.alphas is not None else []) + [P(blk.plane_id)]
+    return tuple(int(k) for k in keys + ([E(blk.scanner)] if blk.scanner is not None else []))
 
 
 def _groupable(blk: ObservationBlock) -> bool:
