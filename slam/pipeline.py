@@ -1067,8 +1067,8 @@ class SlamRunner:
         if self.imu is not None:
             self._bias = self.backend.bias(self._n_knots - 1)
         now = self._knot_time(self._n_knots - 1)
-        for pl in self.pmap.planes:
-            if pl.active and now - pl.last_seen_time < 5.0:
+        for pl in self.pmap.active_planes():
+            if now - pl.last_seen_time < 5.0:
                 n, d = self.backend.plane(pl.id)
                 self.pmap.set_estimate(pl.id, n, d)
         self._merge_planes(now)
@@ -1077,12 +1077,12 @@ class SlamRunner:
 
     def _merge_planes(self, now: float) -> None:
         fe = self.cfg.frontend
-        recent = [p for p in self.pmap.planes if p.active and now - p.last_seen_time < 2.0]
+        recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
         cos_max = np.cos(np.radians(fe.merge_angle_deg))
         for a in recent:
             if not a.active:
                 continue
-            for b in self.pmap.planes:
+            for b in list(self.pmap.active_planes()):  # a snapshot: merges below change the list
                 if b.id == a.id or not b.active or not a.active:
                     continue
                 if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall

@@ -101,7 +101,7 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     extents (Python sets of cells) are then tested only for the pairs under the gates.
     """
     out = np.full(segs.n, -1, dtype=np.int64)
-    active = [p for p in pmap.planes if p.active]
+    active = pmap.active_planes()
     if not active or segs.n == 0:
         return out
     # the active planes' arrays in one pass over the map (world frame): normal, offset, offset

@@ -72,6 +72,7 @@ class PlaneMap:
         self.cell_size = cell_size
         self.planes: list[Plane] = []
         self.merges = 0  # merges so far: what :meth:`resolve` gives changes only with it
+        self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
         # per plane: its cell set (held, so that identity means the same set), the set's size then
         # and the cells as an (n, 2) array
         self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
@@ -86,6 +87,7 @@ class PlaneMap:
         p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer,
                   first_seen_odometer=odometer)
         self.planes.append(p)
+        self._active = None
         return p
 
     def resolve(self, pid: int) -> int:
@@ -94,8 +96,14 @@ class PlaneMap:
             pid = self.planes[pid].merged_into
         return pid
 
+    def active_planes(self) -> list[Plane]:
+        """The planes not merged into another, by id (a shared list: do not modify)."""
+        if self._active is None:
+            self._active = [p for p in self.planes if p.active]
+        return self._active
+
     def active_ids(self) -> NDArray[np.int64]:
-        return np.array([p.id for p in self.planes if p.active], dtype=np.int64)
+        return np.array([p.id for p in self.active_planes()], dtype=np.int64)
 
     def arrays(self, ids: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
         """Normals (m, 3) and offsets (m,) of the given planes."""
@@ -207,6 +215,7 @@ class PlaneMap:
         pd.active = False
         pd.merged_into = keep
         self.merges += 1
+        self._active = None
 
     def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
         """Copy a back-end estimate in, keeping the in-plane basis continuous."""
