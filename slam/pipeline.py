@@ -487,9 +487,12 @@ class SlamRunner:
                 idx, alpha = self._fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
                 keep = np.flatnonzero(idx >= k0)
                 if keep.size:
-                    # the planes' current estimates (world frame): normal, offset, a row per plane
-                    planes = np.array([[*q.normal.tolist(), q.d] for q in self.pmap.planes])
+                    # the associated planes' current estimates (world frame): normal, offset
                     pid = np.repeat(ids[sel], 2)[keep]
+                    used = np.unique(pid)
+                    planes = np.array([[*self.pmap.planes[j].normal.tolist(), self.pmap.planes[j].d]
+                                       for j in used.tolist()])
+                    pid = np.searchsorted(used, pid)
                     pts.append(np.concatenate([p.segs.virtual_body for p in tracked])[sel].reshape(-1, 3)[keep])
                     kis.append(idx[keep] - k0)
                     al.append(alpha[keep])
