@@ -206,6 +206,8 @@ class SlamRunner:
             else None
         )
         self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
+        # _host resolved through the merges, kept while no plane is merged or tied
+        self._resolved_hosts: tuple[tuple[int, int], dict[int, int]] | None = None
         dt = 1.0 / cfg.trajectory.knot_rate
         ic = cfg.imu
         self.imu_config = (
@@ -590,13 +592,16 @@ class SlamRunner:
         """Current (merged) plane id -> its current host wall id, for the tied doors and boards.
         Merges can fold a door into the plane its wall was merged with and the other way round;
         of two planes tied either way the one with more segments is the wall (never a child)."""
-        out = {}
-        for child, host in self._host.items():
-            c, h = self.pmap.resolve(child), self.pmap.resolve(host)
-            if c != h:
-                out[c] = h
+        state = (self.pmap.merges, len(self._host))
+        if self._resolved_hosts is None or self._resolved_hosts[0] != state:
+            out = {}
+            for child, host in self._host.items():
+                c, h = self.pmap.resolve(child), self.pmap.resolve(host)
+                if c != h:
+                    out[c] = h
+            self._resolved_hosts = (state, out)
         planes = self.pmap.planes
-        return {c: h for c, h in out.items() if planes[c].n_segments <= planes[h].n_segments}
+        return {c: h for c, h in self._resolved_hosts[1].items() if planes[c].n_segments <= planes[h].n_segments}
 
     def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
