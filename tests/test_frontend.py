@@ -223,3 +223,26 @@ def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> No
     np.testing.assert_allclose(t, Tw[:, :3, 3], rtol=0.0, atol=1e-12)
     # a point's world position does not depend on the batch it is placed with
     np.testing.assert_array_equal(place_points(kt, T, times[7:9], pts[7:9]), place_points(kt, T, times, pts)[7:9])
+
+
+def test_plane_map_rows_follow_estimates_merges_and_sightings() -> None:
+    """The association's plane rows are cached, yet always those of the current map."""
+    from slam.frontend.planemap import KIND_FLOOR, KIND_WALL, PlaneMap
+
+    pm = PlaneMap()
+    a = pm.add(np.array([1.0, 0.0, 0.0]), -2.0, KIND_WALL, 0.0, 0.0)
+    b = pm.add(np.array([0.0, 0.0, 1.0]), 0.0, KIND_FLOOR, 0.0, 0.0)
+    rows, horizontal = pm.active_rows()
+    assert rows.shape == (2, 12) and horizontal.tolist() == [False, True]
+    np.testing.assert_allclose(rows[0, :4], [1.0, 0.0, 0.0, -2.0])
+    pm.set_estimate(a.id, np.array([1.0, 0.01, 0.0]), -2.1)
+    a.last_seen_odometer = 7.5
+    rows, _ = pm.active_rows()
+    np.testing.assert_allclose(rows[0, 3], -2.1)
+    assert rows[0, 5] == 7.5 and rows[0, 1] > 0.0
+    c = pm.add(np.array([1.0, 0.0, 0.0]), -2.11, KIND_WALL, 1.0, 1.0)
+    assert pm.active_rows()[0].shape == (3, 12)
+    pm.merge(a.id, c.id)
+    rows, horizontal = pm.active_rows()
+    assert [p.id for p in pm.active_planes()] == [a.id, b.id] and rows.shape == (2, 12)
+    assert horizontal.tolist() == [False, True]

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam import frontend_kernels as fk
-from slam.frontend.planemap import HORIZONTAL_KINDS, PlaneMap
+from slam.frontend.planemap import PlaneMap
 
 FloatArray = NDArray[np.float64]
 CHI2_2DOF_99 = 9.21
@@ -104,14 +104,13 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     active = pmap.active_planes()
     if not active or segs.n == 0:
         return out
-    # the active planes' arrays in one pass over the map (world frame): normal, offset, offset
-    # sigma, odometer when last seen, in-plane axes u and v
+    # the active planes' arrays (world frame): normal, offset, offset sigma, odometer when last
+    # seen, in-plane axes u and v
     ids = [p.id for p in active]
-    rows = np.array([[*p.normal.tolist(), p.d, p.sigma_offset, p.last_seen_odometer, *p.u.tolist(), *p.v.tolist()]
-                     for p in active])
+    rows, horizontal = pmap.active_rows()
     normals = np.ascontiguousarray(rows[:, 0:3])
     since = odometer - rows[:, 5]
-    rate = np.array([gates.drift_rate_vertical if p.kind in HORIZONTAL_KINDS else gates.drift_rate for p in active])
+    rate = np.where(horizontal, gates.drift_rate_vertical, gates.drift_rate)
     sig_drift = np.minimum(rate * np.maximum(since, 0.0), gates.max_drift_sigma)
     _, _, dist_c, sig_d2, cells, order, count = fk.association_gates(
         segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,

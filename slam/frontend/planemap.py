@@ -73,6 +73,8 @@ class PlaneMap:
         self.planes: list[Plane] = []
         self.merges = 0  # merges so far: what :meth:`resolve` gives changes only with it
         self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
+        self._version = 0  # bumped by every change of a plane's estimate, a new plane and a merge
+        self._rows: tuple[int, FloatArray, NDArray[np.bool_]] | None = None
         # per plane: its cell set (held, so that identity means the same set), the set's size then
         # and the cells as an (n, 2) array
         self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
@@ -88,6 +90,7 @@ class PlaneMap:
                   first_seen_odometer=odometer)
         self.planes.append(p)
         self._active = None
+        self._version += 1
         return p
 
     def resolve(self, pid: int) -> int:
@@ -101,6 +104,19 @@ class PlaneMap:
         if self._active is None:
             self._active = [p for p in self.planes if p.active]
         return self._active
+
+    def active_rows(self) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """One row per active plane (world frame): normal (3), offset, offset sigma, odometer when
+        last seen, in-plane axes u (3) and v (3); and whether each is a floor or ceiling. The
+        estimates' part is kept until an estimate changes; the odometers are read fresh."""
+        active = self.active_planes()
+        if self._rows is None or self._rows[0] != self._version:
+            rows = np.array([[*p.normal.tolist(), p.d, p.sigma_offset, 0.0, *p.u.tolist(), *p.v.tolist()]
+                             for p in active]).reshape(-1, 12)
+            self._rows = (self._version, rows, np.array([p.kind in HORIZONTAL_KINDS for p in active], dtype=bool))
+        rows = self._rows[1].copy()
+        rows[:, 5] = [p.last_seen_odometer for p in active]
+        return rows, self._rows[2]
 
     def active_ids(self) -> NDArray[np.int64]:
         return np.array([p.id for p in self.active_planes()], dtype=np.int64)
@@ -216,6 +232,7 @@ class PlaneMap:
         pd.merged_into = keep
         self.merges += 1
         self._active = None
+        self._version += 1
 
     def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
         """Copy a back-end estimate in, keeping the in-plane basis continuous."""
@@ -229,3 +246,4 @@ class PlaneMap:
         p.normal, p.d, p.u, p.v = n, float(d), u, np.cross(n, u)
         if sigma_offset is not None:
             p.sigma_offset = float(sigma_offset)
+        self._version += 1
