@@ -75,6 +75,8 @@ class PlaneMap:
         self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
         self._version = 0  # bumped by every change of a plane's estimate, a new plane and a merge
         self._rows: tuple[int, FloatArray, NDArray[np.bool_]] | None = None
+        # per plane: its cell centres (world frame) with the version and cell set they are of
+        self._centres: dict[int, tuple[int, set[tuple[int, int]], int, FloatArray]] = {}
         # per plane: its cell set (held, so that identity means the same set), the set's size then
         # and the cells as an (n, 2) array
         self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
@@ -183,12 +185,18 @@ class PlaneMap:
         return self.overlaps(a, self.cell_centres(b), dilate)
 
     def cell_centres(self, pid: int) -> FloatArray:
-        """Centres (m, 3) of the plane's extent cells, lifted onto the plane (world frame)."""
+        """Centres (m, 3) of the plane's extent cells, lifted onto the plane (world frame; kept until
+        the plane map or the extent changes: do not modify)."""
         p = self.planes[pid]
         if not p.cells:
             return np.empty((0, 3))
+        hit = self._centres.get(pid)
+        if hit is not None and hit[0] == self._version and hit[1] is p.cells and hit[2] == len(p.cells):
+            return hit[3]
         c = np.array(list(p.cells), dtype=np.float64) + 0.5
-        return (c[:, :1] * p.u + c[:, 1:] * p.v) * self.cell_size - p.d * p.normal
+        out = (c[:, :1] * p.u + c[:, 1:] * p.v) * self.cell_size - p.d * p.normal
+        self._centres[pid] = (self._version, p.cells, len(p.cells), out)
+        return out
 
     def max_distance_over(self, src: int, dst: int) -> float:
         """Largest distance of plane ``dst`` from plane ``src`` over ``src``'s extent (m): the
