@@ -70,9 +70,6 @@ from slam.plane_summary import plane_summary_factor, scatter, shift_anchor
 from slam.solver import Solution, solve
 
 FloatArray = NDArray[np.float64]
-# ties of one plane per grouped factor in the window: fewer Python calls, yet a factor's keys are
-# eliminated as one dense block, so the group stays small
-TIES_PER_FACTOR = 8
 
 
 @dataclass(frozen=True)
@@ -708,8 +705,8 @@ class Backend:
                                _time.perf_counter() - t0)
 
     def _tie_group_factors(self, a: int, fids: list[int]) -> list[gtsam.NonlinearFactor]:
-        """The ties ``fids`` of plane ``a`` as few factors (:func:`_plane_equalities`), each of up to
-        ``TIES_PER_FACTOR`` distinct partner planes; kept while the ties of ``a`` stay the same."""
+        """The ties ``fids`` of plane ``a`` as few factors (:func:`_plane_equalities`): one per
+        set of distinct partner planes; kept while the ties of ``a`` stay the same."""
         key = tuple(sorted(fids))
         hit = self._tie_groups.get(a)
         if hit is not None and hit[0] == key:
@@ -718,8 +715,7 @@ class Backend:
         for fid in key:
             b = self._ties[fid][1]
             for g in groups:
-                # few ties per factor: one factor's keys are eliminated together, densely
-                if len(g) < TIES_PER_FACTOR and all(self._ties[f][1] != b for f in g):
+                if all(self._ties[f][1] != b for f in g):
                     g.append(fid)
                     break
             else:
