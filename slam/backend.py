@@ -192,10 +192,6 @@ class Backend:
         # knot (plane priors and ties), and the exact summaries of the blocks that left the window
         self._by_knot: dict[int, list[int]] = {}
         self._knotless: list[int] = []
-        # equality and parallel ties, factor id -> (plane a, plane b, 1 / sigmas): the window joins
-        # those of one plane a into one factor (a long wall gathers hundreds of merged duplicates)
-        self._ties: dict[int, tuple[int, int, FloatArray]] = {}
-        self._tie_groups: dict[int, tuple[tuple[int, ...], list[gtsam.NonlinearFactor]]] = {}
         self._summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self._summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self._summarized_upto = 0  # blocks whose highest knot is below this are summarised
@@ -447,10 +443,9 @@ class Backend:
         keep, drop = self._check_plane(keep_id), self._check_plane(drop_id)
         if keep == drop:
             raise ValueError(f"link_planes: cannot link plane {keep} with itself")
-        sig = np.array([sigma_angle, sigma_angle, sigma_offset])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, sigma_offset]))
         error = _plane_equality(self._anchors[keep], self._anchors[drop])
-        fid = self._add_factor(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sig), [P(keep), P(drop)], error))
-        self._ties[fid] = (keep, drop, 1.0 / sig)
+        fid = self._add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], error))
         self._links.append((keep, drop, fid))
         return fid
 
@@ -478,11 +473,9 @@ class Backend:
         if perpendicular:
             one = gtsam.noiseModel.Isotropic.Sigma(1, sigma_angle)
             return self._add_factor(gtsam.CustomFactor(one, [P(a), P(b)], _perpendicular_error))
-        sig = np.array([sigma_angle, sigma_angle, 1e3])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, 1e3]))
         error = _plane_equality(self._anchors[a], self._anchors[b])
-        fid = self._add_factor(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sig), [P(a), P(b)], error))
-        self._ties[fid] = (a, b, 1.0 / sig)
-        return fid
+        return self._add_factor(gtsam.CustomFactor(noise, [P(a), P(b)], error))
 
     def _rekey_parallels(self, drop: int, keep: int | None) -> None:
         """Move the orientation ties of plane ``drop`` onto ``keep`` (None: remove them)."""
@@ -674,19 +667,11 @@ class Backend:
         for knot, bids in groups.items():
             graph.add(self._group_factor(knot, bids))
         active.update(int(P(j)) for j in planes)
-        ties: dict[int, list[int]] = {}
         for fid in self._knotless:
             rec = self._records.get(fid)
             if rec is not None and any(k in active for k in rec.keys):
-                used.update(rec.keys)
-                tie = self._ties.get(fid)
-                if tie is not None:
-                    ties.setdefault(tie[0], []).append(fid)
-                    continue
                 graph.add(self._factor(fid))
-        for a, fids in ties.items():
-            for factor in self._tie_group_factors(a, fids):
-                graph.add(factor)
+                used.update(rec.keys)
         for j in sorted(planes):
             M = self._summary.get(j)
             if M is not None:
@@ -703,35 +688,6 @@ class Backend:
         self._invalidate_isam()
         return OptimizeSummary(float(sol.initial_error), float(sol.final_error), sol.iterations,
                                _time.perf_counter() - t0)
-
-    def _tie_group_factors(self, a: int, fids: list[int]) -> list[gtsam.NonlinearFactor]:
-        """The ties ``fids`` of plane ``a`` as few factors (:func:`_plane_equalities`): one per
-        set of distinct partner planes; kept while the ties of ``a`` stay the same."""
-        key = tuple(sorted(fids))
-        hit = self._tie_groups.get(a)
-        if hit is not None and hit[0] == key:
-            return hit[1]
-        groups: list[list[int]] = []
-        for fid in key:
-            b = self._ties[fid][1]
-            for g in groups:
-                if all(self._ties[f][1] != b for f in g):
-                    g.append(fid)
-                    break
-            else:
-                groups.append([fid])
-        out = []
-        for g in groups:
-            if len(g) == 1:
-                out.append(self._factor(g[0]))
-                continue
-            bs = [self._ties[f][1] for f in g]
-            out.append(gtsam.CustomFactor(
-                gtsam.noiseModel.Unit.Create(3 * len(g)), [P(a), *[P(b) for b in bs]],
-                _plane_equalities(self._anchors[a], np.array([self._anchors[b] for b in bs]),
-                                  np.array([self._ties[f][2] for f in g]))))
-        self._tie_groups[a] = (key, out)
-        return out
 
     def _solve_batch(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      max_iterations: int | None,
@@ -1101,34 +1057,6 @@ def _plane_equality(anchor_a: FloatArray, anchor_b: FloatArray) -> Any:
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
         keys = this.keys()
         return _plane_residual(v.atOrientedPlane3(keys[0]), v.atOrientedPlane3(keys[1]), anchor_a, anchor_b, H)
-
-    return error
-
-
-def _plane_equalities(anchor_a: FloatArray, anchors_b: FloatArray, inv_sigmas: FloatArray) -> Any:
-    """Error function of k ties of one plane a to planes b_1..b_k (keys ``a, b_1, ..., b_k``):
-    the whitened rows of k :func:`_plane_equality` factors (``inv_sigmas`` (k, 3)) stacked."""
-    k = anchors_b.shape[0]
-
-    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
-        keys = this.keys()
-        a = v.atOrientedPlane3(keys[0])
-        out = np.empty(3 * k)
-        Ha = np.zeros((3 * k, 3)) if H is not None else None
-        Hi: list[Any] = [None, None]
-        for i in range(k):
-            r = _plane_residual(a, v.atOrientedPlane3(keys[1 + i]), anchor_a, anchors_b[i],
-                                Hi if H is not None else None)
-            w = inv_sigmas[i]
-            out[3 * i : 3 * i + 3] = r * w
-            if H is not None and Ha is not None:
-                Ha[3 * i : 3 * i + 3] = Hi[0] * w[:, None]
-                Hb = np.zeros((3 * k, 3))
-                Hb[3 * i : 3 * i + 3] = Hi[1] * w[:, None]
-                H[1 + i] = Hb
-        if H is not None:
-            H[0] = Ha
-        return out
 
     return error
 

@@ -395,34 +395,6 @@ def test_plane_equality_jacobians_match_numerical_differentiation() -> None:
             assert np.abs(H[k]).max() > 0.1
 
 
-def test_grouped_plane_ties_are_the_ties_of_their_plane() -> None:
-    """The window's one factor for a plane's ties: the error and Gauss-Newton system of the ties."""
-    import gtsam
-    from gtsam.symbol_shorthand import P
-
-    from slam.backend import _plane_equalities, _plane_equality
-
-    rng = np.random.default_rng(6)
-    k = 4
-    values = gtsam.Values()
-    n = rng.normal(size=3)
-    for j in range(k + 1):
-        values.insert(P(j), gtsam.OrientedPlane3(gtsam.Unit3(n + 0.05 * rng.normal(size=3)), rng.normal()))
-    anchors = rng.normal(size=(k + 1, 3))
-    sig = np.array([[1e-3, 1e-3, 2e-3], [1e-3, 1e-3, 1e3], [2e-3, 2e-3, 1e-3], [1e-2, 1e-2, 1e-2]])
-    single = gtsam.NonlinearFactorGraph()
-    for i in range(k):
-        single.add(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sig[i]), [P(0), P(1 + i)],
-                                      _plane_equality(anchors[0], anchors[1 + i])))
-    group = gtsam.NonlinearFactorGraph()
-    group.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(3 * k), [P(j) for j in range(k + 1)],
-                                 _plane_equalities(anchors[0], anchors[1:], 1.0 / sig)))
-    assert group.error(values) == pytest.approx(single.error(values), rel=1e-12)
-    (Hg, gg), (Hs, gs) = group.linearize(values).hessian(), single.linearize(values).hessian()
-    np.testing.assert_allclose(Hg, Hs, rtol=1e-10, atol=1e-9 * np.abs(Hs).max())
-    np.testing.assert_allclose(gg, gs, rtol=1e-10, atol=1e-9 * np.abs(gs).max())
-
-
 def gtsam_key_x(k: int) -> int:
     from gtsam.symbol_shorthand import X
 
