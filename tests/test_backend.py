@@ -405,3 +405,34 @@ def gtsam_pose(T: np.ndarray):  # type: ignore[no-untyped-def]
     import gtsam
 
     return gtsam.Pose3(T)
+
+
+def test_solver_fallback_stops_at_its_time_bound(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A linear solve that fails falls back to Levenberg-Marquardt, bounded by FALLBACK_SECONDS."""
+    import gtsam
+
+    import slam.solver as sv
+
+    def run() -> sv.Solution:
+        failed = [False]
+
+        def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
+            x = float(v.atVector(0)[0])
+            if H is not None:
+                if not failed[0]:  # the first linearisation fails: the fallback takes over
+                    failed[0] = True
+                    raise RuntimeError("indeterminant system")
+                H[0] = np.array([[2.0 * x]])
+            return np.array([x * x - 2.0])
+
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [0], error))
+        values = gtsam.Values()
+        values.insert(0, np.array([10.0]))
+        return sv.solve(graph, values, 50, 1e-12)
+
+    full = run()
+    assert abs(float(full.values.atVector(0)[0]) - np.sqrt(2.0)) < 1e-6 and full.iterations > 3
+    monkeypatch.setattr(sv, "FALLBACK_SECONDS", 0.0)
+    bounded = run()
+    assert bounded.iterations == 1 and bounded.final_error < bounded.initial_error
