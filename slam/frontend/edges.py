@@ -46,7 +46,6 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 EDGE_ID_BASE = 1_000_000  # back-end plane ids of edge planes start here; map planes stay below
 
-_UP = np.array([0.0, 0.0, 1.0])
 
 
 @dataclass(frozen=True)
