@@ -185,6 +185,7 @@ class Backend:
         self._marginals: gtsam.Marginals | None = None
         self._isam_fresh = False  # iSAM2 holds every factor and its estimate is current
         self._links: list[tuple[int, int, int]] = []  # (keep, drop, factor id) plane equality ties
+        self.singular_systems: list[str] = []  # singular linear systems the solves met (retried damped)
         # (host, plane, factor id, sigma, perpendicular?) orientation ties between planes
         self._parallels: list[tuple[int, int, int, float, bool]] = []
         self._anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
@@ -702,7 +703,9 @@ class Backend:
         its Levenberg-Marquardt fallback is a ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
         try:
-            return solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            self.singular_systems.extend(_name_keys(m) for m in sol.singular)
+            return sol
         except RuntimeError as err2:
             raise ValueError(f"batch optimisation failed ({_name_keys(str(err2))}); is every "
                              "variable constrained by its factors?") from None

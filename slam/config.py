@@ -93,6 +93,9 @@ class FrontEndConfig(StrictModel):
         "gap between their observation spans (0 for a door seen with its wall; office 10 min: 282 mm ATE "
         "against 20 mm)")
     vertical_tolerance_deg: float = Field(5.0, gt=0, description="walls/floors within this of vertical/horizontal get priors")
+    link_sigma: float = Field(
+        1e-5, gt=0, description="m (offset) and rad (normal), sigma of the equality tie between merged planes until "
+        "the final batch folds them into one")
 
 
 class EdgeSection(StrictModel):
@@ -117,6 +120,7 @@ class EdgeSection(StrictModel):
         "along a corridor); below half a door's width")
     window: float = Field(6.0, gt=0, description="s a break waits for an edge")
     merge_distance: float = Field(0.25, ge=0, description="m, edges of one door side this close are merged")
+    link_sigma: float = Field(1e-5, gt=0, description="m and rad, sigma of the equality tie between merged edges")
     min_step: float = Field(0.004, gt=0, description="m, smallest step between a wall and its door or board")
     max_step: float = Field(0.04, gt=0, description="m, largest such step")
     step_tolerance: float = Field(0.005, gt=0, description="m, the step at both ends of the other segment agrees within this")

@@ -876,8 +876,9 @@ class SlamRunner:
         for e in self.emap.active():
             if now - e.last_seen_time < 5.0:
                 e.normal, e.d = self.backend.plane(e.id)
+        sigma = self.cfg.edges.link_sigma
         for keep, drop in self.emap.duplicates():
-            self.backend.link_planes(keep.id, drop.id)
+            self.backend.link_planes(keep.id, drop.id, sigma, sigma)
             drop.merged_into = keep.id
             keep.z_range = (min(keep.z_range[0], drop.z_range[0]), max(keep.z_range[1], drop.z_range[1]))
             keep.n_obs += drop.n_obs
@@ -1110,7 +1111,7 @@ class SlamRunner:
                 if self.pmap.max_distance_over(small.id, big.id) > tol:
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
-                self.backend.link_planes(keep.id, drop.id)
+                self.backend.link_planes(keep.id, drop.id, fe.link_sigma, fe.link_sigma)
                 self.pmap.merge(keep.id, drop.id)
                 self.stats["planes_merged"] += 1
 
@@ -1134,6 +1135,7 @@ class SlamRunner:
         stats["planes"] = len(ids)
         stats["edges"] = 0 if self.emap is None else len(self.emap.active())
         stats["pool_dropped"] = self.pool.dropped
+        stats["singular_systems"] = list(self.backend.singular_systems)
         if summary is not None:
             stats["batch"] = {
                 "initial_error": summary.initial_error,

@@ -348,5 +348,6 @@ def _write_outputs(
             "cloud_points": n_cloud,
         },
         "batch": st.get("batch"),
+        "singular_systems": {"count": len(st["singular_systems"]), "first": st["singular_systems"][:5]},
         "residuals": st.get("residuals"),
     }

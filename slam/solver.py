@@ -5,7 +5,9 @@ of this project (~2 s per iteration of a 400-knot SLAM graph where ``linearize``
 ``error`` take 0.6 s; docs/bench_slam.md), so the steps are taken here: linearise, add a whisper
 of Levenberg damping (1e-4 on the whitened Hessian's diagonal, so that a direction no factor
 observes stays regular), solve, and halve a step that raises the (robust) error, up to ten times.
-Shared by the SLAM back end and the calibration batch.
+A linear system that the elimination finds singular (tight ties beside weak directions) is solved
+again with the damping raised a hundredfold, up to ``MAX_DAMPING``: Levenberg-Marquardt's remedy
+in the same fast loop. Shared by the SLAM back end and the calibration batch.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import gtsam
 import numpy as np
 
 DAMPING = 1e-2  # on the whitened Jacobian: 1e-4 on the Hessian's diagonal
+MAX_DAMPING = 1e2  # the largest damping a singular system is retried with
 HOLD = 1e6  # "damping" of held variables: their steps stay at zero
 FALLBACK_SECONDS = 120.0  # wall-time bound of the Levenberg-Marquardt fallback
 
@@ -30,6 +33,7 @@ class Solution:
     iterations: int
     initial_error: float
     final_error: float
+    singular: tuple[str, ...] = ()  # the elimination errors met (each retried with more damping)
 
 
 def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
@@ -43,13 +47,16 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
           relative_tolerance: float, fixed: Sequence[int] = ()) -> Solution:
     """Solve from ``values``. Stops when no step lowers the error or the relative decrease falls
     below ``relative_tolerance``. Variables in ``fixed`` (keys) are held at their values. A
-    singular linear system falls back to gtsam's Levenberg-Marquardt (without held variables),
-    iterated until it converges, ``max_iterations`` or ``FALLBACK_SECONDS``; its failure
-    raises RuntimeError."""
+    singular linear system is solved again with a hundredfold damping (a tenth of it taken
+    off again after each accepted step), up to ``MAX_DAMPING``; beyond it, or when a linearisation fails, the solve falls
+    back to gtsam's Levenberg-Marquardt (without held variables), iterated until it converges,
+    ``max_iterations`` or ``FALLBACK_SECONDS``; its failure raises RuntimeError."""
     hold = {int(k) for k in fixed}
-    damping = [(int(k), int(d), HOLD if int(k) in hold else DAMPING) for k, d in values.dims().items()]
+    dims = [(int(k), int(d)) for k, d in values.dims().items()]
     zero = values.zeroVectors()
     err0 = err = float("nan")
+    singular: list[str] = []
+    damping = DAMPING
     try:
         # a linearisation's 0.5 ||b||^2 is the graph's error at its point (the robust blocks carry
         # a correction row: slam.factors.robust_rows), so an accepted step's linearisation also
@@ -59,12 +66,21 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
         err0 = err = lin.error(zero)
         it = 0
         for it in range(1, max_iterations + 1):
-            if lin is None:
-                lin = graph.linearize(values)
-            for k, d, w in damping:
-                lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
-            delta = lin.optimize()
-            lin = None
+            delta = None
+            while delta is None:
+                if lin is None:
+                    lin = graph.linearize(values)
+                for k, d in dims:
+                    w = HOLD if k in hold else damping
+                    lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                try:
+                    delta = lin.optimize()
+                except RuntimeError as e:
+                    if damping * 100.0 > MAX_DAMPING:
+                        raise
+                    singular.append(" ".join(str(e).split())[:300])
+                    damping *= 100.0
+                lin = None
             step = 1.0
             for _ in range(10):
                 trial = values.retract(delta if step == 1.0 else delta.scale(step))
@@ -79,14 +95,15 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
                     break
                 step *= 0.5
             else:
-                return Solution(values, it, err0, err)  # no step lowers the error: converged
+                return Solution(values, it, err0, err, tuple(singular))  # no step lowers the error: converged
             rel = (err - new_err) / max(err, 1e-300)
             values, err = trial, new_err
+            damping = max(DAMPING, damping / 10.0)
             if rel < relative_tolerance:
                 break
-        return Solution(values, it, err0, err)
-    except RuntimeError:
-        pass
+        return Solution(values, it, err0, err, tuple(singular))
+    except RuntimeError as e:
+        singular.append(" ".join(str(e).split())[:300])
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_tolerance)
@@ -105,4 +122,5 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
         if done or time.perf_counter() - t0 > FALLBACK_SECONDS:
             break
     out = opt.values()
-    return Solution(out, int(opt.iterations()), err0 if err0 == err0 else graph.error(values), graph.error(out))
+    return Solution(out, int(opt.iterations()), err0 if err0 == err0 else graph.error(values), graph.error(out),
+                    tuple(singular))

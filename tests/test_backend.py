@@ -429,3 +429,34 @@ def test_solver_fallback_stops_at_its_time_bound(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(sv, "FALLBACK_SECONDS", 0.0)
     bounded = run()
     assert bounded.iterations == 1 and bounded.final_error < bounded.initial_error
+
+
+def test_solver_retries_a_singular_system_with_more_damping(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rank-deficient system that gtsam's elimination rejects at the base damping is solved in
+    the Gauss-Newton loop with more damping (not by the slow Levenberg-Marquardt fallback)."""
+    import gtsam
+
+    import slam.solver as sv
+
+    J = 1e3  # one direction observed with weight J^2, the other not at all
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
+        x = v.atVector(0)
+        if H is not None:
+            H[0] = np.array([[J, J]])
+        return np.array([J * (x[0] + x[1]) - 1.0])
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [0], error))
+    values = gtsam.Values()
+    values.insert(0, np.array([0.0, 0.0]))
+
+    def no_lm(*args: object) -> None:
+        raise AssertionError("the Levenberg-Marquardt fallback was used")
+
+    monkeypatch.setattr(sv.gtsam, "LevenbergMarquardtOptimizer", no_lm)
+    sol = sv.solve(graph, values, 10, 1e-12)
+    assert sol.singular and "Indeterminate" in sol.singular[0]
+    # the damping keeps the unobserved direction x0 - x1 at its start: the minimum-norm solution
+    np.testing.assert_allclose(sol.values.atVector(0), [0.5 / J, 0.5 / J], rtol=1e-6)
+    assert sol.final_error < 1e-20

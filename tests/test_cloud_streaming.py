@@ -284,3 +284,5 @@ def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> 
         "cloud.ply", "map.rrd", "planes.json", "segments.npz", "summary.json", "trajectory.tum"]
     n = summary["counts"]["cloud_points"]
     assert 0 < n == cloud_ply_layout(tmp_path / "run" / "cloud.ply")[0]
+    # a well-posed walk meets no singular linear system in its solves
+    assert summary["singular_systems"] == {"count": 0, "first": []}

@@ -246,3 +246,36 @@ def test_plane_map_rows_follow_estimates_merges_and_sightings() -> None:
     rows, horizontal = pm.active_rows()
     assert [p.id for p in pm.active_planes()] == [a.id, b.id] and rows.shape == (2, 12)
     assert horizontal.tolist() == [False, True]
+
+
+def _level_line(serial: int, z: float, scan_normal: np.ndarray, rng: np.random.Generator) -> PooledSegment:
+    """A level line along (1, -1, 0)/sqrt 2 at height ``z`` through (0, 2, z), as a scanner whose
+    scan plane has ``scan_normal`` sees it (points scattered by 3 mm within the line's plane)."""
+    u = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    s = np.linspace(-0.4, 0.4, 15)
+    pts = np.array([0.0, 2.0, z]) + s[:, None] * u
+    pts[:, 2] += rng.normal(0.0, 0.003, s.size) * 0.1
+    c = pts.mean(axis=0)
+    return PooledSegment(
+        ref=(serial, 0), time=0.01 * serial, scan_serial=serial, centroid=c, direction=u,
+        endpoints=pts[[0, -1]], samples=pts, line=np.array([c - 0.3 * u, c + 0.3 * u]),
+        scan_normal=scan_normal / np.linalg.norm(scan_normal), origin=np.array([-1.0, 0.0, 1.5]))
+
+
+def test_the_wall_hypothesis_takes_level_scan_planes_only() -> None:
+    """Standing still, a tilted scanner sees one level line on a table top again and again: it
+    lies on the table as much as on the vertical plane through it, so it makes no wall. The
+    level scanner's repeated lines on a wall it faces do (kept vertical by a prior)."""
+    rng = np.random.default_rng(4)
+    p = PlaneInitParams(min_support=4, min_scans=3)
+    tilted = np.array([0.66, 0.66, 0.34])  # 20 deg from vertical, its level direction along (1, -1, 0)
+    table = SegmentPool(p)
+    for i in range(8):
+        table.add(_level_line(i, 0.75, tilted, rng))
+    assert table.create_planes() == []
+    wall = SegmentPool(p)
+    for i in range(8):
+        wall.add(_level_line(i, 1.9, np.array([0.0, 0.0, 1.0]), rng))
+    planes = wall.create_planes()
+    assert len(planes) == 1 and planes[0].vertical_hypothesis
+    np.testing.assert_allclose(np.abs(planes[0].normal), [np.sqrt(0.5), np.sqrt(0.5), 0.0], atol=1e-3)

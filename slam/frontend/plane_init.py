@@ -53,6 +53,10 @@ class PlaneInitParams:
     max_partners: int = 4  # seed pairs tried per seed segment (nearest in distance first)
     vertical_walls: bool = True  # allow walls from horizontal segments alone (kept vertical by a prior)
     horizontal_tolerance: float = np.radians(3.0)  # a segment this close to horizontal counts as horizontal
+    # the wall hypothesis takes segments of level scan planes only: a tilted scanner's level line
+    # lies as well on a floor or table top as on the vertical plane through it, while a level
+    # scanner cannot see a horizontal surface
+    max_level_scan_tilt: float = np.radians(30.0)
 
 
 @dataclass
@@ -149,15 +153,16 @@ class SegmentPool:
                 plane = self._grow(a, int(b), normals[b], near)
                 if plane is not None:
                     return _facing(plane, items[a].origin)
-            if p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance):
+            if (p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance)
+                    and _level_scan(items[a], p)):
                 plane = self._vertical(a, near)
                 if plane is not None:
                     return _facing(plane, items[a].origin)
         return None
 
     def _vertical(self, a: int, near: NDArray[np.bool_]) -> NewPlane | None:
-        """A wall from horizontal segments alone (e.g. the horizontal scanner's lines on a wall it
-        faces, where bob gives no 2D spread): the vertical plane through the seed's line. The
+        """A wall from horizontal segments of level scan planes alone (the horizontal scanner's
+        lines on a wall it faces, where bob gives no 2D spread): the vertical plane through the seed's line. The
         caller must keep such a plane vertical (a prior), as its tilt about the line is unseen."""
         p = self.params
         items = self.items
@@ -172,7 +177,7 @@ class SegmentPool:
                 continue
             if not on_plane(s, n, d, p):
                 continue
-            if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle):
+            if abs(float(s.scan_normal @ n)) > np.cos(p.min_scan_plane_angle) or not _level_scan(s, p):
                 continue
             members.append(s)
         if len(members) < p.min_support + 1 or len({s.scan_serial for s in members}) < p.min_scans + 1:
@@ -218,6 +223,11 @@ class SegmentPool:
         if not _consistent(members, n2, d2, p):
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))))
+
+
+def _level_scan(s: PooledSegment, p: PlaneInitParams) -> bool:
+    """Whether the segment's scan plane is within ``max_level_scan_tilt`` of horizontal."""
+    return abs(float(s.scan_normal[2])) >= np.cos(p.max_level_scan_tilt)
 
 
 def _consistent(members: list[PooledSegment], n: FloatArray, d: float, p: PlaneInitParams) -> bool:
