@@ -73,6 +73,11 @@ class FrontEndConfig(StrictModel):
     min_support: int = Field(6, ge=2, description="segments a new plane needs")
     min_scans: int = Field(4, ge=2, description="distinct scans among a new plane's segments")
     min_spread: float = Field(0.04, gt=0)
+    min_support_oblique: int = Field(
+        40, ge=2, description="segments a new plane needs that is neither a wall nor a floor/ceiling (beyond "
+        "vertical_tolerance_deg): a real slope is seen by tens of scanlines a second, while a fit across a wall "
+        "and its door or board, a few degrees off vertical, gathers a handful (office 10 min: every such plane "
+        "was one, 1-85 deg off)")
     coplanar_distance: float = Field(
         0.006, gt=0,
         description="m, a new plane's members: fitted line within this (raw samples within this + 3 point_sigma); "

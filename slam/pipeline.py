@@ -74,6 +74,7 @@ from slam.frontend.planemap import (
     KIND_CEILING,
     KIND_FLOOR,
     KIND_NAMES,
+    KIND_OTHER,
     KIND_WALL,
     PlaneMap,
     classify,
@@ -263,6 +264,7 @@ class SlamRunner:
             "updates": 0,
             "skipped_scans": 0,
             "planes_rejected": 0,
+            "planes_rejected_oblique": 0,
             "planes_parallel": 0,
             "isam2_rebuilds": 0,
             "isam2_fallbacks": 0,
@@ -936,6 +938,10 @@ class SlamRunner:
         for plane in new:
             kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
             vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
+            if kind == KIND_OTHER and len(plane.members) < fe.min_support_oblique:
+                self.stats["planes_rejected"] += 1
+                self.stats["planes_rejected_oblique"] += 1
+                continue
             if not self._constrained(plane, by_serial, kind, vertical):
                 self.stats["planes_rejected"] += 1
                 continue

@@ -335,6 +335,8 @@ def _write_outputs(
             "planes": st["planes"],
             "planes_created": st["planes_created"],
             "planes_merged": st["planes_merged"],
+            "planes_rejected": st["planes_rejected"],
+            "planes_rejected_oblique": st["planes_rejected_oblique"],
             "observation_blocks": st["observation_blocks"],
             "edges": st["edges"],
             "edges_created": st["edges_created"],

@@ -19,6 +19,7 @@ from simulation.scanner import ScannerNoiseConfig
 from slam.config import SlamConfig
 from slam.evaluate import evaluate
 from slam.export import read_planes_json, read_segments_npz
+from slam.pipeline import SlamRunner
 from slam.run import run_slam
 
 # an 8 x 6 m box room (2.8 m ceiling) with a short walk across it
@@ -221,6 +222,9 @@ def test_door_edges_observe_the_corridor_direction(door_corridor: SimulationResu
     assert walked > 4.0
     assert err < 0.1, f"along-corridor error with edges {err:.3f} m of {walked:.2f} m"
     assert err_off > 2 * err, f"without edges {err_off:.3f} m, with {err:.3f} m"
+    # a fit across a wall and its door, a few degrees off vertical, is no plane of this corridor
+    oblique = [p for p in _planes(tmp_path / "edges") if p["kind"] == "other"]
+    assert not oblique, oblique
 
 
 def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult, rig: Any) -> None:
@@ -337,3 +341,22 @@ def test_interrupted_run_leaves_no_output(box_noisy: SimulationResult, rig: Any,
         run_slam(box_noisy.bag, rig, SlamConfig(), out, progress=False)
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
     assert (out / "keep.txt").read_text() == "old run"
+
+
+def test_an_oblique_plane_needs_more_support(rig: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new plane 8 deg off vertical from 12 segments (a fit across a wall and its door) is
+    rejected; allowed 12 segments, the same plane passes that rule."""
+    from slam.frontend.plane_init import NewPlane, PooledSegment
+
+    n = np.array([0.0, np.cos(np.radians(8.0)), np.sin(np.radians(8.0))])
+    pts = np.column_stack((np.linspace(0.0, 1.0, 12), np.full(12, 2.0), np.linspace(0.5, 1.5, 12)))
+    members = [PooledSegment(ref=(10_000 + i, 0), time=0.0, scan_serial=i, centroid=pts.mean(axis=0),
+                             direction=np.array([1.0, 0.0, 0.0]), endpoints=pts[[0, -1]], samples=pts,
+                             line=pts[[0, -1]], scan_normal=np.array([0.0, 0.0, 1.0]),
+                             origin=np.zeros(3)) for i in range(12)]
+    for support, rejected in ((40, 1), (12, 0)):
+        cfg = SlamConfig.model_validate({"frontend": {"min_support_oblique": support}})
+        runner = SlamRunner(rig, cfg)
+        monkeypatch.setattr(runner.pool, "create_planes", lambda: [NewPlane(n, -2.0 * n[1], members, 0.001)])
+        runner._create_planes(0.0)
+        assert runner.stats["planes_rejected_oblique"] == rejected
