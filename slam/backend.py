@@ -401,7 +401,7 @@ class Backend:
     # ----------------------------------------------------------------- planes
     def merge_planes(self, keep_id: int, drop_id: int) -> int:
         """Merge plane ``drop_id`` into ``keep_id``: its blocks are re-keyed onto ``keep_id`` (same
-        block ids), its horizontality prior moves over if ``keep_id`` has none, and the variable
+        block ids), its horizontality or verticality prior moves over if ``keep_id`` has none, and the variable
         is removed. ``keep_id`` keeps its current estimate. Returns the number of moved blocks."""
         keep, drop = self._check_plane(keep_id), self._check_plane(drop_id)
         if keep == drop:
@@ -429,6 +429,9 @@ class Backend:
                 if abs(n[2]) >= 0.5:
                     self._plane_priors[keep] = self._add_factor(
                         horizontal_plane_prior(P(keep), n, self.config.horizontal_sigma))
+                else:
+                    noise = gtsam.noiseModel.Isotropic.Sigma(1, self.config.vertical_sigma)
+                    self._plane_priors[keep] = self._add_factor(gtsam.CustomFactor(noise, [P(keep)], _vertical_error))
         del self._plane_blocks[drop]
         self._rekey_parallels(drop, keep)
         self._values.erase(P(drop))

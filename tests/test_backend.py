@@ -460,3 +460,28 @@ def test_solver_retries_a_singular_system_with_more_damping(monkeypatch: pytest.
     # the damping keeps the unobserved direction x0 - x1 at its start: the minimum-norm solution
     np.testing.assert_allclose(sol.values.atVector(0), [0.5 / J, 0.5 / J], rtol=1e-6)
     assert sol.final_error < 1e-20
+
+
+def test_a_merge_carries_a_verticality_prior_over() -> None:
+    """Plane 2 (no prior, 3 deg off vertical) absorbs plane 1 (kept vertical): the survivor is
+    kept vertical, as a horizontality prior would be carried over for a floor."""
+    import gtsam
+
+    be = Backend(BackendConfig())
+    be.add_pose(0.0, np.eye(4))
+    tilted = np.array([1.0, 0.0, np.tan(3.0 * DEG)])
+    be.add_plane(1, [1.0, 0.0, 0.0], -2.0, vertical=True)
+    be.add_plane(2, tilted, -2.0)
+    be.merge_planes(2, 1)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(be._factor(be._plane_priors[2]))
+    values = gtsam.Values()
+    values.insert(gtsam_key_p(2), be._values.atOrientedPlane3(gtsam_key_p(2)))
+    err = np.sqrt(2.0 * graph.error(values)) * be.config.vertical_sigma  # |n_z|
+    assert abs(err - np.sin(3.0 * DEG)) < 1e-6
+
+
+def gtsam_key_p(j: int) -> int:
+    from gtsam.symbol_shorthand import P
+
+    return int(P(j))
