@@ -77,7 +77,7 @@ class FrontEndConfig(StrictModel):
         40, ge=2, description="segments a new plane needs that is neither a wall nor a floor/ceiling (beyond "
         "vertical_tolerance_deg): a real slope is seen by tens of scanlines a second, while a fit across a wall "
         "and its door or board, a few degrees off vertical, gathers a handful (office 10 min: every such plane "
-        "was one, 1-85 deg off)")
+        "was one, 0.3-85 deg off)")
     coplanar_distance: float = Field(
         0.006, gt=0,
         description="m, a new plane's members: fitted line within this (raw samples within this + 3 point_sigma); "
