@@ -84,7 +84,8 @@ def load_imu(bag: str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> 
         raise input_error(bag, f"IMU frame '{series.frame_id}' is not the body frame ({', '.join(IMU_FRAMES[1:])})",
                           ic.topic)
     try:
-        samples = ImuSamples(series.times, series.linear_acceleration, series.angular_velocity)
+        samples = ImuSamples(series.times, series.linear_acceleration, series.angular_velocity,
+                             instantaneous=ic.samples == "instantaneous")
     except ValueError as e:
         raise input_error(bag, str(e), ic.topic) from None
     if not samples.covers(t_start, t_end - 0.05):

@@ -186,6 +186,17 @@ def _final_along_error(run_dir: Path, gt: Path) -> tuple[float, float]:
     return abs(float(est[-1, 1] - est[0, 1]) - x_true), x_true
 
 
+def test_the_imu_sample_model_comes_from_the_config(corridor_imu: SimulationResult) -> None:
+    from slam.run import load_imu
+
+    true = np.loadtxt(corridor_imu.gt / "trajectory.tum")
+    t0, t1 = float(true[0, 0]), float(true[-1, 0])
+    for model in ("held", "instantaneous"):
+        cfg = SlamConfig.model_validate({"imu": {"samples": model}})
+        samples = load_imu(corridor_imu.bag, cfg, t0, t1)
+        assert samples is not None and samples.instantaneous == (model == "instantaneous")
+
+
 def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig: Any, tmp_path: Path) -> None:
     """From rest, 4 s of walking (3.6 m) along a corridor with no visible end: without the IMU the
     planes cannot tell how far the operator went (the estimate ends metres off); with the bag's
