@@ -22,7 +22,7 @@ import numpy as np
 from slam.export import read_trajectory_tum
 from slam.imu_feed import ImuSamples, predict_navstate
 from slam.interpolation import interpolate_trajectory
-from slam.io.bag import read_imu
+from slam.io.bag import InputError, read_imu
 from slam.motion import ImuConfig
 
 
@@ -38,11 +38,18 @@ def main(argv: list[str] | None = None) -> int:
     if not (gt / "trajectory.tum").is_file():
         print(f"error: {gt / 'trajectory.tum'}: no ground-truth trajectory", file=sys.stderr)
         return 2
-    series = read_imu(args.bag, "/imu")
-    t_gt, T_gt = read_trajectory_tum(gt / "trajectory.tum")
+    try:
+        series = read_imu(args.bag, "/imu")
+        t_gt, T_gt = read_trajectory_tum(gt / "trajectory.tum")
+        models = {name: ImuSamples(series.times, series.linear_acceleration, series.angular_velocity,
+                                   instantaneous=name == "instantaneous") for name in ("instantaneous", "held")}
+    except InputError as e:  # names the bag already
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except ValueError as e:
+        print(f"error: {args.bag}: {e}", file=sys.stderr)
+        return 2
     cfg = ImuConfig(gravity=9.80665)
-    models = {name: ImuSamples(series.times, series.linear_acceleration, series.angular_velocity,
-                               instantaneous=name == "instantaneous") for name in ("instantaneous", "held")}
     h = 1e-3
     end = min(t_gt[-1], series.times[-1]) - args.length
     starts = np.arange(t_gt[0] + args.skip, end, args.every)

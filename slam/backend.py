@@ -292,8 +292,12 @@ class Backend:
             self._plane_priors[j] = self._add_factor(
                 horizontal_plane_prior(P(j), n, self.config.horizontal_sigma))
         elif vertical:
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, self.config.vertical_sigma)
-            self._plane_priors[j] = self._add_factor(gtsam.CustomFactor(noise, [P(j)], _vertical_error))
+            self._plane_priors[j] = self._vertical_prior(j)
+
+    def _vertical_prior(self, j: int) -> int:
+        """Add the prior keeping plane ``j`` a wall (``n_z = 0``); returns its factor id."""
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, self.config.vertical_sigma)
+        return self._add_factor(gtsam.CustomFactor(noise, [P(j)], _vertical_error))
 
     def add_extrinsic(self, scanner: int, T_body_scanner: ArrayLike, sigma_rot: float,
                       sigma_trans: float) -> None:
@@ -430,8 +434,7 @@ class Backend:
                     self._plane_priors[keep] = self._add_factor(
                         horizontal_plane_prior(P(keep), n, self.config.horizontal_sigma))
                 else:
-                    noise = gtsam.noiseModel.Isotropic.Sigma(1, self.config.vertical_sigma)
-                    self._plane_priors[keep] = self._add_factor(gtsam.CustomFactor(noise, [P(keep)], _vertical_error))
+                    self._plane_priors[keep] = self._vertical_prior(keep)
         del self._plane_blocks[drop]
         self._rekey_parallels(drop, keep)
         self._values.erase(P(drop))

@@ -19,10 +19,10 @@ higher one ends at the edge from every side): between the crossings of that surf
 line by its last beam and by the next beam, which misses it. The midpoint of the two crossings
 (``point = "bracket"``) should be unbiased, uniform within half the beam spacing there, but on the
 office walk it biased the walking direction (with a perfect IMU, 25-45 mm lost along a door-poor
-stretch, none with ``"midpoint"``, the midpoint of the gap between the two segments' boundary
-points, the pipeline's default); the surface's
-last sample itself (``"higher"``) lies short of the edge by half a spacing on average and carries
-the range noise along the wall at 1 / tan(incidence). The beam must meet the wall at least
+stretch; none with ``"midpoint"``, the midpoint of the gap between the two segments' boundary
+points, the pipeline's default). The surface's last sample itself (``"higher"``) lies short of
+the edge by half a spacing on average and carries the range noise along the wall at
+1 / tan(incidence). The beam must meet the wall at least
 ``min_incidence_deg`` from grazing. The point's sigma along the wall is the local beam spacing's
 uniform spread (``spacing / sqrt(12)``) plus ``sigma``. The door's own plane is not needed, so a
 door yields edges from the first time it is passed.
@@ -48,7 +48,6 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 EDGE_ID_BASE = 1_000_000  # back-end plane ids of edge planes start here; map planes stay below
-
 
 
 @dataclass(frozen=True)
