@@ -36,7 +36,7 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 CACHE = Path("/tmp/bench_slam_cache")
-DEFAULT_BAGS = (CACHE / "office_imu_rest10_60s_seed1.bag", CACHE / "office_imu_rest10_120s_seed1.bag")
+DEFAULT_BAGS = (CACHE / "office_adis_rest10_60s_seed1.bag", CACHE / "office_adis_rest10_120s_seed1.bag")
 STAGES = (  # (key, label)
     ("estimation", "estimation (after runner.result)"),
     ("export", "export (after run_slam)"),

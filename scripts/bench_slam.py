@@ -86,7 +86,7 @@ def _bag(cache: Path, duration: float, seed: int) -> tuple[Path, Path]:
     from simulation.run import SimulationConfig, gt_dir_for, simulate
 
     cache.mkdir(parents=True, exist_ok=True)
-    bag = cache / f"office_imu_rest10_{duration:g}s_seed{seed}.bag"
+    bag = cache / f"office_adis_rest10_{duration:g}s_seed{seed}.bag"
     gt = gt_dir_for(bag)
     if bag.is_file() and (gt / "meta.json").is_file():
         print(f"reusing {bag}", flush=True)

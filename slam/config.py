@@ -168,20 +168,18 @@ class BackEndConfig(StrictModel):
 class ImuSection(StrictModel):
     """Use of the bag's IMU (``sensor_msgs/Imu``, in the body frame): gtsam preintegration
     factors between knots and IMU-predicted knots in the front end. The noise is the IMU's
-    datasheet values; the defaults are a consumer MEMS part (Bosch BMI088 / Xsens MTi-3 class)."""
+    datasheet values; the defaults are the simulator's (ADIS16448, EuRoC calibration)."""
 
     use: Literal["auto", "on", "off"] = Field("auto", description="auto: when the bag has the topic")
     topic: str = "/imu"
     samples: Literal["instantaneous", "held"] = Field(
-        "held", description="how a reading is integrated: held from its stamp to the next one, or taken as the "
-        "reading at its stamp (instantaneous: midpoint rule). The simulator writes instantaneous readings and "
-        "its noise-free IMU dead-reckons 11.6x better with the midpoint rule (scripts/imu_dead_reckoning.py), "
-        "but on the 10-minute office walks it made seed 1 slip 0.7-2.2 m in the corridor stretch whose walking "
-        "direction is barely observed (seed 2: 37.5 -> 26.8 mm), so held stays the default until that is fixed")
-    accel_noise: float = Field(0.02, gt=0, description="accelerometer white noise (m/s^2/sqrt(Hz))")
-    gyro_noise: float = Field(0.003, gt=0, description="gyroscope white noise (rad/s/sqrt(Hz))")
-    accel_bias_walk: float = Field(1e-3, gt=0, description="accelerometer bias random walk (m/s^3/sqrt(Hz))")
-    gyro_bias_walk: float = Field(1e-4, gt=0, description="gyroscope bias random walk (rad/s^2/sqrt(Hz))")
+        "instantaneous", description="how a reading is integrated: taken as the reading at its stamp "
+        "(instantaneous: midpoint rule, what the simulator writes; its noise-free IMU dead-reckons 11.6x better "
+        "so, scripts/imu_dead_reckoning.py) or held from its stamp to the next one (an IMU that averages)")
+    accel_noise: float = Field(2.0e-3, gt=0, description="accelerometer white noise (m/s^2/sqrt(Hz))")
+    gyro_noise: float = Field(1.6968e-4, gt=0, description="gyroscope white noise (rad/s/sqrt(Hz))")
+    accel_bias_walk: float = Field(3.0e-3, gt=0, description="accelerometer bias random walk (m/s^3/sqrt(Hz))")
+    gyro_bias_walk: float = Field(1.9393e-5, gt=0, description="gyroscope bias random walk (rad/s^2/sqrt(Hz))")
     accel_bias_prior: float = Field(0.05, gt=0, description="sigma of the initial accelerometer bias (m/s^2)")
     gyro_bias_prior: float = Field(0.005, gt=0, description="sigma of the initial gyroscope bias (rad/s)")
     gravity: float = Field(9.80665, gt=0, description="m/s^2")

@@ -200,11 +200,11 @@ def test_the_imu_sample_model_comes_from_the_config(corridor_imu: SimulationResu
 def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig: Any, tmp_path: Path) -> None:
     """From rest, 4 s of walking (3.6 m) along a corridor with no visible end: without the IMU the
     planes cannot tell how far the operator went (the estimate ends metres off); with the bag's
-    IMU and a zero-velocity update while standing, most of the distance is recovered (measured:
-    0.37 m short of 3.60 m: what 1 s of standing tells a consumer IMU about its bias)."""
+    IMU and a zero-velocity update while standing, most of the distance is recovered
+    (the error left is what 1 s of standing tells the IMU about its bias)."""
     with_imu = run_slam(corridor_imu.bag, rig, _fast(), tmp_path / "imu", progress=False)
     assert with_imu["counts"]["imu_used"] == 1
-    assert with_imu["counts"]["zero_velocity_updates"] >= 10  # the first second standing
+    assert with_imu["counts"]["zero_velocity_updates"] >= 5  # of the first second standing (8 with the ADIS16448)
     err_imu, walked = _final_along_error(tmp_path / "imu", corridor_imu.gt)
     off = _fast(SlamConfig.model_validate({"imu": {"use": "off"}}))
     without = run_slam(corridor_imu.bag, rig, off, tmp_path / "off", progress=False)
