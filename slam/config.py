@@ -174,8 +174,9 @@ class ImuSection(StrictModel):
     topic: str = "/imu"
     samples: Literal["instantaneous", "held"] = Field(
         "instantaneous", description="how a reading is integrated: taken as the reading at its stamp "
-        "(instantaneous: midpoint rule, what the simulator writes; its noise-free IMU dead-reckons 11.6x better "
-        "so, scripts/imu_dead_reckoning.py) or held from its stamp to the next one (an IMU that averages)")
+        "(instantaneous: midpoint rule; the simulator writes such readings, and its noise-free IMU dead-reckons "
+        "11.6x better this way, scripts/imu_dead_reckoning.py) or held from its stamp to the next one (an IMU "
+        "that averages)")
     accel_noise: float = Field(2.0e-3, gt=0, description="accelerometer white noise (m/s^2/sqrt(Hz))")
     gyro_noise: float = Field(1.6968e-4, gt=0, description="gyroscope white noise (rad/s/sqrt(Hz))")
     accel_bias_walk: float = Field(3.0e-3, gt=0, description="accelerometer bias random walk (m/s^3/sqrt(Hz))")
