@@ -49,6 +49,9 @@ class TrajectoryConfig(StrictModel):
     """Continuous-time trajectory: knots at ``knot_rate`` Hz, SE(3) interpolation between them."""
 
     knot_rate: float = Field(20.0, gt=0, le=400)
+    imu_deskew: bool = Field(
+        True, description="with an IMU: between knots, turn the body by what the gyro measures beyond the "
+        "geodesic (slam.deskew; at 20 Hz the geodesic misses a walker's pitch and turns by 36 mdeg RMS)")
 
 
 class FrontEndConfig(StrictModel):
@@ -91,7 +94,18 @@ class FrontEndConfig(StrictModel):
     parallel_max_angle_deg: float = Field(
         6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off")
     parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
+    wall_faces: bool = Field(
+        True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
+        "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "
+        "the same partitions, which holds the room's heading to the corridor's across a doorway")
+    wall_thickness: tuple[float, float] = Field(
+        (0.05, 0.3), description="m, the range of wall thicknesses for wall_faces (min, max)")
+    wall_faces_sigma_deg: float = Field(0.02, gt=0, description="sigma of the two faces' parallelism tie (deg)")
     merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift, see merge_drift_over)")
+    merge_coobserved_max: float = Field(
+        0.15, gt=0, description="m, largest offset difference of two planes merged once they were seen together "
+        "(within 0.5 s): their relative offset then carries no drift, and a surface this far before another "
+        "(a cabinet's front before its wall) is a surface of its own")
     merge_drift_over: Literal["gap", "since_seen"] = Field(
         "since_seen", description="distance the merge tolerance's drift grows over: walked since the older of the "
         "two planes was last seen (duplicates of a long wall, split by heading drift, keep merging), or only the "
@@ -101,6 +115,13 @@ class FrontEndConfig(StrictModel):
     link_sigma: float = Field(
         1e-5, gt=0, description="m (offset) and rad (normal), sigma of the equality tie between merged planes until "
         "the final batch folds them into one")
+
+    @model_validator(mode="after")
+    def _thickness(self) -> FrontEndConfig:
+        lo, hi = self.wall_thickness
+        if not 0.0 < lo < hi:
+            raise ValueError(f"wall_thickness: expected 0 < min < max, got ({lo}, {hi})")
+        return self
 
 
 class EdgeSection(StrictModel):

@@ -42,6 +42,7 @@ from segmentation import Scanline
 from slam import frontend_kernels as fk
 from slam.backend import Backend, BackendConfig
 from slam.config import SlamConfig
+from slam.deskew import DeskewTable, deskew_table
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.edges import (
@@ -78,6 +79,8 @@ from slam.frontend.planemap import (
     KIND_WALL,
     PlaneMap,
     classify,
+    is_other_face,
+    merge_tolerance,
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
@@ -132,6 +135,7 @@ class SlamResult:
     stats: dict[str, Any]
     timings: dict[str, float]
     plane_covariances: dict[int, FloatArray] = field(default_factory=dict)
+    deskew: DeskewTable | None = None  # the gyro's rotation between knots (``slam.deskew``), applied to body points
 
 
 class _Timer:
@@ -241,6 +245,7 @@ class SlamRunner:
         )
         self.dt = dt
         self.t0: float | None = None
+        self._deskew: DeskewTable | None = None  # built at the first scan (the knots start there)
         self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
         self._V = np.zeros((1024, 3))  # ... and velocities (world frame, with an IMU)
         self._bias = np.zeros(6)  # latest IMU bias estimate (accelerometer, gyroscope)
@@ -266,6 +271,7 @@ class SlamRunner:
             "planes_rejected": 0,
             "planes_rejected_oblique": 0,
             "planes_parallel": 0,
+            "wall_faces": 0,
             "isam2_rebuilds": 0,
             "isam2_fallbacks": 0,
             "imu_used": int(imu is not None),
@@ -277,6 +283,11 @@ class SlamRunner:
         self._since_update = 0
 
     # ------------------------------------------------------------------ trajectory mirror
+    def _deskewed(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
+        """Body points seen at ``times`` with the gyro's rotation between knots applied
+        (``slam.deskew``; unchanged without an IMU)."""
+        return points_body if self._deskew is None else self._deskew.apply(points_body, times)
+
     def _knot_time(self, k: int) -> float:
         assert self.t0 is not None
         return self.t0 + k * self.dt
@@ -362,6 +373,10 @@ class SlamRunner:
         self.stats["scans"] += 1
         if self.t0 is None:
             self.t0 = line.stamp
+            if self.imu is not None and self.cfg.trajectory.imu_deskew:
+                n = int(np.ceil((self.imu.times[-1] - self.t0) / self.dt)) + 1
+                self._deskew = deskew_table(self.imu.times, self.imu.gyro, self.imu.instantaneous,
+                                            self.t0 + self.dt * np.arange(n, dtype=np.float64))
             self._append_knot(self._initial_pose(line.stamp))
         if line.n_valid < 2 or line.stamp < self.t0:
             self.stats["skipped_scans"] += 1
@@ -375,6 +390,11 @@ class SlamRunner:
         segs = scan_segments(
             line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s], self.cfg.frontend.model_sigma
         )
+        if self._deskew is not None and segs.n_segments:
+            # in place: the arrays are this scan's own
+            segs.points_body[:] = self._deskew.apply(segs.points_body, segs.times)
+            segs.virtual_body[:] = self._deskew.apply(
+                segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(segs.virtual_body.shape)
         if segs.n_segments:
             self.stats["segments"] += segs.n_segments
             self._pending.append(
@@ -557,10 +577,8 @@ class SlamRunner:
                 pid = int(ids[j])
                 self._observe(segs, j, pid, blocks)
                 self.pmap.extend(pid, pts)
-                pl = self.pmap.planes[pid]
-                pl.n_segments += 1
-                pl.last_seen_time = now
-                pl.last_seen_odometer = self._odometer
+                self.pmap.planes[pid].n_segments += 1
+                self.pmap.seen(pid, now, self._odometer)
             self.stats["associated"] += int((ids >= 0).sum())
             v_all, e_all = summary[0], summary[1]
             for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
@@ -740,9 +758,9 @@ class SlamRunner:
                 r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
                 pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
                                         [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
-                pts_body = pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3]
                 i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
                 t = float(segs.times[i_end])
+                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
                 w = self._place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
                 x_world = w[0]
                 if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
@@ -798,9 +816,9 @@ class SlamRunner:
                 edge_scanner, spacing = got
                 pts_scanner = np.zeros((3, 3))
                 pts_scanner[:, :2] = (edge_scanner, left.mean(axis=0), right.mean(axis=0))
-                pts_body = pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3]
                 i_k = int(segs.offsets[j]) + k
                 t = float(segs.times[i_k])
+                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(3, t))
                 w = self._place(pts_body, np.full(3, t))
                 x_world = w[0]
                 if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
@@ -967,6 +985,11 @@ class SlamRunner:
                 self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
                 self._host[pl.id] = host
                 self.stats["planes_parallel"] += 1
+            elif kind == KIND_WALL and fe.wall_faces:
+                face = self._other_face_of(plane.normal, pts)
+                if face is not None:
+                    self.backend.add_parallel(face, pl.id, np.radians(fe.wall_faces_sigma_deg))
+                    self.stats["wall_faces"] += 1
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
                 rec = by_serial.get(m.ref[0])
@@ -1000,6 +1023,25 @@ class SlamRunner:
                 continue
             if best is None or off < best[0]:
                 best = (off, int(pid))
+        return None if best is None else best[1]
+
+    def _other_face_of(self, normal: FloatArray, pts: FloatArray) -> int | None:
+        """The established wall whose other face a new wall (``normal``, its members' points
+        ``pts``, world frame) is: facing the opposite way, its points ``wall_thickness`` behind the
+        wall's face and over its extent; the one with the most segments, or None."""
+        fe = self.cfg.frontend
+        cos_min = np.cos(np.radians(fe.parallel_max_angle_deg))
+        best: tuple[int, int] | None = None
+        for pid in self.pmap.active_ids():
+            w = self.pmap.planes[int(pid)]
+            if w.kind != KIND_WALL or w.n_segments < HOST_MIN_SEGMENTS:
+                continue
+            if not is_other_face(w.normal, w.d, normal, pts, cos_min, fe.wall_thickness):
+                continue
+            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
+                continue
+            if best is None or w.n_segments > best[0]:
+                best = (w.n_segments, int(pid))
         return None if best is None else best[1]
 
     def _constrained(self, plane: NewPlane, by_serial: dict[int, _Pending], kind: int, vertical: bool) -> bool:
@@ -1107,7 +1149,8 @@ class SlamRunner:
                     walked = self.pmap.unseen_between(a.id, b.id)
                 else:
                     walked = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
-                tol = fe.merge_distance + rate * walked
+                tol = merge_tolerance(fe.merge_distance, rate, walked, self.pmap.coobserved(a.id, b.id),
+                                      fe.merge_coobserved_max)
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
                     continue
                 # the offset difference over the smaller plane's extent (where both are seen), so
@@ -1161,6 +1204,7 @@ class SlamRunner:
             segment_rows=rows,
             stats=stats,
             timings=dict(self._timer.t),
+            deskew=self._deskew,
         )
 
     @staticmethod

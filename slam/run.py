@@ -251,6 +251,8 @@ def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool
             p2 = line.points_xy[inside]
             p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
             p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
+            if res.deskew is not None:
+                p_b = res.deskew.apply(p_b, times[inside])
             beams = line.valid_index[inside]
             plane = np.full(beams.shape[0], -1, dtype=np.int32)
             ends: list[int] = []  # the scan's segments' first and last points
@@ -339,6 +341,7 @@ def _write_outputs(
             "planes_rejected": st["planes_rejected"],
             "planes_rejected_oblique": st["planes_rejected_oblique"],
             "observation_blocks": st["observation_blocks"],
+            "wall_faces": st["wall_faces"],
             "edges": st["edges"],
             "edges_created": st["edges_created"],
             "edges_merged": st["edges_merged"],

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
-from slam.frontend.planemap import PlaneMap
+from slam.frontend.planemap import PlaneMap, is_other_face, merge_tolerance
 from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
 from slam.interpolation import (
     interpolate_poses,
@@ -203,6 +203,48 @@ def test_drift_between_sightings_counts_only_the_gap_between_observation_spans()
     assert pmap.unseen_between(again.id, door.id) == 95.0 - 18.0
     pmap.merge(door.id, again.id)
     assert (door.first_seen_odometer, door.last_seen_odometer) == (12.0, 95.0)
+
+
+def test_planes_seen_together_merge_only_within_the_coobserved_limit() -> None:
+    pmap = PlaneMap(bucket=0.5)
+    wall = pmap.add(np.array([1.0, 0.0, 0.0]), -33.075, 1, 100.0, 50.0)
+    cabinet = pmap.add(np.array([1.0, 0.0, 0.0]), -33.675, 1, 104.9, 55.0)  # 0.6 m before the wall
+    assert not pmap.coobserved(wall.id, cabinet.id)
+    pmap.seen(wall.id, 105.1, 55.2)  # the next bucket: [105.0, 105.5) against the cabinet's [104.5, 105.0)
+    assert not pmap.coobserved(wall.id, cabinet.id)
+    pmap.seen(wall.id, 104.7, 55.1)
+    assert pmap.coobserved(wall.id, cabinet.id) and pmap.coobserved(cabinet.id, wall.id)
+    assert wall.last_seen_time == 104.7 and wall.last_seen_odometer == 55.1
+    # the cabinet seen again 200 m later as a new plane: it merges into the old cabinet (never seen
+    # with it, the drift allowance holds) and the survivor stays "seen with the wall"
+    again = pmap.add(np.array([1.0, 0.0, 0.0]), -33.70, 1, 320.0, 255.0)
+    assert not pmap.coobserved(again.id, wall.id)
+    pmap.merge(cabinet.id, again.id)
+    assert pmap.coobserved(cabinet.id, wall.id)
+    walked = 200.0
+    assert merge_tolerance(0.008, 0.003, walked, False, 0.05) == 0.008 + 0.003 * walked
+    assert merge_tolerance(0.008, 0.003, walked, True, 0.05) == 0.05  # 0.6 m apart: not merged
+    assert merge_tolerance(0.008, 0.003, 1.0, True, 0.05) == 0.008 + 0.003  # below the limit: as before
+    assert merge_tolerance(0.008, 0.003, walked, True, 0.001) == 0.008  # never below merge_distance
+
+
+def test_the_other_face_of_a_wall_faces_away_and_lies_its_thickness_behind() -> None:
+    # the corridor's face of a partition: y = 6.15, seen from the corridor (normal +y)
+    wall_n, wall_d = np.array([0.0, 1.0, 0.0]), -6.15
+    rng = np.random.default_rng(0)
+    room_face = np.column_stack((rng.uniform(15.0, 21.0, 50), np.full(50, 6.0), rng.uniform(0.0, 2.8, 50)))
+    facing_room = np.array([0.0, -1.0, 0.0])
+    cos_min, thick = np.cos(np.radians(6.0)), (0.05, 0.3)
+    assert is_other_face(wall_n, wall_d, facing_room, room_face, cos_min, thick)
+    # the same points seen from the corridor side: a door or board, not the other face
+    assert not is_other_face(wall_n, wall_d, wall_n, room_face, cos_min, thick)
+    # a cabinet's back 0.5 m behind: too far for a wall
+    assert not is_other_face(wall_n, wall_d, facing_room, room_face - np.array([0.0, 0.5, 0.0]), cos_min, thick)
+    # a door leaf's two faces (4 cm): too thin
+    assert not is_other_face(wall_n, wall_d, facing_room, room_face + np.array([0.0, 0.11, 0.0]), cos_min, thick)
+    # 10 degrees off opposite
+    tilted = np.array([np.sin(np.radians(10.0)), -np.cos(np.radians(10.0)), 0.0])
+    assert not is_other_face(wall_n, wall_d, tilted, room_face, cos_min, thick)
 
 
 def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> None:

@@ -32,3 +32,10 @@ def test_a_wrong_key_names_the_key_and_the_file(tmp_path: Path) -> None:
     bad.write_text("backend:\n  solver: fast\n")
     with pytest.raises(ConfigError, match=r"bad\.yaml.*backend\.solver"):
         load_slam_config(bad)
+
+
+def test_a_wall_thickness_range_upside_down_names_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "walls.yaml"
+    bad.write_text("frontend:\n  wall_thickness: [0.3, 0.05]\n")
+    with pytest.raises(ConfigError, match=r"walls\.yaml.*wall_thickness"):
+        load_slam_config(bad)

@@ -34,6 +34,28 @@ def plane_basis(normal: FloatArray) -> tuple[FloatArray, FloatArray]:
     return u, v
 
 
+def merge_tolerance(merge_distance: float, drift_rate: float, walked: float, coobserved: bool,
+                    coobserved_max: float) -> float:
+    """Largest offset difference (m) at which two parallel, touching planes merge: ``merge_distance``
+    plus the drift possible over ``walked`` m, but at most ``coobserved_max`` when the two were seen
+    together (a cabinet's front seen with the wall behind it is another surface, however far the
+    walk has gone since)."""
+    tol = merge_distance + drift_rate * walked
+    return min(tol, max(coobserved_max, merge_distance)) if coobserved else tol
+
+
+def is_other_face(wall_normal: FloatArray, wall_d: float, normal: FloatArray, points_world: FloatArray,
+                  cos_min: float, thickness: tuple[float, float]) -> bool:
+    """Whether a plane (unit ``normal``, its points (m, 3), world frame) is the other face of the
+    wall ``wall_normal . x + wall_d = 0``: facing the opposite way (normals facing their
+    observers, within ``acos(cos_min)``) and every point ``thickness`` (min, max, m) behind the
+    wall's face."""
+    if float(wall_normal @ normal) > -cos_min:
+        return False
+    behind = -(points_world @ wall_normal + wall_d)
+    return bool(behind.min() >= thickness[0] and behind.max() <= thickness[1])
+
+
 def classify(normal: FloatArray, d: float, body_z_world: float, vertical_tol: float) -> int:
     """Wall (normal within ``vertical_tol`` rad of horizontal), floor/ceiling (normal near vertical), else other."""
     nz = abs(float(normal[2]))
@@ -63,13 +85,17 @@ class Plane:
     sigma_offset: float = 0.005
     active: bool = True
     merged_into: int = -1
+    # time buckets (``PlaneMap.bucket`` s) in which the plane had a segment: two planes seen in one
+    # bucket were measured from (nearly) one pose, without drift between them
+    seen_buckets: set[int] = field(default_factory=set)
 
 
 class PlaneMap:
     """Planes with extents; ids are stable (a merged plane stays, inactive, pointing to its survivor)."""
 
-    def __init__(self, cell_size: float = 0.25) -> None:
+    def __init__(self, cell_size: float = 0.25, bucket: float = 0.5) -> None:
         self.cell_size = cell_size
+        self.bucket = bucket
         self.planes: list[Plane] = []
         self.merges = 0  # merges so far: what :meth:`resolve` gives changes only with it
         self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
@@ -89,11 +115,27 @@ class PlaneMap:
         n = n / np.linalg.norm(n)
         u, v = plane_basis(n)
         p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer,
-                  first_seen_odometer=odometer)
+                  first_seen_odometer=odometer, seen_buckets={self._bucket_of(time)})
         self.planes.append(p)
         self._active = None
         self._version += 1
         return p
+
+    def _bucket_of(self, time: float) -> int:
+        return int(np.floor(time / self.bucket))
+
+    def seen(self, pid: int, time: float, odometer: float) -> None:
+        """Record a sighting of plane ``pid`` (a segment associated with it) at ``time`` (s)."""
+        p = self.planes[pid]
+        p.last_seen_time = time
+        p.last_seen_odometer = odometer
+        p.seen_buckets.add(self._bucket_of(time))
+
+    def coobserved(self, a: int, b: int) -> bool:
+        """Whether planes ``a`` and ``b`` were seen in one time bucket (so from nearly one pose:
+        their relative offset then carries no drift)."""
+        sa, sb = self.planes[a].seen_buckets, self.planes[b].seen_buckets
+        return not (sa.isdisjoint(sb) if len(sa) <= len(sb) else sb.isdisjoint(sa))
 
     def resolve(self, pid: int) -> int:
         """Follow merges to the surviving plane id."""
@@ -236,6 +278,7 @@ class PlaneMap:
         pk.last_seen_time = max(pk.last_seen_time, pd.last_seen_time)
         pk.last_seen_odometer = max(pk.last_seen_odometer, pd.last_seen_odometer)
         pk.first_seen_odometer = min(pk.first_seen_odometer, pd.first_seen_odometer)
+        pk.seen_buckets |= pd.seen_buckets
         pd.active = False
         pd.merged_into = keep
         self.merges += 1
