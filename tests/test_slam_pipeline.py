@@ -215,6 +215,19 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
     assert err_off > 2 * err_imu, f"without the IMU {err_off:.3f} m, with {err_imu:.3f} m"
 
 
+def test_the_gyro_deskew_fits_the_points_to_their_planes_better(corridor_imu: SimulationResult, rig: Any,
+                                                                 tmp_path: Path) -> None:
+    """The same IMU walk with and without the gyro's rotation between knots (``slam.deskew``):
+    with it the point-to-plane residuals are smaller."""
+    on = run_slam(corridor_imu.bag, rig, _fast(), tmp_path / "on", progress=False)
+    off_cfg = _fast(SlamConfig.model_validate({"trajectory": {"imu_deskew": False}}))
+    off = run_slam(corridor_imu.bag, rig, off_cfg, tmp_path / "off", progress=False)
+    assert on["config"]["trajectory"]["imu_deskew"] and not off["config"]["trajectory"]["imu_deskew"]
+    r_on, r_off = on["residuals"]["rms_whitened"], off["residuals"]["rms_whitened"]
+    # measured 0.363 against 0.392: the geodesic's misplacement of the walker's pitch is gone
+    assert r_on < 0.97 * r_off, f"whitened residual RMS with the deskew {r_on:.3f}, without {r_off:.3f}"
+
+
 @pytest.fixture(scope="module")
 def door_corridor(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
     return _simulate(tmp_path_factory.mktemp("doors"), "doors", DOOR_CORRIDOR_WORLD, 6.0, None, imu=True)
