@@ -20,7 +20,7 @@ All rotations are of the body frame (the IMU samples' frame); times in seconds.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -36,24 +36,11 @@ class DeskewTable:
 
     times: FloatArray
     rotvec: FloatArray  # (n, 3)
-    _columns: FloatArray = field(init=False, repr=False)  # rotvec.T, contiguous rows for np.interp
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "_columns", np.ascontiguousarray(self.rotvec.T))
 
     def at(self, times: FloatArray) -> FloatArray:
         """``c`` (m, 3) at ``times`` (m,), linear between the table's entries, 0 outside."""
         t = np.asarray(times, dtype=np.float64)
-        if t.size == 0:
-            return np.zeros((0, 3))
-        # only the entries around the points' time span (a scan's is 25 ms of a walk's table)
-        lo = max(int(np.searchsorted(self.times, t.min(), side="right")) - 1, 0)
-        hi = min(int(np.searchsorted(self.times, t.max(), side="left")) + 1, self.times.shape[0])
-        xp = self.times[lo:hi]
-        out = np.empty((t.shape[0], 3))
-        for j in range(3):
-            out[:, j] = np.interp(t, xp, self._columns[j, lo:hi], left=0.0, right=0.0)
-        return out
+        return np.column_stack([np.interp(t, self.times, self.rotvec[:, j], left=0.0, right=0.0) for j in range(3)])
 
     def apply(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """The points (m, 3), body frame, seen at ``times`` (m,), moved by ``c(t) x p``
@@ -86,10 +73,14 @@ def _apply(p: FloatArray, t: FloatArray, grid: FloatArray, c: FloatArray) -> Flo
 def gyro_attitude(times: FloatArray, gyro: FloatArray, instantaneous: bool) -> Rotation:
     """Body attitude ``Q`` (relative to the first sample) at each sample time, from the gyro:
     readings at their stamps (``instantaneous``, the midpoint rule) or held until the next."""
-    w = np.asarray(gyro, dtype=np.float64)
-    rate = 0.5 * (w[:-1] + w[1:]) if instantaneous else w[:-1]
-    steps = Rotation.from_rotvec(rate * np.diff(times)[:, None]).as_quat()
+    steps = Rotation.from_rotvec(_interval_rates(gyro, instantaneous) * np.diff(times)[:, None]).as_quat()
     return Rotation.from_quat(_chain(np.ascontiguousarray(steps)))
+
+
+def _interval_rates(gyro: FloatArray, instantaneous: bool) -> FloatArray:
+    """The body rate (n - 1, 3) over each interval between consecutive samples."""
+    w = np.asarray(gyro, dtype=np.float64)
+    return 0.5 * (w[:-1] + w[1:]) if instantaneous else w[:-1]
 
 
 @njit(cache=True)
@@ -123,8 +114,7 @@ def deskew_table(imu_times: FloatArray, gyro: FloatArray, instantaneous: bool,
     inner = ti[(ti > tk[0]) & (ti < tk[-1])]
     grid = np.union1d(tk, inner)
     # attitude at the grid times: from the sample before, turning at that interval's rate
-    w = np.asarray(gyro, dtype=np.float64)
-    rate = 0.5 * (w[:-1] + w[1:]) if instantaneous else w[:-1]
+    rate = _interval_rates(gyro, instantaneous)
     i = np.clip(np.searchsorted(ti, grid, side="right") - 1, 0, ti.shape[0] - 2)
     Qg = Q[i] * Rotation.from_rotvec(rate[i] * (grid - ti[i])[:, None])
     k = np.clip(np.searchsorted(tk, grid, side="right") - 1, 0, tk.shape[0] - 2)
