@@ -222,6 +222,13 @@ class OutputConfig(StrictModel):
     rerun_scan_every: int = Field(8, ge=1, description="log every n-th scan in map.rrd")
 
 
+class ParallelSection(StrictModel):
+    """Use of the machine's other cores; the results are the same bit for bit either way."""
+
+    reader: bool = Field(True, description="read and segment the scans in a second process, ahead of the estimator")
+    export_processes: int = Field(2, ge=1, le=64, description="processes that place and write the cloud's points")
+
+
 class SlamConfig(StrictModel):
     segmenter: SegmenterConfig = Field(default_factory=SegmenterConfig)
     trajectory: TrajectoryConfig = Field(default_factory=TrajectoryConfig)
@@ -230,6 +237,7 @@ class SlamConfig(StrictModel):
     backend: BackEndConfig = Field(default_factory=BackEndConfig)
     imu: ImuSection = Field(default_factory=ImuSection)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    parallel: ParallelSection = Field(default_factory=ParallelSection)
 
 
 def load_slam_config(path: str | Path | None) -> SlamConfig:

@@ -376,12 +376,14 @@ class CloudPlyWriter:
     :func:`write_cloud_ply`'s layout; the header, with the final count, is written by
     :meth:`finish`. Made by :func:`cloud_ply_writer`."""
 
-    def __init__(self, f: BinaryIO, what: str) -> None:
+    def __init__(self, f: BinaryIO, what: str, header: bool = True) -> None:
         self._f = f
         self._what = what
         self._buf = np.empty(0, dtype=_PLY_VERTEX)
+        self._header = header
         self.count = 0  # points written so far
-        f.write(b" " * len(_ply_header(0)))  # room for the header
+        if header:
+            f.write(b" " * len(_ply_header(0)))  # room for the header
 
     def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike) -> None:
         """Append points (N,3) in the world frame with their scanner, time (s) and plane id (N,)."""
@@ -393,10 +395,39 @@ class CloudPlyWriter:
             _write_ply_rows(self._f, cloud, start, min(n, start + _PLY_CHUNK), self._buf)
         self.count += n
 
+    def append_rows(self, path: str | Path, count: int) -> None:
+        """Append the ``count`` bare rows that another writer made with ``header=False`` into
+        ``path`` (a part of the cloud written in another process); checked by size."""
+        src = Path(path)
+        size = src.stat().st_size
+        if size != count * _PLY_VERTEX.itemsize:
+            raise OutputFileError(f"{src}: {size} bytes, expected {count} cloud rows of {_PLY_VERTEX.itemsize}")
+        self._f.flush()
+        end = self._f.seek(0, os.SEEK_END)
+        with src.open("rb") as fin:
+            try:  # in the kernel, without passing through Python
+                done = 0
+                while done < size:
+                    n = os.copy_file_range(fin.fileno(), self._f.fileno(), size - done)
+                    if n == 0:
+                        break
+                    done += n
+                if done != size:
+                    raise OSError("short copy")
+            except (AttributeError, OSError):
+                fin.seek(0)
+                self._f.truncate(end)
+                self._f.seek(end)
+                shutil.copyfileobj(fin, self._f, 1 << 24)
+        self._f.seek(0, os.SEEK_END)
+        self.count += count
+
     def finish(self) -> None:
-        """Write the header (with the number of points written) at the start of the file."""
-        self._f.seek(0)
-        self._f.write(_ply_header(self.count))
+        """Write the header (with the number of points written) at the start of the file
+        (nothing for a writer of bare rows)."""
+        if self._header:
+            self._f.seek(0)
+            self._f.write(_ply_header(self.count))
 
 
 @contextmanager

@@ -36,13 +36,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-import segmentation
 from backpack_slam.rig import Rig
 from segmentation import Scanline
 from slam import frontend_kernels as fk
 from slam.backend import Backend, BackendConfig
 from slam.config import SlamConfig
-from slam.deskew import DeskewTable, deskew_table
+from slam.deskew import DeskewTable
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.edges import (
@@ -61,7 +60,7 @@ from slam.frontend.edges import (
     steps_within,
     surface_end,
 )
-from slam.frontend.observations import ScanSegments, scan_segments
+from slam.frontend.observations import ScanSegments
 from slam.frontend.plane_init import (
     NewPlane,
     PlaneInitParams,
@@ -86,6 +85,7 @@ from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.interpolation import so3_exp
 from slam.motion import ImuConfig, MotionPriorConfig
+from slam.scan_prep import PreparedScan, ScanPreparer, knot_deskew
 
 FloatArray = NDArray[np.float64]
 
@@ -157,11 +157,11 @@ class SlamRunner:
         self._imu_rate = 1.0 / float(np.median(np.diff(imu.times))) if imu is not None else 0.0
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
-        self._scanner_index = {n: i for i, n in enumerate(self.scanner_names)}
         self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
         self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
-        self.segmenter = segmentation.get(cfg.segmenter.method, **cfg.segmenter.params)
+        self.preparer = ScanPreparer(rig, cfg, imu)
+        self.segmenter = self.preparer.segmenter
         fe, be = cfg.frontend, cfg.backend
         self.gates = Gates(
             sigma_pose=fe.sigma_pose,
@@ -254,7 +254,6 @@ class SlamRunner:
         self._recent: list[_Pending] = []  # ready scans within the tracking window
         self._done: list[_Pending] = []  # associated scans still within reach of the pool
         self._rows: list[tuple[NDArray[Any], ...]] = []  # compacted segment rows of older scans
-        self._scan_counter = [0] * len(self.scanner_names)
         self._serial = 0
         self._odometer = 0.0
         self._odo_at_knot: list[float] = []
@@ -364,46 +363,33 @@ class SlamRunner:
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:
         """Feed the next scanline (time order); knots are processed as soon as they are complete."""
+        self.add_prepared(self.preparer.prepare(line))
+
+    def add_prepared(self, scan: PreparedScan) -> None:
+        """Feed the next scan as prepared by a ``ScanPreparer`` over the same stream (time order;
+        possibly in another process, ``slam.prefetch``); knots are processed as soon as they are
+        complete."""
         t_start = _time.perf_counter()
-        s = self._scanner_index.get(line.scanner_id)
-        if s is None:
-            raise ValueError(f"scan from unknown scanner '{line.scanner_id}' (rig has {', '.join(self.scanner_names)})")
-        scan_index = self._scan_counter[s]
-        self._scan_counter[s] += 1
         self.stats["scans"] += 1
         if self.t0 is None:
-            self.t0 = line.stamp
-            if self.imu is not None and self.cfg.trajectory.imu_deskew:
-                n = int(np.ceil((self.imu.times[-1] - self.t0) / self.dt)) + 1
-                self._deskew = deskew_table(self.imu.times, self.imu.gyro, self.imu.instantaneous,
-                                            self.t0 + self.dt * np.arange(n, dtype=np.float64))
-            self._append_knot(self._initial_pose(line.stamp))
-        if line.n_valid < 2 or line.stamp < self.t0:
+            self.t0 = scan.stamp
+            self._deskew = knot_deskew(self.cfg, self.imu, scan.stamp)
+            self._append_knot(self._initial_pose(scan.stamp))
+        self._timer.t["segmentation"] = self._timer.t.get("segmentation", 0.0) + scan.seconds_segmentation
+        self._timer.t["frontend"] = self._timer.t.get("frontend", 0.0) + scan.seconds_lift
+        if scan.skipped:
             self.stats["skipped_scans"] += 1
             return
-        try:
-            seg = self.segmenter.segment(line)
-        except ValueError:
-            self.stats["skipped_scans"] += 1
-            return
-        t = self._timer.add("segmentation", t_start)
-        segs = scan_segments(
-            line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s], self.cfg.frontend.model_sigma
-        )
-        if self._deskew is not None and segs.n_segments:
-            # in place: the arrays are this scan's own
-            segs.points_body[:] = self._deskew.apply(segs.points_body, segs.times)
-            segs.virtual_body[:] = self._deskew.apply(
-                segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(segs.virtual_body.shape)
-        if segs.n_segments:
+        segs = scan.segs
+        if segs is not None:
             self.stats["segments"] += segs.n_segments
             self._pending.append(
                 _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64))
             )
             self._serial += 1
-        self._timer.add("frontend", t)
+        self._timer.add("frontend", t_start)
         # a knot is complete once no later scan can have beams before it
-        while self._knot_time(self._n_knots) + self._scan_span < line.stamp:
+        while self._knot_time(self._n_knots) + self._scan_span < scan.stamp:
             self._process_knot()
 
     def finish(self) -> None:

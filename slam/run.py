@@ -19,9 +19,12 @@ walk's length (beyond the segments' end points and the recording's capped subset
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import queue as queue_mod
 import resource
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +52,7 @@ from slam.io.bag import read_imu, read_scans, topics
 from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
 from slam.placement import place_points
+from slam.prefetch import can_fork_reader, prepared_scans
 from slam.rerun_map import MapOptions, SegmentLines, view_of_cloud_ply, write_map_rrd
 
 FloatArray = NDArray[np.float64]
@@ -119,10 +123,11 @@ def run_slam(
     """Run SLAM on ``bag`` with ``rig`` and ``cfg``; write the run folder; return the summary."""
     t_wall = time.perf_counter()
     out = Path(out_dir)
-    scans = read_scans(bag, rig=rig)  # checks the bag and its topics before anything is written
+    read_scans(bag, rig=rig).close()  # checks the bag and its topics before anything is written
     t_start, t_end = bag_time_range(bag)
     imu = load_imu(bag, cfg, t_start, t_end)
     runner = SlamRunner(rig, cfg, imu)
+    scans = prepared_scans(bag, rig, cfg, imu, process=cfg.parallel.reader)
     bar = tqdm(
         total=round(t_end - t_start, 2),
         desc="slam",
@@ -131,11 +136,11 @@ def run_slam(
         bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of data [{elapsed}<{remaining}]",
     )
     last = t_start
-    for line in scans:
-        runner.add_scan(line)
-        if line.stamp - last >= 0.5:
-            bar.update(round(line.stamp - last, 2))
-            last = line.stamp
+    for scan in scans:
+        runner.add_prepared(scan)
+        if scan.stamp - last >= 0.5:
+            bar.update(round(scan.stamp - last, 2))
+            last = scan.stamp
     bar.close()
     runner.finish()
     res = runner.result(batch=cfg.backend.final_batch)
@@ -214,17 +219,26 @@ class _CloudBatch:
         self._cols, self._ends, self.n = [], [], 0
 
 
-def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool) -> tuple[int, SegmentLines]:
-    """Second pass over the bag: every valid point placed in the world with the final
-    trajectory and written to the cloud.ply ``ply`` as it comes (so that the cloud is never
-    held), and the associated segments' end points (world frame) for display; returns the
-    number of points and the segments.
+@dataclass
+class _CloudPart:
+    """What one part of the cloud pass found: its points' count and its associated segments
+    (scan stamps, plane ids, end points in the world frame, (m, 3), two rows per segment)."""
+
+    count: int
+    seg_stamp: list[float]
+    seg_pid: list[int]
+    endpoints_world: FloatArray
+
+
+def _cloud_part(bag: str | Path, rig: Rig, res: SlamResult, writer: CloudPlyWriter, lo: int, hi: int,
+                bar: Any = None) -> _CloudPart:
+    """Scans ``lo:hi`` of the bag's scan stream (the rig's topics, stamp order) placed in the
+    world with the final trajectory and written with ``writer`` as they come.
 
     Points are placed a batch of scans at a time, in chunks of ``_PLACE_CHUNK`` (``place_points``
-    gives every point the same numbers however the points are batched)."""
+    gives every point the same numbers however the points are batched), so the parts of a split
+    pass, concatenated, are the whole pass's cloud byte for byte."""
     names = res.scanner_names
-    if len(names) > 256:
-        raise ValueError(f"{bag}: {len(names)} scanners, at most 256 fit a cloud's scanner index")
     index = {n: i for i, n in enumerate(names)}
     T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
     rows = res.segment_rows
@@ -236,44 +250,125 @@ def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool
     seg_stamp: list[float] = []
     seg_pid: list[int] = []
     counters = [0] * len(names)
-    with cloud_ply_writer(ply) as writer:
-        batch = _CloudBatch(res, writer)
-        for line in tqdm(read_scans(bag, rig=rig), desc="cloud", disable=not progress, leave=False):
-            s = index[line.scanner_id]
-            si = counters[s]
-            counters[s] += 1
-            if line.n_valid == 0:
-                continue
-            times = line.times[line.valid_index]
-            inside = (times >= kt[0]) & (times <= kt[-1])
-            if not inside.any():
-                continue
-            p2 = line.points_xy[inside]
-            p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
-            p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
-            if res.deskew is not None:
-                p_b = res.deskew.apply(p_b, times[inside])
-            beams = line.valid_index[inside]
-            plane = np.full(beams.shape[0], -1, dtype=np.int32)
-            ends: list[int] = []  # the scan's segments' first and last points
-            k = s * (1 << 40) + si
-            lo, hi = np.searchsorted(key_sorted, [k, k + 1])
-            for r in order[lo:hi]:
-                if rows["plane_id"][r] >= 0:
-                    m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
-                    if m.size:
-                        plane[m] = rows["plane_id"][r]
-                        seg_stamp.append(line.stamp)
-                        ends.extend((int(m[0]), int(m[-1])))
-                        seg_pid.append(int(rows["plane_id"][r]))
-            batch.add(p_b, s, times[inside], plane, ends)
-        batch.flush()
-        n_points = writer.count
+    batch = _CloudBatch(res, writer)
+    for ordinal, line in enumerate(read_scans(bag, rig=rig)):
+        if ordinal >= hi:
+            break
+        s = index[line.scanner_id]
+        si = counters[s]
+        counters[s] += 1
+        if ordinal < lo:
+            continue
+        if bar is not None:
+            bar.update(1)
+        if line.n_valid == 0:
+            continue
+        times = line.times[line.valid_index]
+        inside = (times >= kt[0]) & (times <= kt[-1])
+        if not inside.any():
+            continue
+        p2 = line.points_xy[inside]
+        p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
+        p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
+        if res.deskew is not None:
+            p_b = res.deskew.apply(p_b, times[inside])
+        beams = line.valid_index[inside]
+        plane = np.full(beams.shape[0], -1, dtype=np.int32)
+        ends: list[int] = []  # the scan's segments' first and last points
+        k = s * (1 << 40) + si
+        lo_k, hi_k = np.searchsorted(key_sorted, [k, k + 1])
+        for r in order[lo_k:hi_k]:
+            if rows["plane_id"][r] >= 0:
+                m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
+                if m.size:
+                    plane[m] = rows["plane_id"][r]
+                    seg_stamp.append(line.stamp)
+                    ends.extend((int(m[0]), int(m[-1])))
+                    seg_pid.append(int(rows["plane_id"][r]))
+        batch.add(p_b, s, times[inside], plane, ends)
+    batch.flush()
     endpoints = np.concatenate(batch.endpoints_world) if batch.endpoints_world else np.zeros((0, 3))
+    return _CloudPart(writer.count, seg_stamp, seg_pid, endpoints)
+
+
+def _cloud_part_process(part: int, bag: str | Path, rig: Rig, res: SlamResult, rows_path: Path, lo: int, hi: int,
+                        q: Any) -> None:
+    """A forked export process: part ``part`` of the cloud pass written as bare PLY rows to
+    ``rows_path``; ``(part, its _CloudPart or the exception)`` goes on ``q``."""
+    try:
+        with rows_path.open("wb") as f:
+            q.put((part, _cloud_part(bag, rig, res, CloudPlyWriter(f, str(rows_path), header=False), lo, hi)))
+    except BaseException as e:  # raised in the parent
+        q.put((part, e))
+
+
+def _next_part(bag: str | Path, q: Any, procs: list[Any]) -> tuple[int, _CloudPart]:
+    """The next result of the export processes; their exception is raised here."""
+    while True:
+        try:
+            part, result = q.get(timeout=1.0)
+        except queue_mod.Empty:
+            if not any(p.is_alive() for p in procs):
+                raise RuntimeError(f"{bag}: an export process stopped without a result") from None
+            continue
+        if isinstance(result, BaseException):
+            raise result
+        return part, result
+
+
+def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool,
+           processes: int = 1) -> tuple[int, SegmentLines]:
+    """Second pass over the bag: every valid point placed in the world with the final
+    trajectory and written to the cloud.ply ``ply`` as it comes (so that the cloud is never
+    held), and the associated segments' end points (world frame) for display; returns the
+    number of points and the segments.
+
+    With ``processes`` > 1 (and fork available, see ``slam.prefetch.can_fork_reader``) the scan
+    stream is cut into that many consecutive parts: this process writes the first into ``ply``,
+    forked processes write the others as bare rows beside it, appended in order at the end; the
+    file is the same byte for byte."""
+    names = res.scanner_names
+    if len(names) > 256:
+        raise ValueError(f"{bag}: {len(names)} scanners, at most 256 fit a cloud's scanner index")
+    n_scans = int(res.stats["scans"])
+    if not can_fork_reader():
+        processes = 1
+    processes = max(1, min(processes, n_scans))
+    cuts = [round(i * n_scans / processes) for i in range(processes + 1)]
+    if processes == 1:
+        cuts[-1] = 1 << 62  # every scan of the stream, however many
+    ctx = mp.get_context("fork") if processes > 1 else None
+    q: Any = ctx.Queue() if ctx is not None else None
+    procs = []
+    row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") for i in range(1, processes)]
+    try:
+        if ctx is not None:
+            for i, path in enumerate(row_files, start=1):
+                p = ctx.Process(target=_cloud_part_process, args=(i, bag, rig, res, path, cuts[i], cuts[i + 1], q),
+                                name=f"backpack-slam-cloud-{i}", daemon=True)
+                p.start()
+                procs.append(p)
+        with cloud_ply_writer(ply) as writer:
+            with tqdm(total=cuts[1] if processes > 1 else n_scans, desc="cloud" if processes == 1 else
+                      f"cloud (part 1 of {processes})", disable=not progress, leave=False) as bar:
+                parts = [_cloud_part(bag, rig, res, writer, cuts[0], cuts[1], bar)]
+            others = dict(_next_part(bag, q, procs) for _ in procs)
+            for i in range(1, processes):
+                writer.append_rows(row_files[i - 1], others[i].count)
+                parts.append(others[i])
+            n_points = writer.count
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+            p.join()
+        for path in row_files:
+            path.unlink(missing_ok=True)
+    endpoints = np.concatenate([p.endpoints_world for p in parts])
     lines = SegmentLines(
-        np.asarray(seg_stamp, dtype=np.float64),
+        np.asarray([t for p in parts for t in p.seg_stamp], dtype=np.float64),
         endpoints.reshape(-1, 2, 3),
-        np.asarray(seg_pid, dtype=np.int32),
+        np.asarray([i for p in parts for i in p.seg_pid], dtype=np.int32),
     )
     return n_points, lines
 
@@ -304,7 +399,7 @@ def _write_outputs(
         # every point goes to a file as it is placed; the recording and the voxel thinning
         # read it back (the recording a chunk at a time)
         every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
-        n_every, lines = _cloud(bag, rig, res, every, progress)
+        n_every, lines = _cloud(bag, rig, res, every, progress, cfg.parallel.export_processes)
         if cfg.output.rerun and n_every > 0:
             view = view_of_cloud_ply(every, MapOptions())
         if cfg.output.cloud:

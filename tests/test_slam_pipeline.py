@@ -337,15 +337,15 @@ def test_interrupted_run_leaves_no_output(box_noisy: SimulationResult, rig: Any,
     from slam.pipeline import SlamRunner
 
     calls = {"n": 0}
-    original = SlamRunner.add_scan
+    original = SlamRunner.add_prepared
 
-    def interrupted(self: SlamRunner, line: Any) -> None:
+    def interrupted(self: SlamRunner, scan: Any) -> None:
         calls["n"] += 1
         if calls["n"] == 50:
             raise KeyboardInterrupt
-        original(self, line)
+        original(self, scan)
 
-    monkeypatch.setattr(SlamRunner, "add_scan", interrupted)
+    monkeypatch.setattr(SlamRunner, "add_prepared", interrupted)
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         run_slam(box_noisy.bag, rig, SlamConfig(), out, progress=False)
@@ -353,7 +353,7 @@ def test_interrupted_run_leaves_no_output(box_noisy: SimulationResult, rig: Any,
     assert list(tmp_path.iterdir()) == []
 
     # interrupted while writing the outputs: no half-written folder either, an old one survives
-    monkeypatch.setattr(SlamRunner, "add_scan", original)
+    monkeypatch.setattr(SlamRunner, "add_prepared", original)
     out.mkdir()
     (out / "keep.txt").write_text("old run")
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -195,7 +195,7 @@ def read_scans(
     rig: Rig | None = None,
     *,
     reorder_window: float = 1.0,
-) -> Iterator[Scanline]:
+) -> Generator[Scanline, None, None]:
     """Stream the ``sensor_msgs/LaserScan`` messages of a bag as Scanlines ordered by header stamp.
 
     Topics: ``topics`` if given, else the rig's scanner topics, else every LaserScan
@@ -212,7 +212,7 @@ def read_scans(
     return _iter_scans(p, plan, int(reorder_window * 1e9))
 
 
-def _iter_scans(path: Path, plan: dict[str, str | None], window_ns: int) -> Iterator[Scanline]:
+def _iter_scans(path: Path, plan: dict[str, str | None], window_ns: int) -> Generator[Scanline, None, None]:
     heap: list[tuple[int, int, Scanline]] = []
     counter = itertools.count()
     with _open(path) as (reader, p):

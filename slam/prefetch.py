@@ -1,0 +1,107 @@
+"""Scans read and prepared ahead of the front end, in a second process.
+
+The front end and the back end run in one process; reading the bag, segmenting every scan and
+lifting its segments into the body frame (``slam.scan_prep``) depend on the scans alone, so a
+reader process does them while the estimator works on the scans before, and hands over
+``PreparedScan`` records in chunks through a bounded queue (memory stays bounded: the reader is
+at most ``max_chunks`` chunks ahead). The records are the same, bit for bit, as those prepared in
+the estimator's own process (``prepared_scans(..., process=False)``).
+
+The reader process is forked (Linux; its start costs nothing and it inherits the compiled
+kernels); where forking is unavailable, or this process is a daemon (a pool worker, which may not
+have children), the scans are prepared in this process instead.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import queue as queue_mod
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from backpack_slam.rig import Rig
+from slam.config import SlamConfig
+from slam.imu_feed import ImuSamples
+from slam.io.bag import read_scans
+from slam.scan_prep import PreparedScan, ScanPreparer
+
+_POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
+_DONE = "done"
+_ERROR = "error"
+
+
+def can_fork_reader() -> bool:
+    """Whether a reader process can be started here (fork available, not a daemon process)."""
+    return "fork" in mp.get_all_start_methods() and not mp.current_process().daemon
+
+
+def prepared_scans(
+    bag: str | Path,
+    rig: Rig,
+    cfg: SlamConfig,
+    imu: ImuSamples | None,
+    *,
+    process: bool = True,
+    chunk: int = 64,
+    max_chunks: int = 32,
+) -> Iterator[PreparedScan]:
+    """The bag's scans (the rig's topics, time order) prepared for the front end.
+
+    With ``process`` (and :func:`can_fork_reader`) a forked reader process prepares them and this
+    generator hands them on, ``chunk`` scans at a time, at most ``max_chunks`` chunks ahead; an
+    error in the reader (an ``InputError`` naming the bag, say) is raised here. Closing the
+    generator early stops the reader. The bag and its topics are checked before this returns."""
+    scans = read_scans(bag, rig=rig)  # checks the bag now, in this process
+    if not (process and can_fork_reader()):
+        preparer = ScanPreparer(rig, cfg, imu)
+        return (preparer.prepare(line) for line in scans)
+    scans.close()
+    return _from_reader(bag, rig, cfg, imu, chunk, max_chunks)
+
+
+def _reader(bag: str | Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, q: Any) -> None:
+    """The reader process: prepares every scan and puts them on ``q`` in chunks, then ``_DONE``;
+    any exception goes on ``q`` as ``(_ERROR, exception)``."""
+    try:
+        preparer = ScanPreparer(rig, cfg, imu)
+        batch: list[PreparedScan] = []
+        for line in read_scans(bag, rig=rig):
+            batch.append(preparer.prepare(line))
+            if len(batch) >= chunk:
+                q.put(batch)
+                batch = []
+        if batch:
+            q.put(batch)
+        q.put(_DONE)
+    except BaseException as e:  # handed to the estimator's process, which raises it
+        q.put((_ERROR, e))
+
+
+def _from_reader(
+    bag: str | Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, max_chunks: int
+) -> Iterator[PreparedScan]:
+    ctx = mp.get_context("fork")
+    q = ctx.Queue(maxsize=max_chunks)
+    proc = ctx.Process(target=_reader, args=(bag, rig, cfg, imu, chunk, q), name="backpack-slam-reader", daemon=True)
+    proc.start()
+    try:
+        while True:
+            try:
+                item = q.get(timeout=_POLL_S)
+            except queue_mod.Empty:
+                if not proc.is_alive():
+                    raise RuntimeError(f"{bag}: the scan reader process stopped (exit code {proc.exitcode})") from None
+                continue
+            if isinstance(item, str) and item == _DONE:
+                break
+            if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:
+                raise item[1]
+            yield from item
+        proc.join()
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+            proc.join()
+        q.close()
+        q.cancel_join_thread()

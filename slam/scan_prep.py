@@ -1,0 +1,107 @@
+"""A scan's own work before the front end: segmentation, lifting into the body frame, deskew.
+
+``ScanPreparer.prepare`` turns one ``Scanline`` (scanner frame) into a ``PreparedScan``: its
+segments from the configured segmenter, lifted into the body frame at their beams' times
+(``frontend.observations.scan_segments``) and, with an IMU, moved by the gyro's rotation between
+knots (``slam.deskew``). It depends on the scan, the rig, the configuration and the IMU only, never
+on the trajectory estimate, so it can run ahead of the front end in another process
+(``slam.prefetch``) and give the same numbers bit for bit.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+import segmentation
+from backpack_slam.rig import Rig
+from segmentation import Scanline
+from slam.config import SlamConfig
+from slam.deskew import DeskewTable, deskew_table
+from slam.frontend.observations import ScanSegments, scan_segments
+from slam.imu_feed import ImuSamples
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """One scan ready for the front end.
+
+    ``scanner`` indexes the rig's scanners, ``scan_index`` counts that scanner's scans from 0,
+    ``stamp`` is the scan's first-beam time (s). ``segs`` is None for a scan that is skipped
+    (``skipped``: fewer than two valid beams, before the first scan's stamp, or refused by the
+    segmenter) and for a scan without segments. ``seconds`` are the segmentation's and the
+    lifting's (with the deskew) times spent on it.
+    """
+
+    scanner: int
+    scan_index: int
+    stamp: float
+    skipped: bool
+    segs: ScanSegments | None
+    seconds_segmentation: float
+    seconds_lift: float
+
+
+class ScanPreparer:
+    """Prepares the scans of one time-ordered stream (see the module docstring).
+
+    The first scan's stamp is the trajectory's origin ``t0``: the deskew table is built on the
+    knot grid from it (``knot_rate``), as ``SlamRunner`` builds its own."""
+
+    def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
+        self.cfg = cfg
+        self.imu = imu
+        self.scanner_names = [s.name for s in rig.scanners]
+        self._index = {n: i for i, n in enumerate(self.scanner_names)}
+        self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
+        self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        self.segmenter = segmentation.get(cfg.segmenter.method, **cfg.segmenter.params)
+        self._counter = [0] * len(self.scanner_names)
+        self.t0: float | None = None
+        self.deskew: DeskewTable | None = None
+
+    def scanner_index(self, line: Scanline) -> int:
+        """The rig's index of the scan's scanner; a ValueError for a scanner the rig lacks."""
+        s = self._index.get(line.scanner_id)
+        if s is None:
+            raise ValueError(f"scan from unknown scanner '{line.scanner_id}' (rig has {', '.join(self.scanner_names)})")
+        return s
+
+    def prepare(self, line: Scanline) -> PreparedScan:
+        """The scan's segments in the body frame (see :class:`PreparedScan`)."""
+        t_start = time.perf_counter()
+        s = self.scanner_index(line)
+        scan_index = self._counter[s]
+        self._counter[s] += 1
+        if self.t0 is None:
+            self.t0 = line.stamp
+            self.deskew = knot_deskew(self.cfg, self.imu, line.stamp)
+        if line.n_valid < 2 or line.stamp < self.t0:
+            return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0)
+        try:
+            seg = self.segmenter.segment(line)
+        except ValueError:
+            return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0)
+        t_seg = time.perf_counter()
+        segs = scan_segments(line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s],
+                             self.cfg.frontend.model_sigma)
+        if self.deskew is not None and segs.n_segments:
+            # in place: the arrays are this scan's own
+            segs.points_body[:] = self.deskew.apply(segs.points_body, segs.times)
+            segs.virtual_body[:] = self.deskew.apply(
+                segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(segs.virtual_body.shape)
+        t_end = time.perf_counter()
+        return PreparedScan(s, scan_index, line.stamp, False, segs if segs.n_segments else None,
+                            t_seg - t_start, t_end - t_seg)
+
+
+def knot_deskew(cfg: SlamConfig, imu: ImuSamples | None, t0: float) -> DeskewTable | None:
+    """The deskew table (``slam.deskew``) on the knot grid that starts at ``t0`` (s); None without
+    an IMU or with ``trajectory.imu_deskew`` off."""
+    if imu is None or not cfg.trajectory.imu_deskew:
+        return None
+    dt = 1.0 / cfg.trajectory.knot_rate
+    n = int(np.ceil((imu.times[-1] - t0) / dt)) + 1
+    return deskew_table(imu.times, imu.gyro, imu.instantaneous, t0 + dt * np.arange(n, dtype=np.float64))

@@ -1,0 +1,123 @@
+"""The second core: scans prepared in a reader process (slam.prefetch) and the cloud written by
+several processes (slam.run) give the same results, bit for bit, as one process; errors in those
+processes reach the caller."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from backpack_slam.rig import resolve_rig
+from simulation.run import SimulationResult, simulate
+from slam.config import SlamConfig
+from slam.io.errors import InputError
+from slam.prefetch import can_fork_reader, prepared_scans
+from slam.run import bag_time_range, load_imu, run_slam
+from slam.scan_prep import ScanPreparer
+
+pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
+
+# a corridor with doors set into its walls, walked with an IMU: deskew, edges and planes all in play
+WORLD = """
+name: door_corridor_short
+floor_z: 0.0
+ceiling_z: 2.6
+spaces:
+  - {name: corridor, rect: [0.0, 0.0, 30.0, 2.0]}
+doors:
+  - {space: corridor, side: north, at: 6.0, recess: 0.015}
+  - {space: corridor, side: south, at: 8.5, recess: 0.01}
+walk:
+  speed: 1.2
+  waypoints:
+    - [3.0, 1.0]
+    - [20.0, 1.0]
+"""
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    folder = tmp_path_factory.mktemp("parallel")
+    world = folder / "world.yaml"
+    world.write_text(WORLD)
+    return simulate(world, "itc_backpack", duration=3.0, seed=5, out=folder / "walk.bag", imu=True, progress=False)
+
+
+@pytest.fixture(scope="module")
+def rig() -> Any:
+    return resolve_rig("itc_backpack")
+
+
+def _cfg(reader: bool, export_processes: int) -> SlamConfig:
+    return SlamConfig.model_validate({"parallel": {"reader": reader, "export_processes": export_processes}})
+
+
+def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig: Any) -> None:
+    cfg = SlamConfig()
+    t0, t1 = bag_time_range(walk.bag)
+    imu = load_imu(walk.bag, cfg, t0, t1)
+    assert imu is not None  # the deskew is part of what is compared
+    here = list(prepared_scans(walk.bag, rig, cfg, imu, process=False))
+    there = list(prepared_scans(walk.bag, rig, cfg, imu, process=True, chunk=7, max_chunks=2))
+    assert len(here) == len(there) > 100
+    n_segs = 0
+    for a, b in zip(here, there, strict=True):
+        assert (a.scanner, a.scan_index, a.stamp, a.skipped) == (b.scanner, b.scan_index, b.stamp, b.skipped)
+        assert (a.segs is None) == (b.segs is None)
+        if a.segs is not None and b.segs is not None:
+            n_segs += a.segs.n_segments
+            for name in ("first_beam", "last_beam", "points_body", "times", "virtual_body", "virtual_times",
+                         "virtual_sigma", "line_direction"):
+                np.testing.assert_array_equal(getattr(a.segs, name), getattr(b.segs, name), err_msg=name)
+    assert n_segs > 1000
+
+
+def test_an_error_in_the_reader_process_is_raised_here(walk: SimulationResult, rig: Any,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    original = ScanPreparer.prepare
+    calls = {"n": 0}
+
+    def failing(self: ScanPreparer, line: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 40:
+            raise InputError(f"{walk.bag} topic /scan: bad LaserScan")
+        return original(self, line)
+
+    monkeypatch.setattr(ScanPreparer, "prepare", failing)  # the forked reader inherits the patch
+    with pytest.raises(InputError, match="bad LaserScan"):
+        for _ in prepared_scans(walk.bag, rig, SlamConfig(), None, process=True, chunk=4):
+            pass
+    assert calls["n"] == 0  # the scans were prepared in the reader, not here
+
+
+def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, tmp_path: Path) -> None:
+    one = run_slam(walk.bag, rig, _cfg(False, 1), tmp_path / "one", progress=False)
+    par = run_slam(walk.bag, rig, _cfg(True, 3), tmp_path / "par", progress=False)
+    for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "par" / name).read_bytes(), name
+    assert one["counts"] == par["counts"]
+    assert one["counts"]["cloud_points"] > 100_000
+    # no part files are left beside the cloud
+    assert sorted(p.name for p in (tmp_path / "par").iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
+
+
+def test_an_error_in_an_export_process_leaves_no_output(walk: SimulationResult, rig: Any, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import slam.run as run_mod
+
+    original = run_mod._cloud_part
+
+    def failing(bag: Any, rig: Any, res: Any, writer: Any, lo: int, hi: int, bar: Any = None) -> Any:
+        if lo > 0:  # the forked parts only
+            raise OSError("disk full")
+        return original(bag, rig, res, writer, lo, hi, bar)
+
+    monkeypatch.setattr(run_mod, "_cloud_part", failing)
+    out = tmp_path / "run"
+    with pytest.raises(OSError, match="disk full"):
+        run_slam(walk.bag, rig, _cfg(True, 2), out, progress=False)
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
