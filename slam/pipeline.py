@@ -85,7 +85,15 @@ from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.interpolation import so3_exp
 from slam.motion import ImuConfig, MotionPriorConfig
-from slam.scan_prep import PreparedScan, ScanPreparer, knot_deskew
+from slam.scan_prep import (
+    PreparedScan,
+    ScanPreparer,
+    knot_deskew,
+    next_to_segment,
+    segment_end,
+    segment_owner,
+    segment_returns,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -384,7 +392,8 @@ class SlamRunner:
         if segs is not None:
             self.stats["segments"] += segs.n_segments
             self._pending.append(
-                _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64))
+                _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64),
+                         edge_tests=dict(scan.edge_tests))
             )
             self._serial += 1
         self._timer.add("frontend", t_start)
@@ -710,10 +719,7 @@ class SlamRunner:
         assert self.emap is not None
         ep = self.emap.params
         segs = p.segs
-        n_beams = segs.beam_angles.shape[0]
-        owner = np.full(n_beams, -1, dtype=np.int64)
-        for j in range(segs.n_segments):
-            owner[segs.first_beam[j] : segs.last_beam[j] + 1] = j
+        owner = segment_owner(segs)
         T_bs = self._T_body_scanner[segs.scanner]
         sigma = self._range_sigma[segs.scanner]
         out = []
@@ -724,10 +730,8 @@ class SlamRunner:
             n_wall = self.pmap.planes[wall].normal
             c2, u2 = segs.line_centroid[j], segs.line_direction[j]
             for direction in (1, -1):
-                k_end = int(segs.last_beam[j]) if direction == 1 else int(segs.first_beam[j])
-                near = owner[max(0, min(k_end + direction, k_end + 3 * direction)):
-                             max(k_end + direction, k_end + 3 * direction) + 1]
-                if np.any(near >= 0):  # a segment right there: the segment pairs handle it
+                k_end = segment_end(segs, j, direction)
+                if next_to_segment(owner, k_end, direction):  # the segment pairs handle that end
                     continue
                 key = (j, direction)
                 if key not in p.edge_tests:
@@ -777,9 +781,7 @@ class SlamRunner:
                 continue
             if p.edge_tests.get((j, 0)) == []:  # asked before: no step
                 continue
-            beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
-            a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
-            xy = np.column_stack((r * np.cos(a), r * np.sin(a)))
+            beams, xy = segment_returns(segs, j)
             c2, u2 = segs.line_centroid[j], segs.line_direction[j]
             if (j, 0) not in p.edge_tests:
                 p.edge_tests[(j, 0)] = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)

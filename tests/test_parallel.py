@@ -4,6 +4,7 @@ processes reach the caller."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -63,16 +64,19 @@ def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig:
     here = list(prepared_scans(walk.bag, rig, cfg, imu, process=False))
     there = list(prepared_scans(walk.bag, rig, cfg, imu, process=True, chunk=7, max_chunks=2))
     assert len(here) == len(there) > 100
-    n_segs = 0
+    n_segs = n_tests = 0
     for a, b in zip(here, there, strict=True):
         assert (a.scanner, a.scan_index, a.stamp, a.skipped) == (b.scanner, b.scan_index, b.stamp, b.skipped)
         assert (a.segs is None) == (b.segs is None)
+        assert a.edge_tests.keys() == b.edge_tests.keys()
+        assert all(repr(a.edge_tests[k]) == repr(b.edge_tests[k]) for k in a.edge_tests)
+        n_tests += len(a.edge_tests)
         if a.segs is not None and b.segs is not None:
             n_segs += a.segs.n_segments
             for name in ("first_beam", "last_beam", "points_body", "times", "virtual_body", "virtual_times",
                          "virtual_sigma", "line_direction"):
                 np.testing.assert_array_equal(getattr(a.segs, name), getattr(b.segs, name), err_msg=name)
-    assert n_segs > 1000
+    assert n_segs > 1000 and n_tests > 100
 
 
 def test_an_error_in_the_reader_process_is_raised_here(walk: SimulationResult, rig: Any,
@@ -121,3 +125,24 @@ def test_an_error_in_an_export_process_leaves_no_output(walk: SimulationResult, 
         run_slam(walk.bag, rig, _cfg(True, 2), out, progress=False)
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_precomputed_edge_tests_are_those_the_front_end_computes(walk: SimulationResult, rig: Any) -> None:
+    """The front end computes an edge test itself when the scan does not carry it: the same run
+    without the reader's tests gives the same trajectory, planes and edges."""
+    from slam.pipeline import SlamRunner
+
+    cfg = SlamConfig()
+    t0, t1 = bag_time_range(walk.bag)
+    imu = load_imu(walk.bag, cfg, t0, t1)
+    runs = []
+    for keep in (True, False):
+        runner = SlamRunner(rig, cfg, imu)
+        for scan in prepared_scans(walk.bag, rig, cfg, imu, process=False):
+            runner.add_prepared(scan if keep else replace(scan, edge_tests={}))
+        runner.finish()
+        runs.append(runner.result(batch=False))
+    a, b = runs
+    assert a.stats["edge_observations"] == b.stats["edge_observations"] > 0
+    np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
+    np.testing.assert_array_equal(a.plane_normals, b.plane_normals)
