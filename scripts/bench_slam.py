@@ -121,7 +121,8 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
         lines.append(f"| {name} | " + " | ".join(vals) + " |")
 
     for st in STAGES:
-        add(f"time: {st} (s)", [_fmt(r["timings"].get(st), 1, 1) for r in rows])
+        where = " (reader process)" if st in ("segmentation", "frontend") else ""
+        add(f"time: {st} (s){where}", [_fmt(r["timings"].get(st), 1, 1) for r in rows])
     add("**time: total wall (s)**", [_fmt(r["timings"]["wall"], 1, 1) for r in rows])
     add("data duration (s)", [_fmt(r["data_duration"], 1, 1) for r in rows])
     add("**speed (x real time)**", [_fmt(r["realtime_factor"]) for r in rows])
