@@ -719,7 +719,7 @@ class SlamRunner:
         assert self.emap is not None
         ep = self.emap.params
         segs = p.segs
-        owner = segment_owner(segs)
+        owner: NDArray[np.int64] | None = None
         T_bs = self._T_body_scanner[segs.scanner]
         sigma = self._range_sigma[segs.scanner]
         out = []
@@ -731,10 +731,12 @@ class SlamRunner:
             c2, u2 = segs.line_centroid[j], segs.line_direction[j]
             for direction in (1, -1):
                 k_end = segment_end(segs, j, direction)
-                if next_to_segment(owner, k_end, direction):  # the segment pairs handle that end
-                    continue
                 key = (j, direction)
-                if key not in p.edge_tests:
+                if key not in p.edge_tests:  # a test kept (by the reader or before) passed this check
+                    if owner is None:
+                        owner = segment_owner(segs)
+                    if next_to_segment(owner, k_end, direction):  # the segment pairs handle that end
+                        continue
                     p.edge_tests[key] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
                                                       segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
                 found = p.edge_tests[key]
