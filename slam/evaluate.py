@@ -58,6 +58,9 @@ IntArray = NDArray[np.int64]
 Alignment = Literal["start", "se3", "none"]
 
 
+WELL_DETERMINED_SIGMA_DEG = 0.05  # a plane reported to within this (1 sigma) counts as well determined
+
+
 class EvaluationError(ValueError):
     """Inputs that cannot be evaluated together; the message names the file."""
 
@@ -538,6 +541,7 @@ class PlaneMatch:
     offset_m: float  # signed distance of the estimated patch centre to the true plane
     matched_by: str  # "beams" or "geometry"
     support: float  # beams: fraction of the plane's segments voting for the true plane
+    sigma_angle_deg: float = float("nan")  # the run's own 1-sigma of the normal (planes.json covariance), larger axis
 
 
 @dataclass(frozen=True)
@@ -554,6 +558,17 @@ class PlaneEval:
     @property
     def offset(self) -> Stats:
         return Stats.of([abs(m.offset_m) for m in self.matches])
+
+    def well_determined(self, max_sigma_deg: float = WELL_DETERMINED_SIGMA_DEG) -> list[PlaneMatch]:
+        """The matches whose plane the run itself reports to within ``max_sigma_deg`` (1 sigma of
+        its normal, the larger axis): the planes a map user would rely on for their orientation."""
+        return [m for m in self.matches if m.sigma_angle_deg <= max_sigma_deg]
+
+    @property
+    def normalized_angle(self) -> Stats:
+        """Angle errors over the run's own sigmas (planes with a covariance): ~1 for an honest
+        covariance, well above 1 where the reported precision is overconfident."""
+        return Stats.of([m.angle_deg / m.sigma_angle_deg for m in self.matches if m.sigma_angle_deg > 0])
 
     def to_json(self) -> dict[str, Any]:
         true_ids = [m.true_id for m in self.matches]
@@ -574,9 +589,25 @@ class PlaneEval:
             "unmatched_estimated_ids": self.unmatched,
             "angle_deg": self.angle.to_json(),
             "offset_m": self.offset.to_json(),
+            "well_determined": {
+                "definition": f"planes whose reported 1-sigma normal error is <= {WELL_DETERMINED_SIGMA_DEG} deg",
+                "n": len(self.well_determined()),
+                "angle_deg": Stats.of([m.angle_deg for m in self.well_determined()]).to_json(),
+            },
+            "angle_over_sigma": self.normalized_angle.to_json(),
             "by_kind": by_kind,
             "planes": [m.__dict__ for m in self.matches],
         }
+
+
+def normal_sigma_deg(covariance: FloatArray | None) -> float:
+    """The larger 1-sigma angle (deg) of a plane's normal from its planes.json covariance (3x3
+    over the normal's two tangent directions and d); NaN without one."""
+    if covariance is None:
+        return float("nan")
+    c = np.asarray(covariance, dtype=float)[:2, :2]
+    ev = np.linalg.eigvalsh(0.5 * (c + c.T))
+    return float(np.degrees(np.sqrt(max(float(ev[-1]), 0.0))))
 
 
 def plane_errors(
@@ -615,6 +646,7 @@ def plane_errors(
                 support=float((support or {}).get(e.id, float("nan")))
                 if e.id in beams
                 else float("nan"),
+                sigma_angle_deg=normal_sigma_deg(e.covariance),
             )
         )
     return PlaneEval(matches, len(estimated), len(true), unmatched)

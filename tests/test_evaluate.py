@@ -17,6 +17,7 @@ from slam.evaluate import (
     majority,
     match_planes_geometric,
     mesh_distances,
+    normal_sigma_deg,
     plane_errors,
     segment_true_planes,
     trajectory_errors,
@@ -178,6 +179,29 @@ def test_plane_errors_of_rotated_plane_and_board_on_wall() -> None:
     pe2 = plane_errors([est_board], true, by_beams={1: 10}, support={1: 0.75})
     assert pe2.matches[0].true_id == 10 and pe2.matches[0].matched_by == "beams"
     assert pe2.matches[0].offset_m == pytest.approx(0.014, abs=1e-9)
+
+
+def test_plane_errors_against_the_runs_own_sigmas() -> None:
+    wall = PlaneRecord(10, np.array([-1.0, 0, 0]), 5.0, _wall(5.0, 0.0, 8.0), kind="wall")
+    tilt = np.radians(0.2)
+    n = _yaw(np.array([tilt]))[0] @ np.array([-1.0, 0, 0])
+    s_small, s_large = np.radians(0.01), np.radians(0.3)
+    cov_small = np.diag([s_small**2, (0.5 * s_small) ** 2, 1e-6])
+    cov_large = np.diag([(0.5 * s_large) ** 2, s_large**2, 1e-6])  # the larger axis counts
+    precise = PlaneRecord(0, n, float(-n @ [5.0, 4.0, 1.0]), _wall(5.0, 1.0, 7.0), covariance=cov_small)
+    vague = PlaneRecord(1, n, float(-n @ [5.0, 4.0, 1.0]), _wall(5.0, 1.0, 7.0), covariance=cov_large)
+    bare = PlaneRecord(2, n, float(-n @ [5.0, 4.0, 1.0]), _wall(5.0, 1.0, 7.0))
+    assert normal_sigma_deg(cov_large) == pytest.approx(0.3)
+    assert np.isnan(normal_sigma_deg(None))
+    pe = plane_errors([precise, vague, bare], [wall], by_beams={0: 10, 1: 10, 2: 10})
+    by = {m.est_id: m for m in pe.matches}
+    assert by[0].sigma_angle_deg == pytest.approx(0.01) and by[1].sigma_angle_deg == pytest.approx(0.3)
+    # only the precise plane is "well determined", and its 0.2 deg error is 20 of its sigmas
+    assert [m.est_id for m in pe.well_determined()] == [0]
+    assert pe.normalized_angle.max == pytest.approx(20.0)
+    assert pe.normalized_angle.n == 2  # the plane without a covariance is left out
+    js = pe.to_json()
+    assert js["well_determined"]["n"] == 1 and js["well_determined"]["angle_deg"]["max"] == pytest.approx(0.2)
 
 
 def test_majority() -> None:
