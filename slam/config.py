@@ -166,7 +166,9 @@ class EdgeSection(StrictModel):
 class BackEndConfig(StrictModel):
     """Factor graph: noise, robust kernel, priors, update cadence."""
 
-    robust: Literal["none", "huber", "cauchy"] = "huber"
+    robust: Literal["none", "huber", "cauchy"] = Field(
+        "cauchy", description="per-point robust kernel: cauchy is redescending (a segment of a door or board 1-2 cm "
+        "off the wall it was associated with stops pulling); huber keeps a constant pull")
     robust_k: float = Field(2.5, gt=0, description="kernel width in sigmas")
     motion_sigma_acc: float = Field(3.0, gt=0, description="m/s^2, constant-velocity prior")
     motion_sigma_angacc: float = Field(10.0, gt=0, description="rad/s^2")
