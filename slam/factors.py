@@ -42,8 +42,9 @@ Jacobians requested: Levenberg-Marquardt's step acceptance) the factor returns
 (Returning ``sqrt(2 rho)`` at linearisation too, with its exact derivative, gives steps that
 overshoot by far for points in the outlier regime, which iSAM2 does not damp; returning
 ``sqrt(w) e`` as the error too makes LM judge steps on ``sum w e^2``, another cost.)
-Cauchy (threshold 3 sigma) is the default in the back end: it is redescending, so a point
-associated with the wrong surface stops pulling; Huber keeps a constant pull and is convex.
+Cauchy is the default (``RobustKernel``: 3 sigma, the calibration's; the SLAM configuration's
+``backend.robust``: 2.5 sigma): it is redescending, so a point associated with the wrong surface
+(a door 1-2 cm behind its wall) stops pulling; Huber keeps a constant pull and is convex.
 :func:`robust_weights` gives the weights for diagnostics.
 """
 
