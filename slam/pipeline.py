@@ -178,6 +178,8 @@ class SlamRunner:
             drift_rate=fe.drift_rate,
             drift_rate_vertical=fe.drift_rate_vertical,
             extent_margin_cells=fe.extent_margin_cells,
+            child_margin_cells=fe.child_margin_cells,
+            child_host_normal=fe.child_host_normal,
         )
         self.loose = self.gates.loosened(fe.tracking_loosen)
         self.pmap = PlaneMap(cell_size=fe.extent_cell)
@@ -476,7 +478,9 @@ class SlamRunner:
         ws = world_segments(
             v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
         )
-        ids = associate(ws, self.pmap, self._odometer, gates)
+        fe = self.cfg.frontend
+        children = self._host_map() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
+        ids = associate(ws, self.pmap, self._odometer, gates, children)
         ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
         return ids
 

@@ -278,3 +278,53 @@ def test_association_gates_order_the_candidates_by_m2() -> None:
     assert 0 < ok.sum() < ok.size and (count > 1).any()
     for i in range(k):
         np.testing.assert_array_equal(order[i, : count[i]], np.flatnonzero(ok[i])[np.argsort(m2[i, ok[i]], kind="stable")])
+
+
+def _corridor_with_a_door() -> tuple[PlaneMap, int, int, np.random.Generator]:
+    """Wall y = 2 (x 0-12, normal -y towards the corridor) and a door x 4-5 set 1 cm into it,
+    fitted tilted by 0.5 deg about the vertical (through the door's centre), tied to the wall."""
+    rng = np.random.default_rng(11)
+    pmap = PlaneMap(cell_size=0.25)
+    wall = pmap.add(np.array([0.0, -1.0, 0.0]), 2.0, 1, 0.0, 0.0)
+    pts = np.column_stack((rng.uniform(0.0, 12.0, 400), np.full(400, 2.0), rng.uniform(0.0, 2.5, 400)))
+    pmap.extend(wall.id, pts)
+    a = np.radians(-0.5)  # the door's plane nears the wall towards +x
+    n = np.array([np.sin(a), -np.cos(a), 0.0])
+    centre = np.array([4.5, 2.01, 1.0])
+    door = pmap.add(n, -float(n @ centre), 1, 0.0, 0.0)
+    dp = np.column_stack((rng.uniform(4.0, 5.0, 100), np.full(100, 2.01), rng.uniform(0.0, 2.0, 100)))
+    pmap.extend(door.id, dp - (dp @ door.normal + door.d)[:, None] * door.normal)
+    return pmap, wall.id, door.id, rng
+
+
+def _wall_segments(xs: np.ndarray, y: float, rng: np.random.Generator):
+    k = xs.size
+    c = np.column_stack((xs, np.full(k, y), rng.uniform(0.5, 1.5, k)))
+    u = np.array([0.0, 0.0, 1.0])  # a tilted scanner's line across the wall: the tilt about the vertical is not in its angle
+    ends = np.stack((c - 0.2 * u, c + 0.2 * u), axis=1)
+    origin = np.array([float(xs.mean()), 0.5, 1.2])
+    return world_segments(ends * 0.8 + ends[:, ::-1] * 0.2, ends, np.full(k, 0.0005), 0.003, np.full(k, 60), origin)
+
+
+def test_a_tied_door_takes_neither_the_wall_beyond_its_extent_nor_by_its_tilt() -> None:
+    """The door's tilt brings its plane onto the wall a metre beside the door, where the wall's
+    segments (2 mm off it: the tracking's error) then lie nearer the door's plane than the
+    wall's, inside the door's extent grown by 4 cells: by default they go to the door. With the
+    child margin, the door's extent reaches one cell beyond the door only; with the host's
+    normal, the door's plane is 1 cm from the wall everywhere."""
+    pmap, wall, door, rng = _corridor_with_a_door()
+    # the door's plane at x = 5.8-5.95 lies 1.3-2.7 mm before the wall's, the segments 2 mm
+    segs = _wall_segments(np.linspace(5.8, 5.95, 8), 2.0 - 0.002, rng)
+    hosts = {door: wall}
+    base = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4))
+    assert (base == door).all()
+    margin = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_margin_cells=1), hosts)
+    assert (margin == wall).all()
+    normal = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_host_normal=True), hosts)
+    assert (normal == wall).all()
+    # the door's own segments still go to the door either way
+    on_door = _wall_segments(np.linspace(4.2, 4.8, 8), 2.01, rng)
+    for g in (Gates(extent_margin_cells=4, child_margin_cells=1), Gates(extent_margin_cells=4, child_host_normal=True)):
+        assert (associate(on_door, pmap, 0.0, g, hosts) == door).all()
+    # without children the options change nothing
+    assert (associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_margin_cells=1)) == door).all()

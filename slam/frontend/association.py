@@ -63,6 +63,11 @@ class Gates:
     max_drift_sigma: float = 0.05  # m, cap of the drift-grown offset uncertainty
     chi2: float = CHI2_2DOF_99
     max_endpoint_distance: float = 0.05  # m, hard cap on either endpoint's distance
+    # planes tied parallel to a host wall (doors, boards: ``associate``'s ``children``): their
+    # extent margin (cells, not grown with the drift; -1: as every plane's), and whether their
+    # distance is taken to the plane through their extent's centre with the host's normal
+    child_margin_cells: int = -1
+    child_host_normal: bool = False
 
     def loosened(self, factor: float) -> Gates:
         return Gates(
@@ -76,6 +81,8 @@ class Gates:
             self.max_drift_sigma,
             self.chi2,
             self.max_endpoint_distance * factor,
+            self.child_margin_cells,
+            self.child_host_normal,
         )
 
 
@@ -93,8 +100,18 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
     return WorldSegments(c, u, endpoints_world, sig_c, sig_dir, rng, origin_world)
 
 
-def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates) -> NDArray[np.int64]:
+def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates,
+              children: dict[int, int] | None = None) -> NDArray[np.int64]:
     """Plane id per segment, or -1 (no candidate, or ambiguous).
+
+    ``children`` maps the planes tied parallel to a host wall (a door set 1-2 cm into it, a board
+    1-2 cm proud of it) to their host. A door's segment and the wall's next to it differ by those
+    1-2 cm only, well inside the distance gate, so the nearer plane takes each; a child fitted a
+    little tilted is then nearer the wall's (or a neighbouring board's) segments at one end of its
+    extent, takes them, and tilts further. With ``gates.child_host_normal`` a child's distance is
+    taken to the plane with its host's normal through the centre of its extent (the tie's model,
+    which the child's own tilt cannot move), and with ``gates.child_margin_cells`` >= 0 its
+    extent is dilated by that many cells only (a door's extent does not reach the next board).
 
     The per-pair gates (angle and distance, end points, facing side) and every pair's extent
     cells are computed in one compiled pass (``slam.frontend_kernels.association_gates``); the
@@ -108,6 +125,21 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     # seen, in-plane axes u and v
     ids = [p.id for p in active]
     rows, horizontal = pmap.active_rows()
+    child_rows: list[int] = []
+    if children:
+        pos = {pid: j for j, pid in enumerate(ids)}
+        child_rows = [pos[c] for c in children if c in pos]
+        if gates.child_host_normal:
+            for j in child_rows:
+                host = pmap.planes[children[ids[j]]]
+                centre = pmap.cell_centres(ids[j])
+                if not host.active or centre.shape[0] == 0:
+                    continue
+                n = host.normal if float(host.normal @ rows[j, 0:3]) >= 0.0 else -host.normal
+                c = centre.mean(axis=0)
+                c = c - (float(rows[j, 0:3] @ c) + rows[j, 3]) * rows[j, 0:3]  # onto the child's plane
+                rows[j, 0:3] = n
+                rows[j, 3] = -float(n @ c)
     normals = np.ascontiguousarray(rows[:, 0:3])
     since = odometer - rows[:, 5]
     rate = np.where(horizontal, gates.drift_rate_vertical, gates.drift_rate)
@@ -125,6 +157,9 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     cell = pmap.cell_size
     # per plane: the extent margin grown with the drift since it was seen (cells)
     dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
+    if gates.child_margin_cells >= 0:
+        for j in child_rows:
+            dilate[j] = gates.child_margin_cells
     same_normal = float(np.cos(np.radians(2.0)))
     for k in hit.tolist():
         # the candidates by increasing m2; the segment's two end points and centroid (world
