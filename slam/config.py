@@ -92,15 +92,15 @@ class FrontEndConfig(StrictModel):
         0.05, ge=0, description="m, a new plane this close to an established one and within parallel_max_angle_deg "
         "of it is tied parallel to it (doors, boards); 0 = never")
     parallel_max_angle_deg: float = Field(
-        10.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off (office: a plane "
-        "fitted across a door's edge, 6.3 deg off its wall, was left untied at 6)")
+        6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off (office: a plane "
+        "fitted across a door's edge, 6.3 deg off its wall, is left untied at 6; configs/slam/best_planes.yaml: 10)")
     parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
     child_margin_cells: int = Field(
-        1, ge=-1, description="cells by which the extent of a plane tied parallel to its wall (a door, a board) "
+        -1, ge=-1, description="cells by which the extent of a plane tied parallel to its wall (a door, a board) "
         "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane. A door's "
         "extent grown by a metre reaches the wall and the boards beside it, whose segments lie 1-3 cm off the door")
     child_host_normal: bool = Field(
-        True, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
+        False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
         "wall's normal through the centre of its extent: a door fitted a little tilted is otherwise nearer the wall's "
         "or a neighbouring board's segments at one end, takes them and tilts further (office: 0.4 deg)")
     wall_faces: bool = Field(
