@@ -22,30 +22,31 @@ from slam.export import OutputFileError, read_trajectory_tum
 from slam.interpolation import interpolate_trajectory
 
 
-def start_aligned_errors(gt_dir: Path, run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Times (s from the run's start) and position errors (n, 3) in the world frame [m] of a run
-    aligned to the ground truth at its first pose; poses after the ground truth's end are dropped."""
+def _start_aligned(gt_dir: Path, run_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times (s from the run's start), the run's poses aligned to the ground truth at its first
+    pose and the true poses at those times (n, 4, 4); poses after the ground truth's end are dropped."""
     t_gt, T_gt = read_trajectory_tum(gt_dir / "trajectory.tum")
     t, T = read_trajectory_tum(run_dir / "trajectory.tum")
     keep = (t >= t_gt[0]) & (t <= t_gt[-1])
     t, T = t[keep], T[keep]
     G = interpolate_trajectory(t_gt, T_gt, t)
     A = G[0] @ np.linalg.inv(T[0])
-    E = np.einsum("ij,njk->nik", A, T)[:, :3, 3] - G[:, :3, 3]
-    return t - t[0], E
+    return t - t[0], np.einsum("ij,njk->nik", A, T), G
+
+
+def start_aligned_errors(gt_dir: Path, run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Times (s from the run's start) and position errors (n, 3) in the world frame [m] of a run
+    aligned to the ground truth at its first pose; poses after the ground truth's end are dropped."""
+    t, T, G = _start_aligned(gt_dir, run_dir)
+    return t, T[:, :3, 3] - G[:, :3, 3]
 
 
 def start_aligned_heading_errors(gt_dir: Path, run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """Times (s from the run's start) and the heading error (rad, about world z) of the body
     attitude of a run aligned to the ground truth at its first pose."""
-    t_gt, T_gt = read_trajectory_tum(gt_dir / "trajectory.tum")
-    t, T = read_trajectory_tum(run_dir / "trajectory.tum")
-    keep = (t >= t_gt[0]) & (t <= t_gt[-1])
-    t, T = t[keep], T[keep]
-    G = interpolate_trajectory(t_gt, T_gt, t)
-    A = G[0][:3, :3] @ T[0][:3, :3].T
-    dR = np.einsum("ij,njk,nlk->nil", A, T[:, :3, :3], G[:, :3, :3])  # A R_est R_true^T, world frame
-    return t - t[0], np.arctan2(dR[:, 1, 0] - dR[:, 0, 1], dR[:, 0, 0] + dR[:, 1, 1])
+    t, T, G = _start_aligned(gt_dir, run_dir)
+    dR = np.einsum("nij,nkj->nik", T[:, :3, :3], G[:, :3, :3])  # R_est R_true^T, world frame
+    return t, np.arctan2(dR[:, 1, 0] - dR[:, 0, 1], dR[:, 0, 0] + dR[:, 1, 1])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.plot(t, np.abs(E[:, 0]) * 1000, "--", color=line.get_color(), lw=0.8, label=f"{label} |x|")
         if a.heading:
             th, yaw = start_aligned_heading_errors(a.gt, Path(folder))
-            rms = float(np.sqrt(np.mean(yaw**2))) * 1e6 * 180 / np.pi / 1000
+            rms = float(np.degrees(np.sqrt(np.mean(yaw**2)))) * 1000
             axes[1, 0].plot(th, np.degrees(yaw) * 1000, lw=0.6, color=line.get_color(),
                             label=f"{label} (RMS {rms:.0f} mdeg)")
     axes[-1, 0].set_xlabel("time since start (s)")

@@ -572,6 +572,7 @@ class PlaneEval:
 
     def to_json(self) -> dict[str, Any]:
         true_ids = [m.true_id for m in self.matches]
+        wd = self.well_determined()
         by_kind: dict[str, dict[str, Any]] = {}
         for kind in sorted({m.kind for m in self.matches}):
             ms = [m for m in self.matches if m.kind == kind]
@@ -591,8 +592,8 @@ class PlaneEval:
             "offset_m": self.offset.to_json(),
             "well_determined": {
                 "definition": f"planes whose reported 1-sigma normal error is <= {WELL_DETERMINED_SIGMA_DEG} deg",
-                "n": len(self.well_determined()),
-                "angle_deg": Stats.of([m.angle_deg for m in self.well_determined()]).to_json(),
+                "n": len(wd),
+                "angle_deg": Stats.of([m.angle_deg for m in wd]).to_json(),
             },
             "angle_over_sigma": self.normalized_angle.to_json(),
             "by_kind": by_kind,

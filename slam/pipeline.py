@@ -169,7 +169,6 @@ class SlamRunner:
         self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
         self.preparer = ScanPreparer(rig, cfg, imu)
-        self.segmenter = self.preparer.segmenter
         fe, be = cfg.frontend, cfg.backend
         self.gates = Gates(
             sigma_pose=fe.sigma_pose,
@@ -383,7 +382,10 @@ class SlamRunner:
         self.stats["scans"] += 1
         if self.t0 is None:
             self.t0 = scan.stamp
-            self._deskew = knot_deskew(self.cfg, self.imu, scan.stamp)
+            # the table the runner's own preparer built for this stream, else (scans prepared in
+            # another process) the same one built here
+            own = self.preparer.t0 == scan.stamp
+            self._deskew = self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp)
             self._append_knot(self._initial_pose(scan.stamp))
         self._timer.t["segmentation"] = self._timer.t.get("segmentation", 0.0) + scan.seconds_segmentation
         self._timer.t["frontend"] = self._timer.t.get("frontend", 0.0) + scan.seconds_lift
@@ -395,7 +397,7 @@ class SlamRunner:
             self.stats["segments"] += segs.n_segments
             self._pending.append(
                 _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64),
-                         edge_tests=dict(scan.edge_tests))
+                         edge_tests=scan.edge_tests)  # the scan is handed over: its tests are the pending's
             )
             self._serial += 1
         self._timer.add("frontend", t_start)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,18 @@ from slam.scan_prep import PreparedScan, ScanPreparer
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
 _DONE = "done"
 _ERROR = "error"
+
+
+def get_from_children(q: Any, procs: Sequence[Any], what: str) -> Any:
+    """The next item that the forked processes ``procs`` put on ``q``, waiting while any of them
+    lives; a RuntimeError naming ``what`` when they have all stopped without one."""
+    while True:
+        try:
+            return q.get(timeout=_POLL_S)
+        except queue_mod.Empty:
+            if not any(p.is_alive() for p in procs):
+                codes = ", ".join(str(p.exitcode) for p in procs)
+                raise RuntimeError(f"{what}: stopped without a result (exit code {codes})") from None
 
 
 def can_fork_reader() -> bool:
@@ -87,12 +99,7 @@ def _from_reader(
     proc.start()
     try:
         while True:
-            try:
-                item = q.get(timeout=_POLL_S)
-            except queue_mod.Empty:
-                if not proc.is_alive():
-                    raise RuntimeError(f"{bag}: the scan reader process stopped (exit code {proc.exitcode})") from None
-                continue
+            item = get_from_children(q, [proc], f"{bag}: the scan reader process")
             if isinstance(item, str) and item == _DONE:
                 break
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:

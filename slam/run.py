@@ -20,7 +20,6 @@ walk's length (beyond the segments' end points and the recording's capped subset
 from __future__ import annotations
 
 import multiprocessing as mp
-import queue as queue_mod
 import resource
 import sys
 import time
@@ -52,7 +51,7 @@ from slam.io.bag import read_imu, read_scans, topics
 from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
 from slam.placement import place_points
-from slam.prefetch import can_fork_reader, prepared_scans
+from slam.prefetch import can_fork_reader, get_from_children, prepared_scans
 from slam.rerun_map import MapOptions, SegmentLines, view_of_cloud_ply, write_map_rrd
 
 FloatArray = NDArray[np.float64]
@@ -311,16 +310,10 @@ def _cloud_part_process(part: int, bag: str | Path, rig: Rig, res: SlamResult, r
 
 def _next_part(bag: str | Path, q: Any, procs: list[Any]) -> tuple[int, _CloudPart]:
     """The next result of the export processes; their exception is raised here."""
-    while True:
-        try:
-            part, result = q.get(timeout=1.0)
-        except queue_mod.Empty:
-            if not any(p.is_alive() for p in procs):
-                raise RuntimeError(f"{bag}: an export process stopped without a result") from None
-            continue
-        if isinstance(result, BaseException):
-            raise result
-        return part, result
+    part, result = get_from_children(q, procs, f"{bag}: the cloud export processes")
+    if isinstance(result, BaseException):
+        raise result
+    return part, result
 
 
 def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool,
@@ -342,8 +335,7 @@ def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool
         processes = 1
     processes = max(1, min(processes, n_scans))
     cuts = [round(i * n_scans / processes) for i in range(processes + 1)]
-    if processes == 1:
-        cuts[-1] = 1 << 62  # every scan of the stream, however many
+    cuts[-1] = sys.maxsize  # the last part takes the rest of the stream
     ctx = mp.get_context("fork") if processes > 1 else None
     q: Any = ctx.Queue() if ctx is not None else None
     procs = []
@@ -356,8 +348,8 @@ def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool
                 p.start()
                 procs.append(p)
         with cloud_ply_writer(ply) as writer:
-            with tqdm(total=cuts[1] if processes > 1 else n_scans, desc="cloud" if processes == 1 else
-                      f"cloud (part 1 of {processes})", disable=not progress, leave=False) as bar:
+            desc = "cloud" if processes == 1 else f"cloud (part 1 of {processes})"
+            with tqdm(total=min(cuts[1], n_scans), desc=desc, disable=not progress, leave=False) as bar:
                 parts = [_cloud_part(bag, rig, res, writer, cuts[0], cuts[1], bar)]
             others = dict(_next_part(bag, q, procs) for _ in procs)
             for i in range(1, processes):
@@ -365,17 +357,16 @@ def _cloud(bag: str | Path, rig: Rig, res: SlamResult, ply: Path, progress: bool
                 parts.append(others[i])
             n_points = writer.count
     finally:
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
-            p.join()
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+            proc.join()
         for path in row_files:
             path.unlink(missing_ok=True)
-    endpoints = np.concatenate([p.endpoints_world for p in parts])
     lines = SegmentLines(
-        np.asarray([t for p in parts for t in p.seg_stamp], dtype=np.float64),
-        endpoints.reshape(-1, 2, 3),
-        np.asarray([i for p in parts for i in p.seg_pid], dtype=np.int32),
+        np.asarray([t for part in parts for t in part.seg_stamp], dtype=np.float64),
+        np.concatenate([part.endpoints_world for part in parts]).reshape(-1, 2, 3),
+        np.asarray([i for part in parts for i in part.seg_pid], dtype=np.int32),
     )
     return n_points, lines
 

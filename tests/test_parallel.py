@@ -146,3 +146,26 @@ def test_the_precomputed_edge_tests_are_those_the_front_end_computes(walk: Simul
     assert a.stats["edge_observations"] == b.stats["edge_observations"] > 0
     np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
     np.testing.assert_array_equal(a.plane_normals, b.plane_normals)
+
+
+def test_scans_fed_raw_or_prepared_elsewhere_give_the_same_run(walk: SimulationResult, rig: Any) -> None:
+    """``add_scan`` (the runner prepares each scan itself, and reuses its preparer's deskew table)
+    and ``add_prepared`` from the reader process give the same estimate."""
+    from slam.io.bag import read_scans
+    from slam.pipeline import SlamRunner
+
+    cfg = SlamConfig()
+    t0, t1 = bag_time_range(walk.bag)
+    imu = load_imu(walk.bag, cfg, t0, t1)
+    raw, prepared = SlamRunner(rig, cfg, imu), SlamRunner(rig, cfg, imu)
+    for line in read_scans(walk.bag, rig=rig):
+        raw.add_scan(line)
+    for scan in prepared_scans(walk.bag, rig, cfg, imu, process=True):
+        prepared.add_prepared(scan)
+    results = []
+    for runner in (raw, prepared):
+        runner.finish()
+        results.append(runner.result(batch=False))
+    assert raw.preparer.deskew is not None and results[0].deskew is raw.preparer.deskew
+    np.testing.assert_array_equal(results[0].T_world_body, results[1].T_world_body)
+    np.testing.assert_array_equal(results[0].deskew.rotvec, results[1].deskew.rotvec)
