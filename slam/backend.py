@@ -402,6 +402,31 @@ class Backend:
         e = terms.residuals / blk.sigmas
         return e, robust_weights(e, self.config.kernel)
 
+    def trim_observations(self, max_whitened: float, min_distance: float) -> tuple[int, int]:
+        """Detach the points that do not fit their plane at the current estimate: those whose
+        point-to-plane residual exceeds both ``max_whitened`` sigmas and ``min_distance`` [m]
+        (a wall's segment on the plane of its door or board, 1-2 cm off, or the other way
+        round). Blocks keep their other points; a block left empty is removed. Returns (points
+        detached, blocks changed)."""
+        if not (max_whitened > 0.0 and min_distance >= 0.0):
+            raise ValueError(f"trim thresholds: expected > 0 and >= 0, got {max_whitened}, {min_distance}")
+        n_points = n_blocks = 0
+        for bid in list(self._blocks):
+            blk = self._blocks[bid]
+            e, _ = self.block_residuals(bid)
+            out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
+            if not out.any():
+                continue
+            n_points += int(out.sum())
+            n_blocks += 1
+            keep = ~out
+            if not keep.any():
+                self.remove_observations(bid)
+            else:
+                self.replace_observations(bid, blk.points[keep], None if blk.alphas is None else blk.alphas[keep],
+                                          blk.sigmas[keep])
+        return n_points, n_blocks
+
     # ----------------------------------------------------------------- planes
     def merge_planes(self, keep_id: int, drop_id: int) -> int:
         """Merge plane ``drop_id`` into ``keep_id``: its blocks are re-keyed onto ``keep_id`` (same
@@ -573,15 +598,17 @@ class Backend:
         self._isam_fresh = True
 
     def batch_optimize(self, max_iterations: int | None = None,
-                       graduated: bool = True) -> OptimizeSummary:
+                       graduated: bool = True, kernel: RobustKernel | None = None) -> OptimizeSummary:
         """A batch solve (:meth:`_solve_batch`) over every factor from the current estimate; with ``graduated``
         (and a robust kernel) first with the kernel threshold scaled by each
-        ``config.robust_schedule`` multiplier, then nominal. iSAM2 is rebuilt from the result at
+        ``config.robust_schedule`` multiplier, then nominal. ``kernel``: the observation blocks'
+        kernel for this solve (None: ``config.kernel``). iSAM2 is rebuilt from the result at
         the next :meth:`update`."""
-        graph = self._graph()
+        own = kernel is None or kernel == self.config.kernel
+        kernel = self.config.kernel if kernel is None else kernel
+        graph = self._graph() if own else self._graph(kernel=kernel)
         values = self._used_values(graph)
         e0 = graph.error(values)
-        kernel = self.config.kernel
         robust = graduated and kernel.name != "none" and bool(self._blocks)
         scales = list(self.config.robust_schedule) if robust else []
         t0 = _time.perf_counter()

@@ -103,6 +103,10 @@ class FrontEndConfig(StrictModel):
         False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
         "wall's normal through the centre of its extent: a door fitted a little tilted is otherwise nearer the wall's "
         "or a neighbouring board's segments at one end, takes them and tilts further (office: 0.4 deg)")
+    host_pair_unambiguous: bool = Field(
+        False, description="with child_host_normal: a segment under the gates of both a door (or board) and its own "
+        "wall goes to the nearer instead of being left out as ambiguous (left out, the wall's segments beside a door "
+        "make new planes that merge back into the wall, thousands a walk)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "
@@ -175,10 +179,13 @@ class EdgeSection(StrictModel):
 class BackEndConfig(StrictModel):
     """Factor graph: noise, robust kernel, priors, update cadence."""
 
-    robust: Literal["none", "huber", "cauchy"] = Field(
+    robust: Literal["none", "huber", "cauchy", "geman_mcclure"] = Field(
         "cauchy", description="per-point robust kernel: cauchy is redescending (a segment of a door or board 1-2 cm "
         "off the wall it was associated with stops pulling); huber keeps a constant pull")
     robust_k: float = Field(2.5, gt=0, description="kernel width in sigmas")
+    final_robust: Literal["same", "none", "huber", "cauchy", "geman_mcclure"] = Field(
+        "same", description="kernel of the final batch (same: robust); geman_mcclure weighs a point far off "
+        "~(k/e)^4 instead of Cauchy's (k/e)^2")
     motion_sigma_acc: float = Field(3.0, gt=0, description="m/s^2, constant-velocity prior")
     motion_sigma_angacc: float = Field(10.0, gt=0, description="rad/s^2")
     horizontal_prior_deg: float = Field(0.01, gt=0, description="sigma keeping floors/ceilings horizontal")
@@ -195,6 +202,11 @@ class BackEndConfig(StrictModel):
     window_iterations: int = Field(4, ge=1, description="Gauss-Newton iterations per window solve")
     final_batch: bool = True
     batch_iterations: int = Field(10, ge=1)
+    final_trim_sigmas: float = Field(
+        0.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
+        "sigmas and final_trim_distance, then solve again (0: off)")
+    final_trim_distance: float = Field(0.006, ge=0, description="m, see final_trim_sigmas")
+    final_trim_iterations: int = Field(4, ge=1, description="iterations of the solve after the trim")
 
 
 class ImuSection(StrictModel):

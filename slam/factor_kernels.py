@@ -120,9 +120,26 @@ def two_pose_terms(
     return res, Ha, Hb, Hp, mk, dra
 
 
+@nb.njit(cache=True, inline="always")
+def _rho_w(e: float, kernel: int, k: float) -> tuple[float, float]:
+    """Loss ``rho(e)`` and IRLS weight ``w(e)`` of a whitened residual: 0 none, 1 Huber, 2 Cauchy,
+    3 Geman-McClure (``rho = k^2 e^2 / (2 (k^2 + e^2))``: a point far off weighs ~(k/e)^4, not
+    Cauchy's (k/e)^2, so a wall's segments 1-2 cm off a board's plane stop tilting it)."""
+    if kernel == 0:
+        return 0.5 * e * e, 1.0
+    x = abs(e)
+    if kernel == 1:
+        return (0.5 * e * e, 1.0) if x <= k else (k * x - 0.5 * k * k, k / x)
+    if kernel == 2:
+        u2 = (e / k) ** 2
+        return 0.5 * k * k * math.log1p(u2), 1.0 / (1.0 + u2)
+    q = k * k / (k * k + e * e)
+    return 0.5 * e * e * q, q * q
+
+
 @nb.njit(cache=True)
-def robust_rows(e: FloatArray, huber: bool, k: float, linearize: bool) -> tuple[FloatArray, FloatArray]:
-    """Compiled :func:`slam.factors.robust_rows` for the Huber (``huber``) or Cauchy kernel of
+def robust_rows(e: FloatArray, kernel: int, k: float, linearize: bool) -> tuple[FloatArray, FloatArray]:
+    """Compiled :func:`slam.factors.robust_rows` for ``kernel`` (1 Huber, 2 Cauchy, 3 Geman-McClure) of
     threshold ``k``: the N + 1 rows and the IRLS scales ``sqrt(w)`` (N,) (empty unless
     ``linearize``). One pass; the numpy formulation costs ~30 us a block in ``np.where`` calls."""
     n = e.shape[0]
@@ -131,14 +148,7 @@ def robust_rows(e: FloatArray, huber: bool, k: float, linearize: bool) -> tuple[
     correction = 0.0
     for i in range(n):
         x = e[i]
-        a = abs(x)
-        if huber:
-            rho = 0.5 * x * x if a <= k else k * a - 0.5 * k * k
-            w = 1.0 if a <= k else k / a
-        else:
-            u = (x / k) ** 2
-            rho = 0.5 * k * k * math.log1p(u)
-            w = 1.0 / (1.0 + u)
+        rho, w = _rho_w(x, kernel, k)
         if linearize:
             s = math.sqrt(w)
             sw[i] = s
@@ -219,15 +229,7 @@ def group_rows(
         for r1 in range(3):
             q[r1] = E[r1, 0] * p0 + E[r1, 1] * p1 + E[r1, 2] * p2
         e = (q[0] * m_a[j, 0] + q[1] * m_a[j, 1] + q[2] * m_a[j, 2] + d0[j] + a * dn[j]) * inv_s[m]
-        x = abs(e)
-        if kernel == 0:
-            rho, w = 0.5 * e * e, 1.0
-        elif kernel == 1:
-            rho = 0.5 * e * e if x <= k else k * x - 0.5 * k * k
-            w = 1.0 if x <= k else k / x
-        else:
-            u2 = (e / k) ** 2
-            rho, w = 0.5 * k * k * math.log1p(u2), 1.0 / (1.0 + u2)
+        rho, w = _rho_w(e, kernel, k)
         if not linearize:
             s = math.sqrt(2.0 * rho)
             rows[m] = s if e >= 0.0 else -s

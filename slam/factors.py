@@ -63,7 +63,9 @@ from slam.factor_kernels import two_pose_terms
 from slam.interpolation import hat3
 
 FloatArray = NDArray[np.float64]
-KernelName = Literal["none", "huber", "cauchy"]
+# the compiled kernels' codes (slam.factor_kernels)
+_KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2, "geman_mcclure": 3}
+KernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
 
 @dataclass(frozen=True)
@@ -74,8 +76,8 @@ class RobustKernel:
     threshold: float = 3.0
 
     def __post_init__(self) -> None:
-        if self.name not in ("none", "huber", "cauchy"):
-            raise ValueError(f"robust kernel name: expected none, huber or cauchy, got {self.name!r}")
+        if self.name not in _KERNEL_CODE:
+            raise ValueError(f"robust kernel name: expected none, huber, cauchy or geman_mcclure, got {self.name!r}")
         if not (np.isfinite(self.threshold) and self.threshold > 0.0):
             raise ValueError(f"robust kernel threshold: must be > 0, got {self.threshold}")
 
@@ -89,6 +91,8 @@ def robust_loss(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
     if kernel.name == "huber":
         a = np.abs(e)
         return np.where(a <= k, 0.5 * e * e, k * a - 0.5 * k * k)
+    if kernel.name == "geman_mcclure":
+        return 0.5 * k * k * e * e / (k * k + e * e)
     return 0.5 * k * k * np.log1p((e / k) ** 2)
 
 
@@ -100,6 +104,8 @@ def robust_weights(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
         return np.ones_like(e)
     if kernel.name == "huber":
         return np.minimum(1.0, k / np.maximum(np.abs(e), 1e-300))
+    if kernel.name == "geman_mcclure":
+        return (k * k / (k * k + e * e)) ** 2
     return 1.0 / (1.0 + (e / k) ** 2)
 
 
@@ -117,12 +123,12 @@ def robust_rows(e: FloatArray, kernel: RobustKernel, linearize: bool) -> tuple[F
     Without a kernel: ``e``, ``1``. With one, N + 1 rows: for an error evaluation the robust
     residuals ``sign(e) sqrt(2 rho(e))`` and 0; when linearising the IRLS rows ``sqrt(w) e``
     (Gauss-Newton steps of iteratively reweighted least squares) and one row with no Jacobian,
-    ``sqrt(2 sum(rho - w e^2 / 2))`` (>= 0 for Huber and Cauchy), so that a linearisation's
+    ``sqrt(2 sum(rho - w e^2 / 2))`` (>= 0 for Huber, Cauchy and Geman-McClure), so that a linearisation's
     ``0.5 ||b||^2`` is the robust cost at its point: the solver takes an accepted step's error
     from the linearisation it needs next anyway (:mod:`slam.solver`)."""
     if kernel.name == "none":
         return e, (np.ones_like(e) if linearize else None)
-    out, sw = _fk.robust_rows(np.ascontiguousarray(e, dtype=np.float64), kernel.name == "huber",
+    out, sw = _fk.robust_rows(np.ascontiguousarray(e, dtype=np.float64), _KERNEL_CODE[kernel.name],
                               float(kernel.threshold), linearize)
     return out, (sw if linearize else None)
 
@@ -333,7 +339,6 @@ def _block_factor(
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
 
 
-_KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2}
 
 
 def point_planes_factor(

@@ -179,6 +179,7 @@ class SlamRunner:
             extent_margin_cells=fe.extent_margin_cells,
             child_margin_cells=fe.child_margin_cells,
             child_host_normal=fe.child_host_normal,
+            host_pair_unambiguous=fe.host_pair_unambiguous,
         )
         self.loose = self.gates.loosened(fe.tracking_loosen)
         self.pmap = PlaneMap(cell_size=fe.extent_cell)
@@ -1166,7 +1167,14 @@ class SlamRunner:
         summary = None
         self.backend.fold_links()
         if batch and self._n_knots >= 2:
-            summary = self.backend.batch_optimize(self.cfg.backend.batch_iterations, graduated=False)
+            be = self.cfg.backend
+            final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
+            summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
+            if be.final_trim_sigmas > 0:
+                n_pts, n_blk = self.backend.trim_observations(be.final_trim_sigmas, be.final_trim_distance)
+                self.stats["trimmed_points"], self.stats["trimmed_blocks"] = n_pts, n_blk
+                if n_pts:
+                    summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
         self._timer.add("batch", t)
         poses = self.backend.poses()
         ids, normals, offsets = self.backend.planes()

@@ -139,7 +139,7 @@ def test_cauchy_limits_the_pull_of_a_door_set_into_its_wall() -> None:
     (a 1 m stretch of both end walls, 2-3 % of the points). Huber keeps pulling with a constant
     force; the redescending Cauchy (the back end's default, 2.5 sigma) lets them go, so the poses
     stay closer to the truth."""
-    errs = {"cauchy": 0.0, "huber": 0.0}
+    errs = {"cauchy": 0.0, "huber": 0.0, "geman_mcclure": 0.0}
     for lo, hi, depth in ((0.5, 1.5, 0.012), (1.0, 2.0, 0.015)):
         scene = make_scene(duration=1.5, beams=61, sigma_range=0.003, seed=11)
         door = []
@@ -161,6 +161,7 @@ def test_cauchy_limits_the_pull_of_a_door_set_into_its_wall() -> None:
             be.batch_optimize()
             errs[name] += float(np.linalg.norm(_pose_errors(scene.knot_poses, be.poses())[:, 3:], axis=1).mean())
     assert errs["cauchy"] < 0.75 * errs["huber"], errs
+    assert errs["geman_mcclure"] < errs["cauchy"], errs  # (k/e)^4: the door's points weigh less still
 
 
 def test_merge_planes_rekeys_blocks(clean_scene: Scene) -> None:
@@ -514,3 +515,45 @@ def gtsam_key_p(j: int) -> int:
     from gtsam.symbol_shorthand import P
 
     return int(P(j))
+
+
+def test_trim_detaches_a_door_on_its_wall_and_the_rest_stays() -> None:
+    """Returns of a door 15 mm behind its wall, associated with the wall: after a batch, the trim
+    detaches those points (and hardly any other), and the solve after it gives what the walk without
+    them gives; an invalid threshold is an error naming it."""
+    scene = make_scene(duration=1.5, beams=61, sigma_range=0.003, seed=11)
+    door = []
+    for b in scene.blocks:
+        hit = np.zeros(b["points_scanner"].shape[0], dtype=bool)
+        if b["plane"] == 2:  # the wall x = -4
+            T_wb = scene.knot_poses[b["knot"]]
+            y_world = (b["points_body"] @ T_wb[:3, :3].T + T_wb[:3, 3])[:, 1]
+            hit = (y_world > 0.5) & (y_world < 0.8)
+            # 15 mm behind the wall (world -x), in the body frame
+            b["points_body"] = b["points_body"] + np.where(hit, 1.0, 0.0)[:, None] * (T_wb[:3, :3].T @ [-0.015, 0, 0])
+        door.append(hit)
+    n_door = int(np.concatenate(door).sum())
+    assert 20 < n_door < 0.15 * sum(b["points_body"].shape[0] for b in scene.blocks if b["plane"] == 2)
+    be = _build(scene, BackendConfig(kernel=RobustKernel("cauchy", 2.5)), seed=12)
+    be.batch_optimize()
+    # the same walk without the door's returns: what the trim should give
+    clean = make_scene(duration=1.5, beams=61, sigma_range=0.003, seed=11)
+    for b, hit in zip(clean.blocks, door, strict=True):
+        for key in ("points_body", "points_scanner", "alphas"):
+            b[key] = b[key][~hit]
+        b["sigmas"] = b["sigmas"][~hit] if np.ndim(b["sigmas"]) else b["sigmas"]
+    ref = _build(clean, BackendConfig(kernel=RobustKernel("cauchy", 2.5)), seed=12)
+    ref.batch_optimize()
+
+    def gap() -> float:
+        return float(np.abs(be.poses()[:, :3, 3] - ref.poses()[:, :3, 3]).max())
+
+    before = gap()
+    n_points, n_blocks = be.trim_observations(4.0, 0.006)
+    assert 0.9 * n_door <= n_points <= n_door + 0.002 * sum(b["points_body"].shape[0] for b in scene.blocks)
+    assert n_blocks > 0
+    be.batch_optimize(graduated=False)
+    assert gap() < 0.35 * before
+    assert be.trim_observations(4.0, 0.006)[0] < 0.1 * n_door  # nothing left to detach
+    with pytest.raises(ValueError, match="trim thresholds"):
+        be.trim_observations(0.0, 0.006)

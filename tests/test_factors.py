@@ -35,7 +35,8 @@ from slam.motion import (
     horizontal_plane_prior,
 )
 
-KERNELS = [RobustKernel("none"), RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7)]
+KERNELS = [RobustKernel("none"), RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7),
+           RobustKernel("geman_mcclure", 0.7)]
 
 
 def _random_pose(rng: np.random.Generator, rot: float = 1.0) -> gtsam.Pose3:
@@ -211,6 +212,18 @@ def test_robust_weights_downweight_large_residuals() -> None:
     wh = robust_weights(e, RobustKernel("huber", 3.0))
     assert wc[0] == 1.0 and wc[-1] < 0.02 and np.all(np.diff(wc) < 0)
     np.testing.assert_allclose(wh, [1.0, 1.0, 1.0, 0.1])
+    wg = robust_weights(e, RobustKernel("geman_mcclure", 3.0))
+    assert wg[0] == 1.0 and np.all(np.diff(wg) < 0) and wg[-1] < 0.1 * wc[-1]
+
+
+@pytest.mark.parametrize("name", ["huber", "cauchy", "geman_mcclure"])
+def test_robust_weights_are_the_loss_derivative_over_e(name: str) -> None:
+    """IRLS weight w = rho'(e) / e, by central differences of :func:`robust_loss`."""
+    k = RobustKernel(name, 2.5)
+    e = np.array([-40.0, -7.0, -1.3, 0.4, 2.0, 3.1, 12.0])
+    h = 1e-6
+    d = (robust_loss(e + h, k) - robust_loss(e - h, k)) / (2 * h)
+    np.testing.assert_allclose(robust_weights(e, k), d / e, rtol=1e-6)
 
 
 def test_block_input_errors_are_clear() -> None:
