@@ -103,10 +103,6 @@ class FrontEndConfig(StrictModel):
         False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
         "wall's normal through the centre of its extent: a door fitted a little tilted is otherwise nearer the wall's "
         "or a neighbouring board's segments at one end, takes them and tilts further (office: 0.4 deg)")
-    host_pair_unambiguous: bool = Field(
-        False, description="with child_host_normal: a segment under the gates of both a door (or board) and its own "
-        "wall goes to the nearer instead of being left out as ambiguous (left out, the wall's segments beside a door "
-        "make new planes that merge back into the wall, thousands a walk)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "
@@ -203,10 +199,12 @@ class BackEndConfig(StrictModel):
     final_batch: bool = True
     batch_iterations: int = Field(10, ge=1)
     final_trim_sigmas: float = Field(
-        0.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
+        3.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
         "sigmas and final_trim_distance, then solve again (0: off)")
-    final_trim_distance: float = Field(0.006, ge=0, description="m, see final_trim_sigmas")
-    final_trim_iterations: int = Field(4, ge=1, description="iterations of the solve after the trim")
+    final_trim_distance: float = Field(0.004, ge=0, description="m, see final_trim_sigmas")
+    final_trim_iterations: int = Field(4, ge=1, description="iterations of the solve after each trim")
+    final_trim_rounds: int = Field(3, ge=1, description="trims, each followed by a solve (a plane that took another "
+                                   "surface's segments moves onto its own with each round)")
 
 
 class ImuSection(StrictModel):

@@ -79,9 +79,11 @@ def plot_error_over_distance(traj: TrajectoryEval, path: Path) -> Path:
 
 
 def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
-    """Histograms of angle (deg) and signed offset (mm) errors of the matched planes."""
-    fig = Figure(figsize=(9, 3.8))
-    ax1, ax2 = fig.subplots(1, 2)
+    """Histograms of angle (deg) and signed offset (mm) errors of the matched planes, and each
+    plane's angle error against its own reported 1-sigma (log-log, by the true plane's kind):
+    points near the diagonal are planes as good as their data allow."""
+    fig = Figure(figsize=(13, 3.8))
+    ax1, ax2, ax3 = fig.subplots(1, 3)
     ang = np.array([m.angle_deg for m in planes.matches])
     off = 1000.0 * np.array([m.offset_m for m in planes.matches])
     ax1.hist(ang, bins=30, color="tab:blue")
@@ -94,9 +96,29 @@ def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
         f"median |offset| {np.median(np.abs(off)):.1f} mm" if off.size else "no matches",
         fontsize=10,
     )
+    sig = np.array([m.sigma_angle_deg for m in planes.matches])
+    ok = np.isfinite(sig) & (sig > 0)
+    if ok.any():
+        kinds = np.array([m.kind for m in planes.matches])
+        floor = 1e-4
+        for kind in sorted(set(kinds[ok].tolist())):
+            sel = ok & (kinds == kind)
+            ax3.scatter(sig[sel], np.maximum(ang[sel], floor), s=12, label=kind)
+        lo, hi = max(min(sig[ok].min(), ang[ok].min()), floor) / 2, max(sig[ok].max(), ang[ok].max()) * 2
+        xs = np.array([lo, hi])
+        ax3.plot(xs, xs, "k-", lw=0.8, label="error = sigma")
+        ax3.plot(xs, 3 * xs, "k--", lw=0.8, label="3 sigma")
+        ax3.axhline(0.1, color="tab:red", lw=0.8, label="0.1 deg")
+        ax3.set_xscale("log")
+        ax3.set_yscale("log")
+        ax3.legend(fontsize=7, loc="upper left")
+    ax3.set_xlabel("reported sigma of the normal (deg)")
+    ax3.set_ylabel("angle error (deg)")
+    ax3.set_title("error against the plane's own uncertainty", fontsize=10)
     fig.suptitle(
         f"{len(planes.matches)} of {planes.n_estimated} estimated planes matched", fontsize=10
     )
+    fig.tight_layout()
     return _save(fig, path)
 
 

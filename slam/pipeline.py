@@ -179,7 +179,6 @@ class SlamRunner:
             extent_margin_cells=fe.extent_margin_cells,
             child_margin_cells=fe.child_margin_cells,
             child_host_normal=fe.child_host_normal,
-            host_pair_unambiguous=fe.host_pair_unambiguous,
         )
         self.loose = self.gates.loosened(fe.tracking_loosen)
         self.pmap = PlaneMap(cell_size=fe.extent_cell)
@@ -288,6 +287,8 @@ class SlamRunner:
             "edges_created": 0,
             "edges_merged": 0,
             "edge_observations": 0,
+            "trimmed_points": 0,
+            "trimmed_blocks": 0,
         }
         self._since_update = 0
 
@@ -1170,11 +1171,13 @@ class SlamRunner:
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
-            if be.final_trim_sigmas > 0:
+            for _ in range(be.final_trim_rounds if be.final_trim_sigmas > 0 else 0):
                 n_pts, n_blk = self.backend.trim_observations(be.final_trim_sigmas, be.final_trim_distance)
-                self.stats["trimmed_points"], self.stats["trimmed_blocks"] = n_pts, n_blk
-                if n_pts:
-                    summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
+                self.stats["trimmed_points"] += n_pts
+                self.stats["trimmed_blocks"] += n_blk
+                if not n_pts:
+                    break
+                summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
         self._timer.add("batch", t)
         poses = self.backend.poses()
         ids, normals, offsets = self.backend.planes()

@@ -439,6 +439,8 @@ def _write_outputs(
             "edges_created": st["edges_created"],
             "edges_merged": st["edges_merged"],
             "edge_observations": st["edge_observations"],
+            "trimmed_points": st["trimmed_points"],
+            "trimmed_blocks": st["trimmed_blocks"],
             "isam2_updates": st["updates"],
             "isam2_rebuilds": st["isam2_rebuilds"],
             "isam2_fallbacks": st["isam2_fallbacks"],

@@ -68,7 +68,6 @@ class Gates:
     # distance is taken to the plane through their extent's centre with the host's normal
     child_margin_cells: int = -1
     child_host_normal: bool = False
-    host_pair_unambiguous: bool = False  # with child_host_normal: the nearer of a child and its host wins
 
     def loosened(self, factor: float) -> Gates:
         return Gates(
@@ -84,7 +83,6 @@ class Gates:
             self.max_endpoint_distance * factor,
             self.child_margin_cells,
             self.child_host_normal,
-            self.host_pair_unambiguous,
         )
 
 
@@ -163,10 +161,6 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
         for j in child_rows:
             dilate[j] = gates.child_margin_cells
     same_normal = float(np.cos(np.radians(2.0)))
-    host_pairs: set[tuple[int, int]] = set()
-    if children and gates.child_host_normal and gates.host_pair_unambiguous:
-        for c, h in children.items():
-            host_pairs |= {(c, h), (h, c)}
     for k in hit.tolist():
         # the candidates by increasing m2; the segment's two end points and centroid (world
         # frame) against their extents
@@ -176,12 +170,8 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
         best = passing[0]
         ambiguous = False
         for j in passing[1:]:
-            # same surface seen twice (a duplicate awaiting merge) is not ambiguity; nor, with the
-            # host's normal, a door or board against its own wall: the nearer of the two is
-            # measured against the tie's model, not a tilt of the child's own fit
+            # same surface seen twice (a duplicate awaiting merge) is not ambiguity
             same = (float(normals[best] @ normals[j]) > same_normal) and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best])
-            if not same and host_pairs:
-                same = (ids[best], ids[j]) in host_pairs
             if not same:
                 ambiguous = True
                 break
