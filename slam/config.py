@@ -93,8 +93,10 @@ class FrontEndConfig(StrictModel):
         "of it is tied parallel to it (doors, boards); 0 = never")
     parallel_max_angle_deg: float = Field(
         6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off (office: a plane "
-        "fitted across a door's edge, 6.3 deg off its wall, is left untied at 6; configs/slam/best_planes.yaml: 10)")
-    parallel_sigma_deg: float = Field(0.02, gt=0, description="sigma of that parallelism tie (deg)")
+        "fitted across a door's edge, 6.3 deg off its wall, is left untied at 6)")
+    parallel_sigma_deg: float = Field(
+        0.005, gt=0, description="sigma of that parallelism tie (deg): stiff, so that a door that took a few of its "
+        "wall's segments metres away cannot turn towards them (the final trim then detaches them)")
     child_margin_cells: int = Field(
         -1, ge=-1, description="cells by which the extent of a plane tied parallel to its wall (a door, a board) "
         "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane. A door's "

@@ -39,11 +39,3 @@ def test_a_wall_thickness_range_upside_down_names_the_key(tmp_path: Path) -> Non
     bad.write_text("frontend:\n  wall_thickness: [0.3, 0.05]\n")
     with pytest.raises(ConfigError, match=r"walls\.yaml.*wall_thickness"):
         load_slam_config(bad)
-
-
-def test_shipped_best_planes_yaml_is_the_default_with_the_door_association() -> None:
-    best = load_slam_config(SHIPPED.with_name("best_planes.yaml"))
-    fe = best.frontend
-    assert (fe.child_host_normal, fe.child_margin_cells, fe.parallel_max_angle_deg) == (True, 1, 10.0)
-    rest = best.model_copy(update={"frontend": SlamConfig().frontend})
-    assert rest == SlamConfig()
