@@ -92,8 +92,8 @@ class FrontEndConfig(StrictModel):
         0.05, ge=0, description="m, a new plane this close to an established one and within parallel_max_angle_deg "
         "of it is tied parallel to it (doors, boards); 0 = never")
     parallel_max_angle_deg: float = Field(
-        6.0, gt=0, description="deg; a new plane from a few segments is often a few degrees off (office: a plane "
-        "fitted across a door's edge, 6.3 deg off its wall, is left untied at 6)")
+        15.0, gt=0, description="deg; a new plane from a few segments is often degrees off (office: a door's and its "
+        "wall's segments of one tilted scanner, near-parallel lines 2 cm apart, fitted 4-8 deg off the wall)")
     parallel_sigma_deg: float = Field(
         0.005, gt=0, description="sigma of that parallelism tie (deg): stiff, so that a door that took a few of its "
         "wall's segments metres away cannot turn towards them (the final trim then detaches them)")
