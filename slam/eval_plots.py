@@ -82,7 +82,7 @@ def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
     """Histograms of angle (deg) and signed offset (mm) errors of the matched planes, and each
     plane's angle error against its own reported 1-sigma (log-log, by the true plane's kind):
     points near the diagonal are planes as good as their data allow."""
-    fig = Figure(figsize=(13, 3.8))
+    fig = Figure(figsize=(14.5, 3.8))
     ax1, ax2, ax3 = fig.subplots(1, 3)
     ang = np.array([m.angle_deg for m in planes.matches])
     off = 1000.0 * np.array([m.offset_m for m in planes.matches])
@@ -111,7 +111,7 @@ def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
         ax3.axhline(0.1, color="tab:red", lw=0.8, label="0.1 deg")
         ax3.set_xscale("log")
         ax3.set_yscale("log")
-        ax3.legend(fontsize=7, loc="upper left")
+        ax3.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax3.set_xlabel("reported sigma of the normal (deg)")
     ax3.set_ylabel("angle error (deg)")
     ax3.set_title("error against the plane's own uncertainty", fontsize=10)
