@@ -389,7 +389,11 @@ class Backend:
     def block_residuals(self, block_id: int) -> tuple[FloatArray, FloatArray]:
         """Whitened signed point-to-plane residuals (N,) at the current estimate and the robust
         (IRLS) weights (N,) in [0, 1] the kernel gives them (small = treated as outlier)."""
-        blk = self._get_block(block_id)
+        e = self._whitened_residuals(self._get_block(block_id))
+        return e, robust_weights(e, self.config.kernel)
+
+    def _whitened_residuals(self, blk: ObservationBlock) -> FloatArray:
+        """A block's signed point-to-plane residuals over their sigmas at the current estimate."""
         v = self._values
         pts = blk.points
         if blk.scanner is not None:
@@ -399,8 +403,7 @@ class Backend:
         T_b = v.atPose3(X(blk.knot + 1)) if blk.alphas is not None else None
         terms = point_plane_terms(v.atPose3(X(blk.knot)), T_b, v.atOrientedPlane3(P(blk.plane_id)), pts,
                                   blk.alphas, jacobians=False, anchor=a)
-        e = terms.residuals / blk.sigmas
-        return e, robust_weights(e, self.config.kernel)
+        return np.asarray(terms.residuals / blk.sigmas)
 
     def trim_observations(self, max_whitened: float, min_distance: float) -> tuple[int, int]:
         """Detach the points that do not fit their plane at the current estimate: those whose
@@ -413,7 +416,7 @@ class Backend:
         n_points = n_blocks = 0
         for bid in list(self._blocks):
             blk = self._blocks[bid]
-            e, _ = self.block_residuals(bid)
+            e = self._whitened_residuals(blk)
             out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
             if not out.any():
                 continue

@@ -339,8 +339,6 @@ def _block_factor(
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
 
 
-
-
 def point_planes_factor(
     pose_key_a: int,
     pose_key_b: int,
