@@ -47,16 +47,16 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.rig import Rig
 from calibration.estimator import BatchResult, EstimatorConfig, ScannerEstimate, estimate_extrinsics
 from calibration.observability import ParameterSigmas, parameter_sigmas, warn_unobservable
 from calibration.observations import collect_observations
 from calibration.rig_io import updated_rig
+from common.rig import Rig
 from segmentation import Scanline
 from slam.config import SlamConfig
-from slam.interpolation import se3_log
 from slam.motion import MotionPriorConfig
 from slam.pipeline import SlamResult, SlamRunner
+from slam.trajectory.interpolation import se3_log
 
 FloatArray = NDArray[np.float64]
 ScanSource = Callable[[Rig], Iterable[Scanline]]

@@ -73,7 +73,6 @@ from slam.factors import (
     robust_weights,
     scanner_point_plane_factor,
 )
-from slam.interpolation import interpolate_trajectory, knot_fractions
 from slam.motion import (
     MotionPriorConfig,
     constant_velocity_factor,
@@ -81,6 +80,7 @@ from slam.motion import (
     initial_velocity_factor,
 )
 from slam.solver import damped_gauss_newton
+from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions
 
 FloatArray = NDArray[np.float64]
 

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.rig import matrix_to_rpy
-from slam.interpolation import so3_exp
+from common.rotations import matrix_to_rpy
+from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
 PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z")

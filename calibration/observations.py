@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation import Scanline
 from segmentation.base import build_segmentation
 from slam.frontend.observations import scan_segments

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from backpack_slam.rig import matrix_to_rpy
 from calibration.calibrate import Calibration
 from calibration.observability import PARAMETERS
-from slam.export import atomic_dir
+from common.atomic import atomic_dir
+from common.rotations import matrix_to_rpy
 
 
 def _stats(r: np.ndarray) -> dict[str, float]:

@@ -3,13 +3,11 @@
 The file is the input rig with, for each calibrated scanner, ``T_body_scanner`` replaced by the
 estimate (translation [m], rpy [rad]) and its 6x6 covariance over gtsam's (rotation,
 translation) tangent coordinates, and ``time_offset`` [s]; it loads with
-:func:`backpack_slam.rig.load_rig`.
+:func:`common.rig.load_rig`.
 """
 
 from __future__ import annotations
 
-import os
-import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,7 +16,9 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from backpack_slam.rig import Extrinsic, Rig, matrix_to_rpy
+from common.atomic import write_text
+from common.rig import Extrinsic, Rig
+from common.rotations import matrix_to_rpy
 
 FloatArray = NDArray[np.float64]
 
@@ -56,11 +56,5 @@ def write_rig(path: str | Path, rig: Rig, header: str = "") -> Path:
     data = rig.model_dump(mode="json")
     text = "".join(f"# {line}\n" for line in header.splitlines()) + yaml.safe_dump(
         data, sort_keys=False, default_flow_style=None, width=120)
-    tmp = p.with_name(f".{p.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_text(p, text)
     return p

@@ -54,7 +54,7 @@ def _peak_gb() -> float:
 def _child_run(bag: str, gt: str, out: str) -> dict[str, Any]:
     """``run_slam`` + ``evaluate`` in this process; the peak after each stage (GB)."""
     import slam.run
-    from backpack_slam.rig import resolve_rig
+    from common.rig import resolve_rig
     from slam.config import SlamConfig
     from slam.evaluate import evaluate
 

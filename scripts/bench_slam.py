@@ -38,7 +38,7 @@ GOALS = {  # issue 4, office 10 min walk
 
 def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     """One SLAM run + evaluation in this process; prints one JSON line with the figures."""
-    from backpack_slam.rig import resolve_rig
+    from common.rig import resolve_rig
     from slam.config import SlamConfig, load_slam_config
     from slam.evaluate import Stats, evaluate
     from slam.run import peak_rss_gb, run_slam

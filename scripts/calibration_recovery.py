@@ -34,13 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from backpack_slam.config import configs_dir
-from backpack_slam.rig import Rig, matrix_to_rpy
 from calibration.calibrate import CalibrationOptions, RoundInfo, calibrate_bag
 from calibration.estimator import EstimatorConfig
 from calibration.observability import PARAMETERS, parameter_covariance
 from calibration.report import write_report
 from calibration.rig_io import updated_rig, write_rig
+from common.config import configs_dir
+from common.rig import Rig
+from common.rotations import matrix_to_rpy
 from slam.config import SlamConfig
 
 
@@ -116,7 +117,7 @@ def main() -> None:
     if not bag.exists():
         cfg = load_simulation_config(args.config)
         simulate(cfg.world, cfg.rig, duration=args.duration, out=bag, config=cfg)
-    from backpack_slam.rig import load_rig
+    from common.rig import load_rig
 
     true = load_rig(args.out / "run.gt" / "rig.yaml")
     rig0 = perturbed_rig(true, np.random.default_rng(args.seed), args.max_deg, args.max_mm / 1e3)

@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from backpack_slam.rig import Rig, load_rig
 from calibration.rig_io import updated_rig
+from common.rig import Rig, load_rig
 from slam.config import SlamConfig
-from slam.interpolation import se3_exp
+from slam.trajectory.interpolation import se3_exp
 
 ROT_DEG = (0.0, 0.25, 0.5, 1.0, 2.0)
 TRANS_MM = (0.0, 5.0, 10.0, 20.0)

@@ -21,9 +21,9 @@ import numpy as np
 
 from slam.export import read_trajectory_tum
 from slam.imu_feed import ImuSamples, predict_navstate
-from slam.interpolation import interpolate_trajectory
 from slam.io.bag import InputError, read_imu
 from slam.motion import ImuConfig
+from slam.trajectory.interpolation import interpolate_trajectory
 
 
 def main(argv: list[str] | None = None) -> int:

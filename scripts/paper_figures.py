@@ -22,10 +22,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import os
 import sys
-import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +37,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 import segmentation as sg
+from common.atomic import atomic_path
 from segmentation.metrics import compare, separates
 from simulation.scanline import SyntheticScan, figure1
 
@@ -153,18 +152,6 @@ def value_range(rows: list[dict[str, float]], metric: str, rate: float) -> tuple
 # ---- output ----------------------------------------------------------------------------------
 
 
-def atomic_save(path: Path, write: Callable[[Path], None]) -> None:
-    """Write through a temporary file in the same folder, then rename."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_csv(path: Path, rows: list[dict[str, float]], param: str) -> None:
     def w(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
@@ -173,7 +160,8 @@ def write_csv(path: Path, rows: list[dict[str, float]], param: str) -> None:
             writer.writeheader()
             writer.writerows(rows)
 
-    atomic_save(path, w)
+    with atomic_path(path) as tmp:
+        w(tmp)
 
 
 def plot_sweep(path: Path, sweep: Sweep, rows: list[dict[str, float]], n_seeds: int) -> None:
@@ -196,7 +184,8 @@ def plot_sweep(path: Path, sweep: Sweep, rows: list[dict[str, float]], n_seeds: 
     fig.suptitle(f"{sweep.title}; synthetic figure-1 scanline, 3 mm noise, {n_seeds} seeds "
                  "(mean, 10-90 % band)", fontsize=10)
     fig.tight_layout()
-    atomic_save(path, lambda p: fig.savefig(p, dpi=90, format="png"))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
 
 
@@ -239,7 +228,8 @@ def plot_segments(path: Path, s: SyntheticScan, labels: NDArray[np.int64], title
         axz.set_title(f"{obj} and its wall (along-wall m vs depth mm)", fontsize=9)
         axz.grid(alpha=0.3)
     fig.tight_layout()
-    atomic_save(path, lambda q: fig.savefig(q, dpi=90, format="png"))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
 
 

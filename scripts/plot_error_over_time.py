@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.export import OutputFileError, read_trajectory_tum
-from slam.interpolation import interpolate_trajectory
+from common.atomic import OutputFileError
+from slam.export import read_trajectory_tum
+from slam.trajectory.interpolation import interpolate_trajectory
 
 
 def _start_aligned(gt_dir: Path, run_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

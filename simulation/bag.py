@@ -23,10 +23,7 @@ directories.
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
-import uuid
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -40,7 +37,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.rig import Rig, ScannerConfig
+from common.atomic import commit, discard, temporary_sibling
+from common.rig import Rig, ScannerConfig
 
 Format = Literal["ros1", "ros2"]
 LASERSCAN = "sensor_msgs/msg/LaserScan"
@@ -89,7 +87,7 @@ class BagWriter:
         self.imu_noise = imu_noise
         if not self.path.parent.is_dir():
             raise ValueError(f"{self.path}: the folder {self.path.parent} does not exist")
-        self.tmp = self.path.parent / f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp"
+        self.tmp = temporary_sibling(self.path)
         self._writer: Any = None
         self._serialize = self.ts.serialize_ros1 if fmt == "ros1" else self.ts.serialize_cdr
         self._types = self.ts.types
@@ -120,11 +118,7 @@ class BagWriter:
         self.flush()
         self._writer.close()
         self._writer = None
-        if self.path.is_dir() and not self.path.is_symlink():
-            shutil.rmtree(self.path)
-        elif self.tmp.is_dir() and self.path.exists():
-            self.path.unlink()
-        os.replace(self.tmp, self.path)
+        commit(self.tmp, self.path)
 
     def abort(self) -> None:
         """Drop the temporary bag."""
@@ -134,10 +128,7 @@ class BagWriter:
         except Exception:
             pass
         self._writer = None
-        if self.tmp.is_dir():
-            shutil.rmtree(self.tmp, ignore_errors=True)
-        else:
-            self.tmp.unlink(missing_ok=True)
+        discard(self.tmp)
 
     def __enter__(self) -> BagWriter:
         return self.open()

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.config import StrictModel
+from common.config import StrictModel
 from simulation.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]

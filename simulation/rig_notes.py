@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.rig import matrix_to_rpy
+from common.rotations import matrix_to_rpy
 
 YAW_OUT = math.radians(45.0)
 TILT = math.radians(20.0)

@@ -41,8 +41,8 @@ from numpy.typing import NDArray
 from pydantic import Field
 from tqdm import tqdm
 
-from backpack_slam.config import StrictModel, load
-from backpack_slam.rig import Rig, resolve_rig
+from common.config import StrictModel, load
+from common.rig import Rig, resolve_rig
 from simulation.bag import BagWriter, seconds_to_ns
 from simulation.imu import ImuConfig, simulate_imu
 from simulation.scanner import ScannerNoiseConfig, apply_measurement, beam_rays

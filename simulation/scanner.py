@@ -39,8 +39,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
-from backpack_slam.config import StrictModel
-from backpack_slam.rig import ScannerConfig
+from common.config import StrictModel
+from common.rig import ScannerConfig
 from simulation.trajectory import Trajectory, _rodrigues
 
 FloatArray = NDArray[np.float64]

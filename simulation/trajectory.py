@@ -31,8 +31,6 @@ at 200 Hz the linear-position error on the 3 cm bob is ~15 um.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +43,8 @@ from pydantic import Field
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.config import StrictModel
+from common.atomic import atomic_path
+from common.config import StrictModel
 
 FloatArray = NDArray[np.float64]
 
@@ -218,23 +217,8 @@ class Trajectory:
     def write_tum(self, path: str | Path, time_offset: float = 0.0) -> None:
         """Write ``t tx ty tz qx qy qz qw`` (T_world_body) atomically; times + ``time_offset``."""
         data = np.column_stack((self.times + time_offset, self.positions, self.quaternions))
-        atomic_write_text(path, lambda f: np.savetxt(f, data, fmt="%.9f"))
-
-
-def atomic_write_text(path: str | Path, write: Any) -> None:
-    """Call ``write(file)`` on a temporary file beside ``path``, then rename it to ``path``."""
-    p = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            write(f)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        with atomic_path(path) as tmp, tmp.open("w") as f:
+            np.savetxt(f, data, fmt="%.9f")
 
 
 # ---------------------------------------------------------------------------

@@ -54,7 +54,6 @@ from slam.factors import (
     robust_weights,
     scanner_point_plane_factor,
 )
-from slam.interpolation import interpolate_trajectory, knot_fractions, se3_exp, se3_log
 from slam.motion import (
     ImuConfig,
     MotionPriorConfig,
@@ -65,9 +64,10 @@ from slam.motion import (
     initial_velocity_factor,
     preintegrate,
 )
-from slam.placement import interval_poses
 from slam.plane_summary import plane_summary_factor, scatter, shift_anchor
 from slam.solver import Solution, solve
+from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions, se3_exp, se3_log
+from slam.trajectory.placement import interval_poses
 
 FloatArray = NDArray[np.float64]
 
@@ -816,7 +816,7 @@ class Backend:
         return np.array([self._values.atConstantBias(B(i)).vector() for i in range(len(self._times))])
 
     def knot_fractions(self, times: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
-        """Knot interval index and fraction alpha of each time (see :mod:`slam.interpolation`)."""
+        """Knot interval index and fraction alpha of each time (see :mod:`slam.trajectory.interpolation`)."""
         return knot_fractions(self._times, times)
 
     def T_world_body(self, times: ArrayLike) -> FloatArray:

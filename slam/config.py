@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from backpack_slam.config import ConfigError, StrictModel, load
+from common.config import ConfigError, StrictModel, load
 from segmentation import segmenter_class
 
 # The SLAM's own defaults for a segmenter's parameters, where they differ from the segmenter's:
@@ -51,7 +51,7 @@ class TrajectoryConfig(StrictModel):
     knot_rate: float = Field(20.0, gt=0, le=400)
     imu_deskew: bool = Field(
         True, description="with an IMU: between knots, turn the body by what the gyro measures beyond the "
-        "geodesic (slam.deskew; at 20 Hz the geodesic misses a walker's pitch and turns by 36 mdeg RMS)")
+        "geodesic (slam.trajectory.deskew; at 20 Hz the geodesic misses a walker's pitch and turns by 36 mdeg RMS)")
 
 
 class FrontEndConfig(StrictModel):

@@ -17,8 +17,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
+from common.atomic import atomic_path
 from slam.evaluate import CloudEval, EvalResult, PlaneEval, TrajectoryEval
-from slam.export import atomic_path
 
 
 def _save(fig: Figure, path: Path) -> Path:

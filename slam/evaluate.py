@@ -37,21 +37,19 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from common.atomic import OutputFileError, read_json, write_json
 from slam.export import (
     CloudRecord,
-    OutputFileError,
     PlaneRecord,
     SegmentTable,
     cloud_ply_layout,
     read_cloud_ply,
-    read_json,
     read_planes_json,
     read_segments_npz,
     read_trajectory_tum,
-    write_json,
 )
 from slam.frontend.planemap import plane_basis
-from slam.interpolation import interpolate_trajectory
+from slam.trajectory.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

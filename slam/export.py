@@ -21,11 +21,8 @@ over the target only when complete, so an interrupted write never leaves a parti
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import shutil
-import uuid
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -35,109 +32,13 @@ from typing import Any, BinaryIO
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from common.atomic import OutputFileError, atomic_path, read_json, write_json
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
 
 PLANE_CONVENTION = "n . x + d = 0, world frame, metres"
 COVARIANCE_CONVENTION = "3x3 over (Unit3 tangent basis of the normal (2), d)"
-
-
-class OutputFileError(ValueError):
-    """An output or ground-truth file that cannot be read or written; the message names it."""
-
-
-# ---------------------------------------------------------------------------- atomic writes
-
-
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` when the block succeeds.
-
-    The temporary name keeps the suffix (open3d and matplotlib pick the format from it). On any
-    exception the temporary file is removed and the target is left untouched.
-    """
-    target = Path(path)
-    if not target.parent.is_dir():
-        raise OutputFileError(f"{target}: folder {target.parent} does not exist")
-    if target.is_symlink() or (target.exists() and not target.is_file()):
-        # renaming over a device (e.g. /dev/null), a folder or a link would destroy it
-        raise OutputFileError(f"{target}: exists and is not a regular file; not replacing it")
-    tmp = target.with_name(f".{target.stem}.tmp-{uuid.uuid4().hex[:12]}{target.suffix}")
-    try:
-        yield tmp
-        if not tmp.exists():
-            raise OutputFileError(f"{target}: nothing was written")
-        os.replace(tmp, target)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-@contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary folder beside ``path``; it replaces ``path`` (a folder, possibly
-    existing) when the block succeeds, and is removed on any exception, leaving ``path`` as it was."""
-    target = Path(path)
-    if target.exists() and (target.is_symlink() or not target.is_dir()):
-        raise OutputFileError(f"{target}: exists and is not a folder; not replacing it")
-    tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir(parents=True)
-    try:
-        yield tmp
-        if target.exists():
-            old = target.with_name(f".{target.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(target, old)
-            os.replace(tmp, target)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def _finite_json(obj: Any) -> Any:
-    """Replace non-finite floats by None so the file stays strict JSON."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite_json(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite_json(v) for v in obj]
-    return obj
-
-
-def write_json(path: str | Path, data: Any) -> Path:
-    """Atomically write ``data`` (numpy arrays and scalars allowed) as indented strict JSON."""
-    target = Path(path)
-    # Round trip through the encoder first so numpy values become plain floats before the
-    # non-finite check.
-    plain = _finite_json(json.loads(json.dumps(data, default=_json_default)))
-    text = json.dumps(plain, indent=2, allow_nan=False) + "\n"
-    with atomic_path(target) as tmp:
-        tmp.write_text(text)
-    return target
-
-
-def read_json(path: str | Path) -> Any:
-    """Parse a JSON file; a missing or malformed file is an OutputFileError naming it."""
-    p = Path(path)
-    try:
-        return json.loads(p.read_text())
-    except OSError as e:
-        raise OutputFileError(f"{p}: cannot read ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise OutputFileError(f"{p}: invalid JSON at line {e.lineno}: {e.msg}") from None
 
 
 # ------------------------------------------------------------------------------ trajectory

@@ -2,7 +2,7 @@
 
 A block holds the N points that the body saw on one plane ``P(j)`` between two consecutive
 trajectory knots ``X(i)``, ``X(i+1)``. Point k was measured at its own beam time, which maps onto
-the trajectory by its fraction ``alpha_k`` in [0, 1] (see :mod:`slam.interpolation`)::
+the trajectory by its fraction ``alpha_k`` in [0, 1] (see :mod:`slam.trajectory.interpolation`)::
 
     R_k = R_i Exp(alpha_k Log(R_i^T R_{i+1}))            body rotation at the beam time
     t_k = t_i + alpha_k (t_{i+1} - t_i)                  body position at the beam time
@@ -60,7 +60,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam import factor_kernels as _fk
 from slam.factor_kernels import two_pose_terms
-from slam.interpolation import hat3
+from slam.trajectory.interpolation import hat3
 
 FloatArray = NDArray[np.float64]
 # the compiled kernels' codes (slam.factor_kernels)

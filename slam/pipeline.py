@@ -36,13 +36,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation import Scanline
-from slam import frontend_kernels as fk
 from slam.backend import Backend, BackendConfig
 from slam.config import SlamConfig
-from slam.deskew import DeskewTable
 from slam.factors import RobustKernel
+from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.edges import (
     EDGE_ID_BASE,
@@ -83,7 +82,6 @@ from slam.frontend.planemap import (
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.interpolation import so3_exp
 from slam.motion import ImuConfig, MotionPriorConfig
 from slam.scan_prep import (
     PreparedScan,
@@ -94,6 +92,9 @@ from slam.scan_prep import (
     segment_owner,
     segment_returns,
 )
+from slam.trajectory import kernels as tk
+from slam.trajectory.deskew import DeskewTable
+from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
 
@@ -143,7 +144,7 @@ class SlamResult:
     stats: dict[str, Any]
     timings: dict[str, float]
     plane_covariances: dict[int, FloatArray] = field(default_factory=dict)
-    deskew: DeskewTable | None = None  # the gyro's rotation between knots (``slam.deskew``), applied to body points
+    deskew: DeskewTable | None = None  # the gyro's rotation between knots (``slam.trajectory.deskew``), applied to body points
 
 
 class _Timer:
@@ -295,7 +296,7 @@ class SlamRunner:
     # ------------------------------------------------------------------ trajectory mirror
     def _deskewed(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """Body points seen at ``times`` with the gyro's rotation between knots applied
-        (``slam.deskew``; unchanged without an IMU)."""
+        (``slam.trajectory.deskew``; unchanged without an IMU)."""
         return points_body if self._deskew is None else self._deskew.apply(points_body, times)
 
     def _knot_time(self, k: int) -> float:
@@ -356,18 +357,18 @@ class SlamRunner:
         """Knot interval index and fraction (m,) of each time (m,) on the current knots, clipped
         to the first and the last interval."""
         assert self.t0 is not None
-        return fk.uniform_fractions(self.t0, self.dt, self._n_knots, np.ascontiguousarray(times, dtype=np.float64))
+        return tk.uniform_fractions(self.t0, self.dt, self._n_knots, np.ascontiguousarray(times, dtype=np.float64))
 
     def _pose_at(self, t: float) -> FloatArray:
         """``T_world_body`` (4, 4) at time ``t`` with the current knots (compiled, one call)."""
         assert self.t0 is not None
-        return fk.pose_uniform(self._T, self.t0, self.dt, self._n_knots, float(t))
+        return tk.pose_uniform(self._T, self.t0, self.dt, self._n_knots, float(t))
 
     def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
         """Points (m, 3) body frame at their times (m,) -> world frame with the current knots:
         one compiled pass, one rotation logarithm per run of equal knot intervals."""
         assert self.t0 is not None
-        return fk.place_uniform(self._T, self.t0, self.dt, self._n_knots,
+        return tk.place_uniform(self._T, self.t0, self.dt, self._n_knots,
                                 np.ascontiguousarray(times, dtype=np.float64),
                                 np.ascontiguousarray(points_body, dtype=np.float64))
 

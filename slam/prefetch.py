@@ -20,7 +20,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from slam.config import SlamConfig
 from slam.imu_feed import ImuSamples
 from slam.io.bag import read_scans

@@ -28,11 +28,10 @@ import rerun as rr
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from common.atomic import OutputFileError, atomic_path
 from slam.export import (
     CloudRecord,
-    OutputFileError,
     PlaneRecord,
-    atomic_path,
     cloud_ply_layout,
     iter_cloud_ply,
     read_planes_json,

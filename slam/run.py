@@ -31,12 +31,12 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from backpack_slam.rig import Rig
+from common.atomic import atomic_dir
+from common.rig import Rig
 from slam.config import SlamConfig
 from slam.export import (
     CloudPlyWriter,
     PlaneRecord,
-    atomic_dir,
     cloud_ply_writer,
     make_segment_table,
     read_cloud_ply,
@@ -50,9 +50,9 @@ from slam.imu_feed import ImuSamples
 from slam.io.bag import read_imu, read_scans, topics
 from slam.io.errors import input_error
 from slam.pipeline import SlamResult, SlamRunner
-from slam.placement import place_points
 from slam.prefetch import can_fork_reader, get_from_children, prepared_scans
 from slam.rerun_map import MapOptions, SegmentLines, view_of_cloud_ply, write_map_rrd
+from slam.trajectory.placement import place_points
 
 FloatArray = NDArray[np.float64]
 

@@ -3,7 +3,7 @@
 ``ScanPreparer.prepare`` turns one ``Scanline`` (scanner frame) into a ``PreparedScan``: its
 segments from the configured segmenter, lifted into the body frame at their beams' times
 (``frontend.observations.scan_segments``) and, with an IMU, moved by the gyro's rotation between
-knots (``slam.deskew``). It depends on the scan, the rig, the configuration and the IMU only, never
+knots (``slam.trajectory.deskew``). It depends on the scan, the rig, the configuration and the IMU only, never
 on the trajectory estimate, so it can run ahead of the front end in another process
 (``slam.prefetch``) and give the same numbers bit for bit.
 """
@@ -18,13 +18,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 import segmentation
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation import Scanline
 from slam.config import SlamConfig
-from slam.deskew import DeskewTable, deskew_table
 from slam.frontend.edges import recess_beyond, steps_within
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.imu_feed import ImuSamples
+from slam.trajectory.deskew import DeskewTable, deskew_table
 
 
 @dataclass(frozen=True)
@@ -156,7 +156,7 @@ def segment_returns(segs: ScanSegments, j: int) -> tuple[NDArray[np.int64], NDAr
 
 
 def knot_deskew(cfg: SlamConfig, imu: ImuSamples | None, t0: float) -> DeskewTable | None:
-    """The deskew table (``slam.deskew``) on the knot grid that starts at ``t0`` (s); None without
+    """The deskew table (``slam.trajectory.deskew``) on the knot grid that starts at ``t0`` (s); None without
     an IMU or with ``trajectory.imu_deskew`` off."""
     if imu is None or not cfg.trajectory.imu_deskew:
         return None

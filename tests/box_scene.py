@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.interpolation import interpolate_trajectory, knot_fractions, se3_exp
+from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions, se3_exp
 
 FloatArray = NDArray[np.float64]
 

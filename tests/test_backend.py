@@ -10,8 +10,8 @@ from box_scene import SCANNERS, Scene, make_scene, perturb_pose, walking_knots
 
 from slam.backend import Backend, BackendConfig
 from slam.factors import RobustKernel
-from slam.interpolation import interpolate_trajectory, se3_exp, se3_inverse, se3_log
 from slam.motion import ImuConfig
+from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_inverse, se3_log
 
 DEG = np.pi / 180.0
 

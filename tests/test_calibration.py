@@ -11,15 +11,15 @@ import pytest
 from box_scene import BOX_PLANES, SCANNERS, _pose, walking_knots
 
 from backpack_slam.cli import main
-from backpack_slam.rig import load_rig, resolve_rig
 from calibration.estimator import EstimatorConfig, estimate_extrinsics
 from calibration.factors import timed_scanner_plane_factor
 from calibration.observability import UnobservableWarning, parameter_sigmas, warn_unobservable
 from calibration.observations import PointObservations
 from calibration.rig_io import updated_rig, write_rig
+from common.rig import load_rig, resolve_rig
 from slam.factors import RobustKernel
-from slam.interpolation import interpolate_trajectory, se3_exp, se3_log
 from slam.motion import MotionPriorConfig
+from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_log
 
 CORRIDOR = np.array([
     [0.0, 0.0, 1.0, 1.3],    # floor
@@ -318,7 +318,7 @@ def test_coarse_rounds_read_only_the_first_seconds() -> None:
 
 @pytest.fixture(scope="module")
 def short_calibration_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from backpack_slam.config import configs_dir
+    from common.config import configs_dir
     from simulation.run import load_simulation_config, simulate
 
     out = tmp_path_factory.mktemp("calib") / "run.bag"

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 import slam.run
-from backpack_slam.rig import resolve_rig
+from common.atomic import OutputFileError
+from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
 from slam.evaluate import cloud_errors, mesh_distances
 from slam.export import (
     CloudRecord,
-    OutputFileError,
     cloud_ply_layout,
     cloud_ply_writer,
     iter_cloud_ply,
@@ -26,8 +26,8 @@ from slam.export import (
 )
 from slam.io.bag import read_scans
 from slam.pipeline import SlamResult, SlamRunner
-from slam.placement import place_points
 from slam.rerun_map import CloudView, MapOptions, view_of_cloud, view_of_cloud_ply
+from slam.trajectory.placement import place_points
 from tests.test_slam_pipeline import BOX_WORLD
 
 

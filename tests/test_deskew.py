@@ -1,11 +1,11 @@
-"""The gyro's rotation between knots (slam.deskew) against known motions."""
+"""The gyro's rotation between knots (slam.trajectory.deskew) against known motions."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.deskew import deskew_table, gyro_attitude
+from slam.trajectory.deskew import deskew_table, gyro_attitude
 
 RATE = 200.0
 

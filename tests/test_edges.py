@@ -288,7 +288,7 @@ def test_steps_within_find_a_5_mm_poster_inside_a_wall_segment() -> None:
 def test_host_map_never_makes_the_bigger_tied_plane_a_door() -> None:
     """Merges can tie a wall and its door either way round (wall 0 -> door 1 via a merged child
     and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count."""
-    from backpack_slam.rig import resolve_rig
+    from common.rig import resolve_rig
     from slam.config import SlamConfig
     from slam.frontend.planemap import KIND_WALL
     from slam.pipeline import SlamRunner

@@ -31,7 +31,7 @@ from slam.export import (
     write_segments_npz,
     write_trajectory_tum,
 )
-from slam.interpolation import se3_exp
+from slam.trajectory.interpolation import se3_exp
 
 
 def _screw_walk(duration: float, rate: float, t0: float = 50.0, start: float | None = None):  # type: ignore[no-untyped-def]

@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from common.atomic import OutputFileError, atomic_path
 from slam.export import (
-    OutputFileError,
     PlaneRecord,
-    atomic_path,
     make_segment_table,
     read_cloud_ply,
     read_planes_json,

@@ -18,7 +18,12 @@ from slam.factors import (
     robust_weights,
     scanner_point_plane_factor,
 )
-from slam.interpolation import (
+from slam.motion import (
+    MotionPriorConfig,
+    constant_velocity_factor,
+    horizontal_plane_prior,
+)
+from slam.trajectory.interpolation import (
     adjoint,
     exp_coefficients,
     interpolate_poses,
@@ -28,11 +33,6 @@ from slam.interpolation import (
     se3_inverse,
     se3_log,
     se3_right_jacobian,
-)
-from slam.motion import (
-    MotionPriorConfig,
-    constant_velocity_factor,
-    horizontal_plane_prior,
 )
 
 KERNELS = [RobustKernel("none"), RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7),

@@ -7,7 +7,7 @@ import numpy as np
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
 from slam.frontend.planemap import PlaneMap, is_other_face, merge_tolerance
 from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
-from slam.interpolation import (
+from slam.trajectory.interpolation import (
     interpolate_poses,
     interpolate_trajectory,
     knot_fractions,
@@ -15,7 +15,7 @@ from slam.interpolation import (
     se3_inverse,
     se3_log,
 )
-from slam.placement import interval_poses, place_points
+from slam.trajectory.placement import interval_poses, place_points
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -248,7 +248,7 @@ def test_the_other_face_of_a_wall_faces_away_and_lies_its_thickness_behind() -> 
 
 
 def test_placing_points_per_knot_interval_matches_interpolate_trajectory() -> None:
-    """slam.placement takes one rotation logarithm per knot interval (compiled): the same world
+    """slam.trajectory.placement takes one rotation logarithm per knot interval (compiled): the same world
     points and poses as interpolate_trajectory's pose per point, to rounding (1e-12 m)."""
     rng = np.random.default_rng(5)
     kt = 10.0 + 0.05 * np.arange(12)

@@ -1,14 +1,21 @@
-"""The compiled front-end kernels (slam.frontend_kernels) against their numpy originals."""
+"""The compiled kernels (slam.trajectory.kernels, slam.frontend.kernels) against their numpy originals."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam import frontend_kernels as fk
+from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, WorldSegments, associate, world_segments
 from slam.frontend.planemap import PlaneMap
-from slam.interpolation import exp_coefficients, interpolate_poses, se3_exp, so3_exp, so3_log
+from slam.trajectory import kernels as tk
+from slam.trajectory.interpolation import (
+    exp_coefficients,
+    interpolate_poses,
+    se3_exp,
+    so3_exp,
+    so3_log,
+)
 
 
 def _knots(rng: np.random.Generator, k: int, rot: float = 0.3) -> np.ndarray:
@@ -19,7 +26,7 @@ def _knots(rng: np.random.Generator, k: int, rot: float = 0.3) -> np.ndarray:
 def test_exp_coefficients_match_across_the_series_boundary() -> None:
     t = np.concatenate(([0.0, 1e-9, 1e-4], np.linspace(0.4, 0.6, 41), [1.0, 2.0, 3.1]))
     a, b, *_ = exp_coefficients(t)
-    got = np.array([fk.exp_ab(float(x)) for x in t])
+    got = np.array([tk.exp_ab(float(x)) for x in t])
     np.testing.assert_allclose(got[:, 0], a, rtol=1e-15, atol=0.0)
     np.testing.assert_allclose(got[:, 1], b, rtol=1e-15, atol=0.0)
 
@@ -30,7 +37,7 @@ def test_rotation_logarithm_matches_so3_log_near_zero_and_near_pi() -> None:
         axis = rng.normal(size=3)
         R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
         out = np.empty(3)
-        fk.so3_log_into(R, out)
+        tk.so3_log_into(R, out)
         if angle < np.pi - 1e-6:
             np.testing.assert_allclose(out, so3_log(R), rtol=0.0, atol=1e-12)
         np.testing.assert_allclose(so3_exp(out), R, rtol=0.0, atol=1e-12)  # a logarithm at pi
@@ -44,13 +51,13 @@ def test_placement_and_poses_match_interpolate_poses() -> None:
     al[:3] = (0.0, 1.0, 0.5)
     pts = rng.uniform(-5.0, 5.0, (400, 3))
     Tw = interpolate_poses(T[idx], T[idx + 1], al)
-    R, t = fk.interval_poses(T, idx, al)
+    R, t = tk.interval_poses(T, idx, al)
     np.testing.assert_allclose(R, Tw[:, :3, :3], rtol=0.0, atol=1e-14)
     np.testing.assert_allclose(t, Tw[:, :3, 3], rtol=0.0, atol=1e-12)
     expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
-    np.testing.assert_allclose(fk.place(T, idx, al, pts), expected, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(tk.place(T, idx, al, pts), expected, rtol=0.0, atol=1e-12)
     # the same input gives the same bits
-    np.testing.assert_array_equal(fk.place(T, idx, al, pts), fk.place(T, idx, al, pts))
+    np.testing.assert_array_equal(tk.place(T, idx, al, pts), tk.place(T, idx, al, pts))
 
 
 def test_uniform_knots_match_the_numpy_fractions() -> None:
@@ -61,15 +68,15 @@ def test_uniform_knots_match_the_numpy_fractions() -> None:
     x = (times - t0) / dt
     idx = np.clip(np.floor(x).astype(np.int64), 0, n - 2)
     alpha = np.clip(x - idx, 0.0, 1.0)
-    got_idx, got_alpha = fk.uniform_fractions(t0, dt, n, times)
+    got_idx, got_alpha = tk.uniform_fractions(t0, dt, n, times)
     np.testing.assert_array_equal(got_idx, idx)
     np.testing.assert_array_equal(got_alpha, alpha)
     pts = rng.uniform(-3.0, 3.0, (times.size, 3))
     Tw = interpolate_poses(T[idx], T[idx + 1], alpha)
     expected = np.einsum("mij,mj->mi", Tw[:, :3, :3], pts) + Tw[:, :3, 3]
-    np.testing.assert_allclose(fk.place_uniform(T, t0, dt, n, times, pts), expected, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(tk.place_uniform(T, t0, dt, n, times, pts), expected, rtol=0.0, atol=1e-12)
     for k in (0, 5, 301):
-        np.testing.assert_allclose(fk.pose_uniform(T, t0, dt, n, float(times[k])), Tw[k], rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(tk.pose_uniform(T, t0, dt, n, float(times[k])), Tw[k], rtol=0.0, atol=1e-12)
 
 
 def test_window_normal_equations_match_the_dense_jacobian() -> None:

@@ -15,7 +15,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from slam.io import InputError, detect_format, open_scans
 from slam.io.bag import read_imu, read_poses, read_scans, read_tf_static, topics
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from backpack_slam.rig import resolve_rig
+from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
 from slam.io.errors import InputError

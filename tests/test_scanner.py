@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backpack_slam.rig import Extrinsic, Rig, ScannerConfig, load_rig
+from common.rig import Extrinsic, Rig, ScannerConfig, load_rig
 from simulation.rig_notes import side_extrinsic
 from simulation.scanner import (
     MIXED,

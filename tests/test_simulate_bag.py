@@ -13,7 +13,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.rig import load_rig, resolve_rig
+from common.rig import load_rig, resolve_rig
 from simulation.run import (
     SimulationConfig,
     gt_dir_for,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from backpack_slam.config import ConfigError
+from common.config import ConfigError
 from slam.config import SLAM_SEGMENTER_DEFAULTS, SlamConfig, load_slam_config, with_segmenter
 
 SHIPPED = Path(__file__).resolve().parents[1] / "configs" / "slam" / "default.yaml"

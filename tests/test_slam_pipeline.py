@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import segmentation
-from backpack_slam.rig import resolve_rig
+from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from simulation.scanner import ScannerNoiseConfig
 from slam.config import SlamConfig
@@ -217,7 +217,7 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
 
 def test_the_gyro_deskew_fits_the_points_to_their_planes_better(corridor_imu: SimulationResult, rig: Any,
                                                                  tmp_path: Path) -> None:
-    """The same IMU walk with and without the gyro's rotation between knots (``slam.deskew``):
+    """The same IMU walk with and without the gyro's rotation between knots (``slam.trajectory.deskew``):
     with it the point-to-plane residuals are smaller."""
     on = run_slam(corridor_imu.bag, rig, _fast(), tmp_path / "on", progress=False)
     off_cfg = _fast(SlamConfig.model_validate({"trajectory": {"imu_deskew": False}}))

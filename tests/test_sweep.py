@@ -19,8 +19,6 @@ import pytest
 from scipy import stats
 
 from backpack_slam.cli import main
-from backpack_slam.config import ConfigError
-from backpack_slam.rig import resolve_rig
 from backpack_slam.sweep.cache import cached_simulation
 from backpack_slam.sweep.cell import run_cell
 from backpack_slam.sweep.config import load_experiment
@@ -29,6 +27,8 @@ from backpack_slam.sweep.perturb import perturb_rig
 from backpack_slam.sweep.plan import Cell, plan_cells
 from backpack_slam.sweep.report import mean_ci
 from backpack_slam.sweep.results import append_rows, finished_cells, read_results, results_path
+from common.config import ConfigError
+from common.rig import resolve_rig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "experiments"
 

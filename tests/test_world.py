@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from backpack_slam.config import ConfigError
+from common.config import ConfigError
 from simulation.raycast import Raycaster
 from simulation.world import (
     KINDS,

@@ -12,8 +12,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from common.atomic import atomic_path
 from segmentation import Scanline, Segmentation
-from slam.export import atomic_path
 
 
 @dataclass(frozen=True)

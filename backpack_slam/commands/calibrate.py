@@ -40,12 +40,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from backpack_slam.rig import resolve_rig
     from calibration.calibrate import CalibrationOptions, calibrate_bag
     from calibration.estimator import EstimatorConfig
     from calibration.observability import UnobservableWarning
     from calibration.report import write_report
     from calibration.rig_io import write_rig
+    from common.rig import resolve_rig
     from slam.config import load_slam_config
 
     rig = resolve_rig(args.rig)

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_slam_demo(out: Path, duration: float, stream: IO[str]) -> list[Path]:
     """Simulate the demo world, run SLAM with RoR and evaluate; return the paths written."""
-    from backpack_slam.rig import resolve_rig
+    from common.rig import resolve_rig
     from simulation.run import simulate
     from slam.config import SlamConfig
     from slam.eval_plots import write_plots
@@ -112,9 +112,9 @@ def run_demo(out: Path, log: Path | None, scan_index: int, seed: int, stream: IO
         save_figure,
     )
     from backpack_slam.commands.segment import json_safe, scan_info, select_scans
+    from common.atomic import write_json
     from segmentation import Scanline, metrics
     from simulation.scanline import figure1
-    from slam.export import write_json
     from slam.io.carmen import read_carmen_scans
 
     out.mkdir(parents=True, exist_ok=True)

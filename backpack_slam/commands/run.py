@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from backpack_slam.rig import resolve_rig
+from common.rig import resolve_rig
 from slam.config import load_slam_config, with_segmenter
 
 

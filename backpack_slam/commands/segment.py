@@ -185,7 +185,7 @@ def segment_input(
 ) -> int:
     """Segment the selected scan(s) of ``path``; print a summary, write the plot and the JSON."""
     import segmentation
-    from slam.export import atomic_path
+    from common.atomic import atomic_path
     from slam.io import detect_format, open_scans
 
     segmenter = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading

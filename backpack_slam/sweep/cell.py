@@ -70,13 +70,13 @@ def summary_metrics(summary: dict[str, Any]) -> dict[str, float]:
 
 def run_cell(cell: Cell, out_dir: str) -> dict[str, Any]:
     """Run ``cell`` under the sweep folder ``out_dir``; the result row (see the module doc)."""
-    from backpack_slam.rig import resolve_rig
     from backpack_slam.sweep.cache import cached_simulation
     from backpack_slam.sweep.perturb import perturb_rig
     from backpack_slam.sweep.segeval import score_segmenter
+    from common.atomic import read_json, write_json
+    from common.rig import resolve_rig
     from slam.config import SlamConfig
     from slam.evaluate import evaluate, write_eval_json
-    from slam.export import read_json, write_json
     from slam.run import run_slam
 
     out = Path(out_dir)

@@ -7,7 +7,7 @@ A sweep is the Cartesian product of its axes::
 Each segmenter entry is a method with fixed ``params`` and an optional ``grid`` of
 swept parameters (a list of values, or a range ``{start, stop, num}`` with both ends
 included); an entry expands into one variant per combination of its grid values.
-Every key is validated on load (``backpack_slam.config.load``): an unknown key, a bad
+Every key is validated on load (``common.config.load``): an unknown key, a bad
 value, an unknown segmenter, parameter or world is an error naming the file and the key.
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 
 from pydantic import Field, field_validator, model_validator
 
-from backpack_slam.config import ConfigError, StrictModel, load, resolve_config
+from common.config import ConfigError, StrictModel, load, resolve_config
 from simulation.run import SimulationConfig
 from slam.config import SlamConfig
 

@@ -6,7 +6,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.rig import Rig, matrix_to_rpy
+from common.rig import Rig
+from common.rotations import matrix_to_rpy
 
 
 def random_unit(rng: np.random.Generator) -> NDArray[np.float64]:

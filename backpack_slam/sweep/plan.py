@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from backpack_slam.config import resolve_config
 from backpack_slam.sweep.config import ExperimentConfig
+from common.config import resolve_config
 
 
 def content_hash(data: Any, n: int = 16) -> str:

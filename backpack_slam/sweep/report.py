@@ -20,7 +20,7 @@ import pandas as pd
 from scipy import stats
 
 from backpack_slam.sweep.results import read_results, results_path
-from slam.export import atomic_path
+from common.atomic import atomic_path
 
 CONDITION = ["world", "noise", "calib_rotation_deg", "calib_translation_m"]
 

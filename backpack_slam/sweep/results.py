@@ -13,7 +13,7 @@ from typing import Any
 
 import pandas as pd
 
-from slam.export import atomic_path
+from common.atomic import atomic_path
 
 RESULTS_NAME = "results.parquet"
 

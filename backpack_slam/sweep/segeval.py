@@ -21,12 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 import segmentation
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation.metrics import compare
 from simulation.scanline import run_labels
 from slam.evaluate import load_ground_truth
-from slam.interpolation import interpolate_trajectory
 from slam.io.bag import read_scans
+from slam.trajectory.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
 

@@ -8,7 +8,7 @@ whose triangles carry a plane id and an object kind (``KINDS``), the list of
 from simulation.world.compile import compile_world
 from simulation.world.io import MeshData, read_mesh, read_planes, write_mesh, write_planes
 from simulation.world.kinds import KIND_NAMES, KINDS
-from simulation.world.load import configs_dir, load_world, resolve_world, world_names
+from simulation.world.load import load_world, resolve_world, world_names
 from simulation.world.mesh import Plane
 from simulation.world.model import World
 from simulation.world.spec import Walk, WorldSpec
@@ -22,7 +22,6 @@ __all__ = [
     "World",
     "WorldSpec",
     "compile_world",
-    "configs_dir",
     "load_world",
     "read_mesh",
     "read_planes",

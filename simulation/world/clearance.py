@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.config import ConfigError
+from common.config import ConfigError
 from simulation.world.grid import FreeGrid
 from simulation.world.spec import Walk
 

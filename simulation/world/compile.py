@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from backpack_slam.config import ConfigError
+from common.config import ConfigError
 from simulation.world import grid as g
 from simulation.world.clearance import (
     PlanObstacles,

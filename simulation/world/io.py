@@ -12,38 +12,19 @@ well; ``read_mesh`` inverts it.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from common.atomic import atomic_path
 from simulation.world.kinds import KINDS
 from simulation.world.mesh import Plane
 
 PLANES_CONVENTION = "n . x + d = 0, world frame, metres"
 PLANE_COLOR_MULT = 0x9E3779  # odd, hence invertible modulo 2**24
 _MOD = 1 << 24
-
-
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path`` (same suffix); rename it to ``path`` on success."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix, dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        os.replace(tmp_path, target)
-    finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
 
 
 def plane_ids_to_rgb(ids: NDArray[np.integer]) -> NDArray[np.uint8]:
@@ -90,7 +71,7 @@ def write_mesh(
         plane_ids_to_rgb(uniq[:, 0]).astype(np.float32) / 255.0
     )
     mesh.triangle.indices = o3d.core.Tensor.from_numpy(inverse.reshape(-1, 3).astype(np.int32))
-    with atomic_path(path) as tmp:
+    with atomic_path(path, make_parents=True) as tmp:
         if not o3d.t.io.write_triangle_mesh(tmp, mesh, write_ascii=False):
             raise OSError(f"{path}: open3d could not write the mesh")
 
@@ -128,7 +109,7 @@ def write_planes(path: str | Path, planes: list[Plane]) -> None:
             for p in planes
         ],
     }
-    with atomic_path(path) as tmp:
+    with atomic_path(path, make_parents=True) as tmp:
         tmp.write_text(json.dumps(doc, indent=1))
 
 

@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from backpack_slam.config import StrictModel
+from common.config import StrictModel
 
 Side = Literal["west", "east", "south", "north"]
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from slam import frontend_kernels as fk
+from slam.frontend import kernels as fk
 from slam.frontend.planemap import PlaneMap
 
 FloatArray = NDArray[np.float64]
@@ -90,7 +90,7 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
                    point_sigma: float, n_points: NDArray[np.int64], origin_world: FloatArray) -> WorldSegments:
     """Summaries from the virtual points (k, 2, 3) and endpoints (k, 2, 3) already placed in the
     world; ``origin_world`` (3,) is the scanner's position (for the rotation's lever arm)."""
-    # one compiled pass (slam.frontend_kernels.segment_summaries): the numpy formulation's
+    # one compiled pass (slam.kernels.segment_summaries): the numpy formulation's
     # numbers to rounding
     c, u, sig_c, sig_dir, rng = fk.segment_summaries(
         np.ascontiguousarray(virtual_world, dtype=np.float64), np.ascontiguousarray(endpoints_world, dtype=np.float64),
@@ -114,7 +114,7 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     extent is dilated by that many cells only (a door's extent does not reach the next board).
 
     The per-pair gates (angle and distance, end points, facing side) and every pair's extent
-    cells are computed in one compiled pass (``slam.frontend_kernels.association_gates``); the
+    cells are computed in one compiled pass (``slam.kernels.association_gates``); the
     extents (Python sets of cells) are then tested only for the pairs under the gates.
     """
     out = np.full(segs.n, -1, dtype=np.int64)

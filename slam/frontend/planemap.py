@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slam import frontend_kernels as fk
+from slam.frontend import kernels as fk
 
 FloatArray = NDArray[np.float64]
 
@@ -176,7 +176,7 @@ class PlaneMap:
 
     def cells_of(self, pid: int, points_world: FloatArray) -> NDArray[np.int64]:
         """Cell indices (m, 2) of points (m, 3), world frame, in the plane's (u, v) frame:
-        ``floor((p . u, p . v) / cell_size)`` (compiled, slam.frontend_kernels.plane_cells)."""
+        ``floor((p . u, p . v) / cell_size)`` (compiled, slam.kernels.plane_cells)."""
         p = self.planes[pid]
         return fk.plane_cells(np.ascontiguousarray(points_world, dtype=np.float64), np.ascontiguousarray(p.u, dtype=np.float64),
                               np.ascontiguousarray(p.v, dtype=np.float64), float(self.cell_size))

@@ -2,7 +2,7 @@
 
 Between knots ``a`` (already estimated, fixed) and ``b`` (new), a point seen
 at fraction ``alpha`` lies at ``T(alpha) p`` with ``T(alpha) = T_a Exp(alpha
-Log(T_a^-1 T_b))`` (``slam.interpolation``). Gauss-Newton on the right
+Log(T_a^-1 T_b))`` (``slam.trajectory.interpolation``). Gauss-Newton on the right
 perturbation of ``T_b`` with Huber weights, regularised by the
 constant-velocity prediction, using the first-order Jacobian ``alpha * g``
 (``g`` the derivative wrt the interpolated pose): the step only has to bring
@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slam import frontend_kernels as fk
-from slam.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
+from slam.frontend import kernels as fk
+from slam.trajectory.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 
 FloatArray = NDArray[np.float64]
 
@@ -117,8 +117,8 @@ def refine_window(
     ``(1 - alpha, alpha)`` of an interpolated pose's perturbation, exact
     enough for the few-centimetre corrections tracking makes.
 
-    The iterations run in one compiled call (``slam.frontend_kernels.refine_window``), with the
-    numbers of the numpy formulation (dense Jacobian, ``slam.interpolation``'s batched
+    The iterations run in one compiled call (``slam.kernels.refine_window``), with the
+    numbers of the numpy formulation (dense Jacobian, ``slam.trajectory.interpolation``'s batched
     logarithms, :func:`freeze_unobserved`) to rounding.
     """
     stay = stay_sigmas if stay_sigmas is not None else np.array([np.radians(1.0)] * 3 + [0.03] * 3)
@@ -149,7 +149,7 @@ def freeze_unobserved(A: FloatArray, b: FloatArray, T: FloatArray, T_given: Floa
     (m, 3) the points' plane normals (world frame) with their weights ``info`` (m,), 1/m^2. The
     directions are the eigenvectors of ``sum info n n^T`` whose eigenvalue is below ``ratio``
     of the largest; each knot gets a prior of ``freeze_sigma`` (m) along them. (The numpy
-    formulation of the step that ``slam.frontend_kernels.refine_window`` takes compiled.)
+    formulation of the step that ``slam.kernels.refine_window`` takes compiled.)
     """
     M = (normals * info[:, None]).T @ normals
     lam, vec = np.linalg.eigh(M)

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation import Scanline
 from slam.io import bag, carmen, scanfile
 from slam.io.errors import InputError, input_error

@@ -23,7 +23,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
-from backpack_slam.rig import Rig
+from common.rig import Rig
 from segmentation import Scanline
 from slam.io.errors import InputError, input_error
 

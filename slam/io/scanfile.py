@@ -25,8 +25,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from common.atomic import atomic_path
 from segmentation import Scanline, validity_mask
-from slam.export import atomic_path
 from slam.io.errors import input_error
 
 FloatArray = NDArray[np.float64]

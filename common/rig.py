@@ -20,7 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field, field_validator, model_validator
 
-from backpack_slam.config import StrictModel, load
+from common.config import StrictModel, load, resolve_config
+from common.rotations import rpy_to_matrix
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
@@ -131,30 +132,6 @@ def load_rig(path: str | Path) -> Rig:
     return load(Rig, path)
 
 
-def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
-    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def matrix_to_rpy(R: NDArray[np.float64]) -> tuple[float, float, float]:
-    """Inverse of ``rpy_to_matrix`` (pitch in [-pi/2, pi/2])."""
-    pitch = math.asin(max(-1.0, min(1.0, -float(R[2, 0]))))
-    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
-    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
-    return roll, pitch, yaw
-
-
 def resolve_rig(name_or_path: str | Path) -> Rig:
     """A rig name (``configs/rig/<name>.yaml``) or a YAML path -> the validated Rig."""
-    from backpack_slam.config import resolve_config
-
     return load_rig(resolve_config("rig", name_or_path))

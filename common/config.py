@@ -5,6 +5,7 @@ Every error names the file and the offending key, on one line.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -68,27 +69,37 @@ def load(model: type[M], path: str | Path) -> M:
 
 CONFIGS_ENV = "BACKPACK_SLAM_CONFIGS"
 
+# singular names of the config kinds (folders under ``configs/``) for messages
+_SINGULAR = {"worlds": "world", "experiments": "experiment"}
+
 
 def configs_dir() -> Path:
     """The configs folder: ``$BACKPACK_SLAM_CONFIGS`` or ``configs/`` at the repository root."""
-    import os
-
     env = os.environ.get(CONFIGS_ENV)
     if env:
         return Path(env)
     return Path(__file__).resolve().parents[1] / "configs"
 
 
+def config_names(kind: str) -> list[str]:
+    """Names of the ready configurations of ``kind`` (``configs/<kind>/*.yaml``)."""
+    return sorted(q.stem for q in (configs_dir() / kind).glob("*.yaml"))
+
+
 def resolve_config(kind: str, name_or_path: str | Path) -> Path:
-    """A name (``configs/<kind>/<name>.yaml``) or a YAML path -> the file; ConfigError if missing."""
+    """A name (``configs/<kind>/<name>.yaml``) or a YAML path -> the file; ConfigError if missing.
+
+    A value with a YAML suffix, a path separator or naming an existing file is a path.
+    """
+    what = _SINGULAR.get(kind, kind)
     s = str(name_or_path)
     p = Path(s)
-    if p.suffix in (".yaml", ".yml") or "/" in s:
+    if p.suffix in (".yaml", ".yml") or os.sep in s or "/" in s or p.is_file():
         if not p.is_file():
-            raise ConfigError(f"{p}: no such {kind} file")
+            raise ConfigError(f"{p}: no such {what} file")
         return p
     candidate = configs_dir() / kind / f"{s}.yaml"
     if not candidate.is_file():
-        known = ", ".join(sorted(q.stem for q in (configs_dir() / kind).glob("*.yaml"))) or "none"
-        raise ConfigError(f"{kind} '{s}': no {candidate} (known: {known})")
+        known = ", ".join(config_names(kind)) or "none"
+        raise ConfigError(f"{what} {s!r}: no file {candidate} (known {what}s: {known})")
     return candidate
