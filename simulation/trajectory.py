@@ -71,6 +71,11 @@ class GaitConfig(StrictModel):
     accel: float = Field(default=0.6, gt=0, description="longitudinal acceleration (m/s^2)")
     smoothing: float = Field(default=0.15, gt=0, description="Gaussian smoothing of position and heading (s)")
     start_rest: float = Field(default=1.0, ge=0, description="standing still before walking (s)")
+    start_speed: float = Field(
+        default=0.0, ge=0, le=2.0,
+        description="speed at the first sample (m/s): 0 starts standing (start_rest); above 0 the "
+        "recording begins as the operator, already walking, passes this speed (start_rest ignored)",
+    )
     stops: bool = Field(default=True, description="honour the walk's stops")
 
 
@@ -367,6 +372,15 @@ def walk_trajectory(walk: Any, duration: float, seed: int, gait: GaitConfig | No
     speed = cfg.speed if cfg.speed is not None else w.speed
     if not 0.1 <= speed <= 3.0:
         raise ValueError(f"walk speed {speed} m/s is not a walking speed (0.1-3 m/s)")
+    if cfg.start_speed > speed:
+        raise ValueError(f"start speed {cfg.start_speed} m/s is above the walk speed {speed} m/s")
+    # a walk that starts in motion is the tail of a longer one: generate the lead-in (standing
+    # up to speed) as well and cut it off below
+    lead_max = 0.0
+    if cfg.start_speed > 0:
+        cfg = cfg.model_copy(update={"start_rest": 0.0})
+        lead_max = math.pi / cfg.pivot_rate + speed / cfg.accel + 8.0 * cfg.smoothing + 1.0
+        duration = duration + lead_max
     rng = np.random.default_rng(seed)
     ds = 0.01
 
@@ -464,6 +478,15 @@ def walk_trajectory(walk: Any, duration: float, seed: int, gait: GaitConfig | No
     ch, sh = np.cos(heading), np.sin(heading)
     positions = np.column_stack((x - sh * sway, y + ch * sway, floor_z + cfg.height + bob))
     quats = Rotation.from_euler("ZYX", np.column_stack((yaw, pitch, roll))).as_quat()
+    if lead_max > 0:
+        m = n - math.ceil(lead_max * cfg.rate)
+        fast = np.flatnonzero(v[: n - m] >= cfg.start_speed)
+        if fast.size == 0:
+            raise ValueError(f"the walk does not reach the start speed {cfg.start_speed} m/s within "
+                             f"its first {lead_max:.1f} s")
+        i0 = int(fast[0])
+        sl = slice(i0, i0 + m)
+        return Trajectory(times[:m], positions[sl], np.ascontiguousarray(quats[sl]))
     return Trajectory(times, positions, np.ascontiguousarray(quats))
 
 

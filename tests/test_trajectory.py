@@ -173,3 +173,18 @@ def test_imu_noise_seeded() -> None:
 def test_gait_config_validates() -> None:
     with pytest.raises(ValueError):
         GaitConfig(rate=100.0)
+
+
+def test_walk_can_start_in_motion() -> None:
+    """start_speed > 0: the recording begins with the operator already walking (no rest, no
+    acceleration from zero), the span unchanged; a speed above the walk's is an error."""
+    walk = {"waypoints": [[0, 0], [30, 0], [30, 8], [0, 8]], "speed": 1.2, "closed": True}
+    standing = walk_trajectory(walk, 12.0, 3)
+    moving = walk_trajectory(walk, 12.0, 3, GaitConfig(start_speed=1.0))
+    np.testing.assert_array_equal(moving.times, standing.times)
+    v = np.linalg.norm(np.diff(moving.positions[:, :2], axis=0), axis=1) * 200.0
+    v0 = np.linalg.norm(np.diff(standing.positions[:, :2], axis=0), axis=1) * 200.0
+    assert v[:40].mean() > 0.95 and v.min() > 0.9  # walking from the first sample on
+    assert v0[:40].mean() < 0.05  # the default still starts standing
+    with pytest.raises(ValueError, match="start speed"):
+        walk_trajectory(walk, 5.0, 3, GaitConfig(start_speed=1.5))
