@@ -15,6 +15,8 @@ Output, for ``out = run.bag``: the ROS1 bag file ``run.bag``, or the ROS2 bag di
     bag), ``<name>_plane_id`` (n_scans, n_beams) int32 and ``<name>_kind`` int8 (see
     ``simulation.scanner``: -1 invalid return, -2 mixed pixel);
   - ``imu.npz`` (with ``--imu``): the true biases;
+  - ``people.npz`` when the scene has people (``simulation.people``): their tracks (P, T, 2)
+    at ``times`` (absolute, as the bag), heights and radius; their beams have plane id -3;
   - ``rig.yaml`` (the true rig), ``meta.json`` (world, rig, seed, duration, config, counts).
 
 Everything is written under temporary names and renamed when complete.
@@ -45,6 +47,7 @@ from common.config import StrictModel, load
 from common.rig import Rig, resolve_rig
 from simulation.bag import BagWriter, seconds_to_ns
 from simulation.imu import ImuConfig, simulate_imu
+from simulation.people import PeopleConfig, make_people
 from simulation.scanner import ScannerNoiseConfig, apply_measurement, beam_rays
 from simulation.trajectory import GaitConfig, Trajectory, walk_trajectory
 
@@ -69,6 +72,7 @@ class SimulationConfig(StrictModel):
     gait: GaitConfig = Field(default_factory=GaitConfig)
     noise: ScannerNoiseConfig = Field(default_factory=ScannerNoiseConfig)
     imu_noise: ImuConfig = Field(default_factory=ImuConfig)
+    people: PeopleConfig = Field(default_factory=PeopleConfig)
 
 
 def load_simulation_config(path: str | Path) -> SimulationConfig:
@@ -188,6 +192,7 @@ def simulate(
         prng = np.random.default_rng([cfg.seed, 2])
         phases = [float(prng.uniform(0, s.scanner_model.scan_period)) for s in rig_obj.scanners]
     stamps = scan_stamps(rig_obj, cfg.duration, phases)
+    people = make_people(cfg.people, world.walk, cfg.duration + max_period + 0.05, float(world.floor_z), cfg.seed)
     seconds["trajectory"] += time.perf_counter() - t0
 
     base = cfg.start_time
@@ -223,6 +228,10 @@ def simulate(
             dirs = np.concatenate([r[1] for r in rays])
             del rays
             hits = raycaster.cast(origins, dirs)
+            if people.count:
+                beam_times = np.concatenate([(st_[:, None] + sc.scanner_model.beam_offsets()[None, :]).ravel()
+                                             for sc, st_ in zip(rig_obj.scanners, sel, strict=True)])
+                people.occlude(origins, dirs, beam_times, hits.range, hits.plane_id, hits.kind, hits.cos_incidence)
             n_rays += len(origins)
             del origins, dirs
             seconds["ray casting"] += time.perf_counter() - t0
@@ -274,6 +283,9 @@ def simulate(
         world.write_planes(gt_tmp / "planes.json")
         if imu_data is not None:
             np.savez(gt_tmp / "imu.npz", times=base + imu_data.times, gyro_bias=imu_data.gyro_bias, accel_bias=imu_data.accel_bias)
+        if people.count:
+            np.savez(gt_tmp / "people.npz", times=base + np.arange(people.tracks_xy.shape[1]) / people.rate,
+                     tracks_xy=people.tracks_xy, heights=people.heights, radius=people.radius)
         (gt_tmp / "rig.yaml").write_text(yaml.safe_dump(rig_obj.model_dump(mode="json"), sort_keys=False))
         counts = dict(writer.counts)
         meta = {

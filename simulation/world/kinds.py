@@ -19,6 +19,7 @@ KINDS: Final = MappingProxyType(
         "pillar": 8,
         "furniture": 9,
         "clutter": 10,
+        "person": 11,  # people in the scene (simulation.people), never part of the mesh
     }
 )
 
