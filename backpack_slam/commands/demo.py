@@ -72,6 +72,7 @@ def run_slam_demo(out: Path, duration: float, stream: IO[str]) -> list[Path]:
     from slam.eval_plots import write_plots
     from slam.evaluate import Stats, evaluate, write_eval_json
     from slam.run import run_slam
+    from slam.survey import export_cloud
 
     out.mkdir(parents=True, exist_ok=True)
     bag = out / "demo.bag"
@@ -86,6 +87,9 @@ def run_slam_demo(out: Path, duration: float, stream: IO[str]) -> list[Path]:
         f"  {c['knots']} poses, {c['planes']} planes, {c['segments_associated']}/{c['segments']} segments associated, "
         f"{summary['timings']['wall']:.1f} s ({summary['realtime_factor']:.2f}x real time)\n"
     )
+    laz = run_dir / "cloud.laz"
+    n_laz = export_cloud(run_dir / "cloud.ply", laz)
+    stream.write(f"  cloud for survey tools: {n_laz} points -> {laz}\n")
     result = evaluate(run_dir, sim.gt)
     eval_json = write_eval_json(run_dir / "eval.json", result)
     plots = write_plots(result, run_dir)
@@ -97,7 +101,7 @@ def run_slam_demo(out: Path, duration: float, stream: IO[str]) -> list[Path]:
     if result.planes is not None:
         line += f"; plane angle error median {result.planes.angle.median:.3f} deg"
     stream.write(line + "\n")
-    return [sim.bag, sim.gt, run_dir, eval_json, *plots]
+    return [sim.bag, sim.gt, run_dir, laz, eval_json, *plots]
 
 
 def run_demo(out: Path, log: Path | None, scan_index: int, seed: int, stream: IO[str]) -> list[Path]:
