@@ -40,7 +40,7 @@ FORMATS: tuple[SurveyFormat, ...] = ("las", "laz", "e57", "pcd")
 LAS_SCALE = 1e-4  # m: 0.1 mm, well below the scanners' noise
 E57_CHUNK = 1 << 18  # points per E57 scan
 
-Progress = Callable[[int], None]
+Progress = Callable[[int], object]
 
 
 def survey_format(name: str) -> SurveyFormat:
