@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,7 +55,22 @@ class ScannerModel(StrictModel):
         return self.time_increment * np.arange(self.n_beams, dtype=np.float64)
 
 
-MODELS: dict[str, ScannerModel] = {"utm30lx": ScannerModel()}
+MODELS: dict[str, ScannerModel] = {
+    # Hokuyo UTM-30LX: 1081 beams over 270 deg, 40 Hz; the seed paper measured ~3 mm below 5 m
+    "utm30lx": ScannerModel(),
+    # the same scanner as published by Cartographer's backpack recordings: 1079 beams
+    "utm30lx_1079": ScannerModel(name="utm30lx_1079", n_beams=1079, angle_min=-math.radians(134.75)),
+    # Hokuyo URG-04LX: 726 beams (the driver's full sweep) at 0.3516 deg, 10 Hz, 0.02-5.6 m,
+    # +-10 mm to 1 m and 1 % of range beyond: ~1 cm at indoor ranges
+    "urg04lx": ScannerModel(name="urg04lx", n_beams=726, angle_min=-math.radians(127.62),
+                            angle_increment=math.radians(360.0 / 1024.0), scan_period=0.1,
+                            time_increment=0.1 / 1024.0, range_min=0.02, range_max=5.6, range_sigma=0.01),
+    # SICK TiM571: 811 beams over 270 deg at 1/3 deg, 15 Hz, 0.05-25 m, ~20 mm statistical error
+    "tim571": ScannerModel(name="tim571", n_beams=811, angle_min=-math.radians(135.0),
+                           angle_increment=math.radians(1.0 / 3.0), scan_period=1.0 / 15.0,
+                           time_increment=1.0 / 15.0 / 1080.0, range_min=0.05, range_max=25.0, range_sigma=0.02),
+}
+MessageType = Literal["LaserScan", "MultiEchoLaserScan"]
 
 
 class Extrinsic(StrictModel):
@@ -83,11 +98,24 @@ class Extrinsic(StrictModel):
 
 
 class ScannerConfig(StrictModel):
+    """One scanner on the rig: its topic, model, mounting ``T_body_scanner`` and clock offset.
+
+    ``frame_id`` is the scanner's frame in the bag's transforms (default: its name);
+    ``message`` the type it is recorded as (the simulator writes it; the readers take either).
+    """
+
     name: str
     topic: str
     model: str | ScannerModel = "utm30lx"
     T_body_scanner: Extrinsic = Field(default_factory=Extrinsic)
     time_offset: float = 0.0
+    frame_id: str | None = None
+    message: MessageType = "LaserScan"
+
+    @property
+    def frame(self) -> str:
+        """The scanner's frame name in the bag's transforms."""
+        return self.frame_id or self.name
 
     @field_validator("model")
     @classmethod
@@ -101,12 +129,26 @@ class ScannerConfig(StrictModel):
         return MODELS[self.model] if isinstance(self.model, str) else self.model
 
 
+class ImuMount(StrictModel):
+    """The rig's IMU: its topic and frame. Its axes are the body frame's (the usual backpack
+    set-up, where the body frame is the IMU's: Cartographer's base_link = imu_link)."""
+
+    topic: str = "/imu"
+    frame_id: str = "body"
+
+
 class Rig(StrictModel):
-    """Three (or any number of) 2D scanners rigidly mounted on the backpack."""
+    """Three (or any number of) 2D scanners rigidly mounted on the backpack.
+
+    ``body_frame`` names the body frame in the bag's transforms; ``reference`` is the scanner
+    whose extrinsic calibration holds fixed (usually the body's origin, ``T_body_scanner = I``).
+    """
 
     name: str
     reference: str = Field(description="name of the scanner that defines the body frame")
     scanners: list[ScannerConfig] = Field(min_length=1)
+    body_frame: str = "body"
+    imu: ImuMount = Field(default_factory=ImuMount)
 
     @model_validator(mode="after")
     def _check(self) -> Rig:
