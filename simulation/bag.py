@@ -42,10 +42,11 @@ from common.rig import Rig, ScannerConfig
 
 Format = Literal["ros1", "ros2"]
 LASERSCAN = "sensor_msgs/msg/LaserScan"
+MULTIECHO = "sensor_msgs/msg/MultiEchoLaserScan"
+LASERECHO = "sensor_msgs/msg/LaserEcho"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 POSESTAMPED = "geometry_msgs/msg/PoseStamped"
 IMU = "sensor_msgs/msg/Imu"
-BODY_FRAME = "body"
 WORLD_FRAME = "world"
 ROS2_VERSION: Literal[8, 9] = 8  # rosbag2 metadata version readable by ROS 2 Humble and later
 
@@ -106,11 +107,11 @@ class BagWriter:
             self._writer = Writer2(self.tmp, version=ROS2_VERSION)
         self._writer.open()
         for sc in self.rig.scanners:
-            self._add(sc.topic, LASERSCAN)
+            self._add(sc.topic, MULTIECHO if sc.message == "MultiEchoLaserScan" else LASERSCAN)
         self._add("/tf_static", TFMESSAGE, latched=True)
         self._add("/ground_truth", POSESTAMPED)
         if self.with_imu:
-            self._add("/imu", IMU)
+            self._add(self.rig.imu.topic, IMU)
         return self
 
     def close(self) -> None:
@@ -178,16 +179,19 @@ class BagWriter:
         self.seconds["writing"] += time.perf_counter() - t0
 
     def tf_static(self, t_ns: int) -> None:
-        """``/tf_static``: ``body`` -> every scanner (``T_body_scanner``)."""
+        """``/tf_static``: the rig's body frame -> every scanner's frame (``T_body_scanner``), and
+        -> the IMU's frame (identity: the IMU's axes are the body's) when it has its own name."""
         ty = self._types
         transforms = []
-        for sc in self.rig.scanners:
-            T = sc.T_body_scanner.matrix()
+        mounts = [(sc.frame, sc.T_body_scanner.matrix()) for sc in self.rig.scanners]
+        if self.with_imu and self.rig.imu.frame_id != self.rig.body_frame:
+            mounts.append((self.rig.imu.frame_id, np.eye(4)))
+        for child, T in mounts:
             q = Rotation.from_matrix(T[:3, :3]).as_quat()
             transforms.append(
                 ty["geometry_msgs/msg/TransformStamped"](
-                    header=self._plain_header(t_ns, BODY_FRAME),
-                    child_frame_id=sc.name,
+                    header=self._plain_header(t_ns, self.rig.body_frame),
+                    child_frame_id=child,
                     transform=ty["geometry_msgs/msg/Transform"](
                         translation=ty["geometry_msgs/msg/Vector3"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
                         rotation=ty["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
@@ -209,12 +213,15 @@ class BagWriter:
         model = scanner.scanner_model
         if ranges.ndim != 2 or ranges.shape != (len(stamps_ns), model.n_beams):
             raise ValueError(f"scanner '{scanner.name}': ranges {ranges.shape} do not match {len(stamps_ns)} scans x {model.n_beams} beams")
-        LS = self._types[LASERSCAN]
         empty = np.empty(0, dtype=np.float32)
         r32 = np.ascontiguousarray(ranges, dtype=np.float32)
+        if scanner.message == "MultiEchoLaserScan":
+            self._multi_echo(scanner, stamps_ns, r32)
+            return
+        LS = self._types[LASERSCAN]
         for i, t_ns in enumerate(stamps_ns.tolist()):
             msg = LS(
-                header=self._header(scanner.topic, t_ns, scanner.name),
+                header=self._header(scanner.topic, t_ns, scanner.frame),
                 angle_min=float(model.angle_min),
                 angle_max=float(model.angle_max),
                 angle_increment=float(model.angle_increment),
@@ -226,6 +233,30 @@ class BagWriter:
                 intensities=empty,
             )
             self._queue(scanner.topic, t_ns, msg, LASERSCAN)
+
+    def _multi_echo(self, scanner: ScannerConfig, stamps_ns: NDArray[np.int64], r32: NDArray[np.float32]) -> None:
+        """MultiEchoLaserScan messages: one echo per beam with a return, none where the beam
+        has no return (inf) or dropped out (NaN); no intensities."""
+        model = scanner.scanner_model
+        MS, LE = self._types[MULTIECHO], self._types[LASERECHO]
+        none = LE(echoes=np.empty(0, dtype=np.float32))
+        for i, t_ns in enumerate(stamps_ns.tolist()):
+            row = r32[i]
+            ok = np.isfinite(row)
+            echoes = [LE(echoes=row[k : k + 1]) if good else none for k, good in enumerate(ok.tolist())]
+            msg = MS(
+                header=self._header(scanner.topic, t_ns, scanner.frame),
+                angle_min=float(model.angle_min),
+                angle_max=float(model.angle_max),
+                angle_increment=float(model.angle_increment),
+                time_increment=float(model.time_increment),
+                scan_time=float(model.scan_period),
+                range_min=float(model.range_min),
+                range_max=float(model.range_max),
+                ranges=echoes,
+                intensities=[],
+            )
+            self._queue(scanner.topic, t_ns, msg, MULTIECHO)
 
     def poses(self, times_ns: NDArray[np.int64], positions: NDArray[np.float64], quaternions_xyzw: NDArray[np.float64]) -> None:
         """``/ground_truth`` PoseStamped ``T_world_body``."""
@@ -248,7 +279,7 @@ class BagWriter:
         cov_a = np.diag(np.full(3, self.imu_noise[1] ** 2)).ravel()
         for t_ns, g, a in zip(times_ns.tolist(), gyro.tolist(), accel.tolist(), strict=True):
             msg = IM(
-                header=self._header("/imu", t_ns, BODY_FRAME),
+                header=self._header(self.rig.imu.topic, t_ns, self.rig.imu.frame_id),
                 orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
                 orientation_covariance=no_orientation,
                 angular_velocity=V(x=g[0], y=g[1], z=g[2]),
@@ -256,4 +287,4 @@ class BagWriter:
                 linear_acceleration=V(x=a[0], y=a[1], z=a[2]),
                 linear_acceleration_covariance=cov_a,
             )
-            self._queue("/imu", t_ns, msg, IMU)
+            self._queue(self.rig.imu.topic, t_ns, msg, IMU)

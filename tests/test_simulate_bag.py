@@ -177,3 +177,30 @@ def test_seeded_and_config(tmp_path) -> None:
     assert SimulationConfig().format == "ros1"
     shipped = load_simulation_config(Path(__file__).resolve().parents[1] / "configs" / "simulation" / "default.yaml")
     assert shipped.world == "office" and shipped.duration == 600.0 and shipped.noise.range_sigma == 0.003
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
+def test_cartographer_layout(tmp_path: Path, fmt: str) -> None:
+    """The Cartographer backpack rig is written as the public recordings are: MultiEchoLaserScan
+    on its topics, /tf_static from base_link to the URDF's frames, the IMU on 'imu' in imu_link;
+    the echoes are the ranges of the beams with a return (the ground truth's hits)."""
+    res = simulate("demo", "cartographer_backpack_2d", duration=1.0, seed=3, out=tmp_path / "c.bag", fmt=fmt,
+                   imu=True, progress=False)
+    msgs = _read_all(res.bag)
+    assert {t: m[0][2] for t, m in msgs.items()} == {
+        "horizontal_laser_2d": "sensor_msgs/msg/MultiEchoLaserScan",
+        "vertical_laser_2d": "sensor_msgs/msg/MultiEchoLaserScan",
+        "/tf_static": "tf2_msgs/msg/TFMessage",
+        "/ground_truth": "geometry_msgs/msg/PoseStamped",
+        "imu": "sensor_msgs/msg/Imu",
+    }
+    tf = msgs["/tf_static"][0][1].transforms
+    assert {(x.header.frame_id, x.child_frame_id) for x in tf} == {
+        ("base_link", "horizontal_laser_link"), ("base_link", "vertical_laser_link"), ("base_link", "imu_link")}
+    assert msgs["imu"][0][1].header.frame_id == "imu_link"
+    beams = np.load(res.gt / "beams.npz")
+    for name, topic in (("horizontal", "horizontal_laser_2d"), ("vertical", "vertical_laser_2d")):
+        scans = msgs[topic]
+        assert len(scans[0][1].ranges) == 1079 and scans[0][1].header.frame_id == f"{name}_laser_link"
+        counts = np.array([[len(e.echoes) for e in m.ranges] for _, m, _ in scans])
+        np.testing.assert_array_equal(counts == 1, beams[f"{name}_plane_id"] != -1)  # hits and mixed pixels
