@@ -1,0 +1,200 @@
+"""A run's own health: can its estimate be trusted?
+
+Measured from what a run produces (world frame): the fraction of segments associated with
+planes, the point-to-plane residuals against the noise they were weighted with, the knots'
+speeds and turn rates (a walker does not move at 17 m/s), the translation directions the
+associated planes leave unobserved and for how long, and the number of planes. Each check that
+fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
+problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
+exits with :data:`EXIT_FAILED` (the CLI), still writing its outputs, marked failed in
+``summary.json``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from common.config import StrictModel
+
+FloatArray = NDArray[np.float64]
+Verdict = Literal["ok", "degraded", "failed"]
+Severity = Literal["warning", "failure"]
+EXIT_FAILED = 3  # exit code of a run whose estimate cannot be trusted (2 is bad input)
+
+
+class HealthSection(StrictModel):
+    """Limits of the run's self-diagnosis (``health:`` in the SLAM configuration)."""
+
+    min_associated: float = Field(default=0.5, ge=0, le=1, description="fraction of segments on planes below which the run fails")
+    warn_associated: float = Field(default=0.75, ge=0, le=1, description="... below which it is degraded")
+    max_rms_whitened: float = Field(default=4.0, gt=0, description="whitened residual RMS above which the run fails")
+    warn_rms_whitened: float = Field(default=2.0, gt=0, description="... above which it is degraded")
+    max_speed: float = Field(default=3.0, gt=0, description="m/s: a knot faster than this is a tracking failure")
+    max_turn_rate: float = Field(default=math.radians(360.0), gt=0, description="rad/s, likewise")
+    max_accel: float = Field(default=30.0, gt=0, description="m/s^2 between knot intervals: a jump")
+    observed_window: float = Field(default=2.0, gt=0, description="s: windows in which the planes' directions are counted")
+    unobserved_min_angle_deg: float = Field(
+        default=5.0, gt=0, description="a translation direction whose planes' normals all lie within this of "
+        "perpendicular to it is unobserved")
+    warn_unobserved_seconds: float = Field(default=10.0, gt=0, description="s unobserved in a row: degraded")
+    max_unobserved_seconds: float = Field(
+        default=60.0, gt=0, description="s unobserved in a row without an IMU: failed (the door and board edges "
+        "observe a corridor's direction too, so short spans are normal)")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One failed check: a code, its severity, a one-line message naming the cause, and the
+    measured value against its limit."""
+
+    code: str
+    severity: Severity
+    message: str
+    value: float
+    limit: float
+
+
+@dataclass(frozen=True)
+class Health:
+    verdict: Verdict
+    problems: list[Problem]
+    measures: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def failed(self) -> bool:
+        return self.verdict == "failed"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"verdict": self.verdict, "problems": [asdict(p) for p in self.problems], "measures": self.measures}
+
+    def lines(self) -> list[str]:
+        """One line per problem, failures first."""
+        order = sorted(self.problems, key=lambda p: p.severity != "failure")
+        return [f"{p.severity}: {p.message}" for p in order]
+
+
+def _verdict(problems: list[Problem]) -> Verdict:
+    if any(p.severity == "failure" for p in problems):
+        return "failed"
+    return "degraded" if problems else "ok"
+
+
+def motion_problems(knot_times: FloatArray, T_world_body: FloatArray, cfg: HealthSection) -> tuple[list[Problem], dict[str, float]]:
+    """Speeds, turn rates and accelerations of the knots (T_world_body (K, 4, 4) at knot_times (K,))."""
+    out: list[Problem] = []
+    if len(knot_times) < 3:
+        return out, {}
+    dt = np.diff(knot_times)
+    p = T_world_body[:, :3, 3]
+    v = np.linalg.norm(np.diff(p, axis=0), axis=1) / dt
+    R = T_world_body[:, :3, :3]
+    cos = np.clip((np.einsum("kij,kij->k", R[:-1], R[1:]) - 1.0) / 2.0, -1.0, 1.0)
+    w = np.arccos(cos) / dt
+    vel = np.diff(p, axis=0) / dt[:, None]
+    acc = np.linalg.norm(np.diff(vel, axis=0), axis=1) / dt[1:]
+    m = {"max_speed": float(v.max()), "max_turn_rate_deg": float(np.degrees(w.max())), "max_accel": float(acc.max())}
+    k = int(np.argmax(v))
+    if v[k] > cfg.max_speed:
+        fast = float((dt[v > cfg.max_speed]).sum())
+        out.append(Problem("implausible_speed", "failure",
+                           f"the trajectory moves at {v[k]:.1f} m/s at t = {knot_times[k] - knot_times[0]:.1f} s "
+                           f"({fast:.1f} s above {cfg.max_speed:g} m/s): tracking lost, not walking",
+                           float(v[k]), cfg.max_speed))
+    k = int(np.argmax(w))
+    if w[k] > cfg.max_turn_rate:
+        out.append(Problem("implausible_turn", "failure",
+                           f"the trajectory turns at {math.degrees(w[k]):.0f} deg/s at t = {knot_times[k] - knot_times[0]:.1f} s: "
+                           "tracking lost", float(w[k]), cfg.max_turn_rate))
+    k = int(np.argmax(acc))
+    if acc[k] > cfg.max_accel and not out:
+        out.append(Problem("tracking_jump", "warning",
+                           f"the trajectory jumps at t = {knot_times[k + 1] - knot_times[0]:.1f} s "
+                           f"({acc[k]:.0f} m/s^2 between knot intervals)", float(acc[k]), cfg.max_accel))
+    return out, m
+
+
+def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
+                     min_angle: float) -> dict[str, float]:
+    """Longest run (s) of windows in which a world translation direction is unobserved by the
+    associated segments' plane normals (seg_normal (S, 3), world frame; NaN rows: unassociated).
+    Returns {direction label: seconds}; the label is the unobserved eigenvector's dominant axis."""
+    n_win = max(1, math.ceil((t1 - t0) / window))
+    idx = np.clip(((seg_stamp - t0) / window).astype(np.int64), 0, n_win - 1)
+    ok = np.all(np.isfinite(seg_normal), axis=1)
+    info = np.zeros((n_win, 3, 3))
+    np.add.at(info, idx[ok], np.einsum("si,sj->sij", seg_normal[ok], seg_normal[ok]))
+    counts = np.bincount(idx[ok], minlength=n_win).astype(float)
+    thresh = math.sin(min_angle) ** 2
+    runs: dict[str, float] = {}
+    current: dict[str, int] = {}
+    for k in range(n_win):
+        labels: set[str] = set()
+        if counts[k] > 0:
+            w, V = np.linalg.eigh(info[k] / counts[k])
+            for i in range(3):
+                if w[i] < thresh:
+                    labels.add("xyz"[int(np.argmax(np.abs(V[:, i])))])
+        else:
+            labels = {"x", "y", "z"}
+        for lab in "xyz":
+            current[lab] = current.get(lab, 0) + 1 if lab in labels else 0
+            runs[lab] = max(runs.get(lab, 0.0), current[lab] * window)
+    return {k: v for k, v in runs.items() if v > 0}
+
+
+def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],
+           plane_normals: Mapping[int, FloatArray], counts: Mapping[str, float], rms_whitened: float | None,
+           with_imu: bool, cfg: HealthSection) -> Health:
+    """The health of a run (module doc). ``counts`` holds at least ``segments`` and
+    ``segments_associated``; ``plane_normals`` maps a final plane id to its world normal."""
+    problems: list[Problem] = []
+    measures: dict[str, float] = {}
+    n_seg = float(counts.get("segments", 0))
+    n_assoc = float(counts.get("segments_associated", 0))
+    if n_seg == 0:
+        problems.append(Problem("no_segments", "failure", "no line segments in the recording's scans: no usable returns",
+                                0.0, 1.0))
+        return Health("failed", problems, measures)
+    frac = n_assoc / n_seg
+    measures["associated_fraction"] = frac
+    if frac < cfg.min_associated or frac < cfg.warn_associated:
+        sev: Severity = "failure" if frac < cfg.min_associated else "warning"
+        problems.append(Problem("few_associated", sev,
+                                f"only {100 * frac:.0f} % of the segments lie on planes of the map (the rig, the range "
+                                "noise or the scene does not fit the model)", frac,
+                                cfg.min_associated if sev == "failure" else cfg.warn_associated))
+    if not plane_normals:
+        problems.append(Problem("no_planes", "failure", "the map has no planes", 0.0, 1.0))
+    if rms_whitened is not None and math.isfinite(rms_whitened):
+        measures["rms_whitened"] = rms_whitened
+        if rms_whitened > cfg.warn_rms_whitened:
+            sev = "failure" if rms_whitened > cfg.max_rms_whitened else "warning"
+            problems.append(Problem("residuals", sev,
+                                    f"point-to-plane residuals are {rms_whitened:.1f}x the noise they were weighted with "
+                                    "(range noise larger than assumed, or an inconsistent map)", rms_whitened,
+                                    cfg.max_rms_whitened if sev == "failure" else cfg.warn_rms_whitened))
+    motion, m = motion_problems(knot_times, T_world_body, cfg)
+    problems += motion
+    measures.update(m)
+    if len(knot_times) >= 2 and plane_normals:
+        normal = np.full((len(seg_plane_id), 3), np.nan)
+        for pid, n in plane_normals.items():
+            normal[seg_plane_id == pid] = n
+        spans = unobserved_spans(np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]),
+                                 float(knot_times[-1]), cfg.observed_window, math.radians(cfg.unobserved_min_angle_deg))
+        for lab, sec in sorted(spans.items()):
+            measures[f"unobserved_{lab}_seconds"] = sec
+            if sec >= cfg.warn_unobserved_seconds:
+                sev = "failure" if (sec >= cfg.max_unobserved_seconds and not with_imu) else "warning"
+                problems.append(Problem(f"unobserved_{lab}", sev,
+                                        f"motion along world {lab} is not observed by the planes for {sec:.0f} s in a row"
+                                        + ("" if with_imu else " and there is no IMU"), sec,
+                                        cfg.max_unobserved_seconds if sev == "failure" else cfg.warn_unobserved_seconds))
+    return Health(_verdict(problems), problems, measures)

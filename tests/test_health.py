@@ -1,0 +1,68 @@
+"""The run's self-diagnosis: each check fires on the failure it names, and a clean run is ok."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam.health import HealthSection, assess, unobserved_spans
+
+CFG = HealthSection()
+ROOM = {0: np.array([1.0, 0, 0]), 1: np.array([0, 1.0, 0]), 2: np.array([0, 0, 1.0])}
+
+
+def _walk(speed: float = 1.2, n: int = 400, dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    t = 100.0 + dt * np.arange(n)
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, 0, 3] = speed * (t - t[0])
+    return t, T
+
+
+def _segments(t: np.ndarray, planes: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    stamps = np.repeat(t, len(planes))
+    return stamps, np.tile(np.array(planes), len(t))
+
+
+def test_a_clean_walk_is_ok() -> None:
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, False, CFG)
+    assert h.verdict == "ok" and h.problems == [] and h.lines() == []
+    assert h.to_dict()["verdict"] == "ok"
+
+
+def test_a_runaway_start_fails_with_its_speed() -> None:
+    t, T = _walk()
+    T[:40, 0, 3] = 17.0 * (t[:40] - t[0])  # the first two seconds at 17 m/s
+    T[40:, 0, 3] += T[39, 0, 3] - T[40, 0, 3]
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, False, CFG)
+    assert h.failed and h.problems[0].code == "implausible_speed"
+    assert "17.0 m/s at t = 0.0 s" in h.lines()[0]
+
+
+def test_few_associated_segments_and_large_residuals_fail() -> None:
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": 1000, "segments_associated": 200}, 6.0, True, CFG)
+    assert {p.code for p in h.problems} == {"few_associated", "residuals"}
+    assert all(p.severity == "failure" for p in h.problems)
+    assert "only 20 % of the segments" in " ".join(h.lines())
+    mild = assess(t, T, st, pid, ROOM, {"segments": 1000, "segments_associated": 700}, 2.5, True, CFG)
+    assert mild.verdict == "degraded" and {p.severity for p in mild.problems} == {"warning"}
+
+
+def test_no_segments_is_a_failure_naming_the_returns() -> None:
+    t, T = _walk()
+    h = assess(t, T, np.empty(0), np.empty(0, dtype=int), {}, {"segments": 0, "segments_associated": 0}, None, False, CFG)
+    assert h.failed and "no usable returns" in h.lines()[0]
+
+
+def test_a_corridor_leaves_its_direction_unobserved() -> None:
+    t, T = _walk(n=1400)  # 70 s along x between walls facing y, floor and ceiling
+    st, pid = _segments(t, [1, 2])
+    spans = unobserved_spans(st, np.array([ROOM[int(i)] for i in pid]), t[0], t[-1], 2.0, np.radians(5.0))
+    assert spans == {"x": 70.0}
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, False, CFG)
+    assert h.failed and h.problems[0].code == "unobserved_x"
+    with_imu = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG)
+    assert with_imu.verdict == "degraded"
