@@ -55,6 +55,14 @@ Format = Literal["ros1", "ros2"]
 STAGES = ("trajectory", "ray casting", "noise", "serialisation", "writing")
 
 
+class Silence(StrictModel):
+    """A scanner that sends nothing for a while (a loose cable, a driver restart)."""
+
+    scanner: str
+    start: float = Field(ge=0, description="s after the start of the recording")
+    duration: float = Field(gt=0, description="s")
+
+
 class SimulationConfig(StrictModel):
     """Every knob of a run (YAML under ``configs/simulation/``); the seed drives every draw."""
 
@@ -73,6 +81,7 @@ class SimulationConfig(StrictModel):
     noise: ScannerNoiseConfig = Field(default_factory=ScannerNoiseConfig)
     imu_noise: ImuConfig = Field(default_factory=ImuConfig)
     people: PeopleConfig = Field(default_factory=PeopleConfig)
+    silences: list[Silence] = Field(default_factory=list)
 
 
 def load_simulation_config(path: str | Path) -> SimulationConfig:
@@ -192,6 +201,12 @@ def simulate(
         prng = np.random.default_rng([cfg.seed, 2])
         phases = [float(prng.uniform(0, s.scanner_model.scan_period)) for s in rig_obj.scanners]
     stamps = scan_stamps(rig_obj, cfg.duration, phases)
+    names = [sc.name for sc in rig_obj.scanners]
+    for quiet in cfg.silences:
+        if quiet.scanner not in names:
+            raise ValueError(f"silences: rig '{rig_obj.name}' has no scanner '{quiet.scanner}' (scanners: {', '.join(names)})")
+        i = names.index(quiet.scanner)
+        stamps[i] = stamps[i][(stamps[i] < quiet.start) | (stamps[i] >= quiet.start + quiet.duration)]
     people = make_people(cfg.people, world.walk, cfg.duration + max_period + 0.05, float(world.floor_z), cfg.seed)
     seconds["trajectory"] += time.perf_counter() - t0
 

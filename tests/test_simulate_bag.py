@@ -204,3 +204,15 @@ def test_cartographer_layout(tmp_path: Path, fmt: str) -> None:
         assert len(scans[0][1].ranges) == 1079 and scans[0][1].header.frame_id == f"{name}_laser_link"
         counts = np.array([[len(e.echoes) for e in m.ranges] for _, m, _ in scans])
         np.testing.assert_array_equal(counts == 1, beams[f"{name}_plane_id"] != -1)  # hits and mixed pixels
+
+
+def test_a_silent_scanner(tmp_path: Path) -> None:
+    cfg = SimulationConfig.model_validate({"silences": [{"scanner": "left", "start": 0.5, "duration": 1.0}]})
+    res = simulate("demo", "itc_backpack", duration=2.0, seed=1, out=tmp_path / "s.bag", config=cfg, progress=False)
+    beams = np.load(res.gt / "beams.npz")
+    t_left = beams["left_stamps"] - beams["left_stamps"][0]
+    assert not ((t_left > 0.55) & (t_left < 1.45)).any()
+    assert len(beams["top_stamps"]) > len(beams["left_stamps"]) + 35
+    bad = SimulationConfig.model_validate({"silences": [{"scanner": "middle", "start": 0.5, "duration": 1.0}]})
+    with pytest.raises(ValueError, match="no scanner 'middle'"):
+        simulate("demo", "itc_backpack", duration=1.0, out=tmp_path / "b.bag", config=bad, progress=False)
