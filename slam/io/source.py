@@ -326,13 +326,18 @@ class ScanStream:
         self.source = source
         self.index = StreamIndex()
         self._owned = owned
-        self._lines = self._merge(plan, reorder_ns, window)
+        # the generator holds no reference to this stream, so that dropping it closes the bag at once
+        self._lines = _merged(source, self.index, plan, reorder_ns, window)
 
     def __iter__(self) -> ScanStream:
         return self
 
     def __next__(self) -> Scanline:
-        return next(self._lines)
+        try:
+            return next(self._lines)
+        except BaseException:  # the end, or an error: the bag is done with
+            self.close()
+            raise
 
     def close(self) -> None:
         """Stop reading (and close the source when the stream owns it)."""
@@ -340,39 +345,39 @@ class ScanStream:
         if self._owned:
             self.source.close()
 
-    def _merge(self, plan: dict[str, str | None], reorder_ns: int,
-               window: StampWindow | None) -> Generator[Scanline, None, None]:
-        src, index = self.source, self.index
-        heap: list[tuple[int, int, Scanline]] = []
-        counter = itertools.count()
-        start, stop = window.log_range_ns() if window is not None else (None, None)
-        try:
-            conns = [c for c in src._reader.connections if c.topic in plan]  # the bag's order (ties in log time)
-            for conn, t_ns, msg in src.messages(conns, start, stop):
-                s_ns = stamp_ns(msg.header)
-                lag = t_ns - s_ns
-                index.lag_ns = (lag, lag) if index.lag_ns is None else (min(index.lag_ns[0], lag),
-                                                                         max(index.lag_ns[1], lag))
-                if window is None or window.contains(s_ns * 1e-9):
-                    name = plan[conn.topic] or str(msg.header.frame_id) or conn.topic
-                    try:
-                        line = Scanline.from_laserscan(msg, stamp=s_ns * 1e-9, scanner_id=name)
-                    except ValueError as e:
-                        raise input_error(src.path, f"bad LaserScan at log time {t_ns * 1e-9:.9f} s: {e}",
-                                          conn.topic) from None
-                    heapq.heappush(heap, (s_ns, next(counter), line))
-                while heap and heap[0][0] < t_ns - reorder_ns:
-                    yield self._record(heapq.heappop(heap)[2])
-            while heap:
-                yield self._record(heapq.heappop(heap)[2])
-        finally:
-            if self._owned:
-                src.close()
+    def __del__(self) -> None:
+        self.close()  # a stream dropped before its end (a caller that only wanted the check)
 
-    def _record(self, line: Scanline) -> Scanline:
-        self.index.stamps.append(line.stamp)
-        self.index.scanner_ids.append(line.scanner_id)
-        return line
+
+def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reorder_ns: int,
+            window: StampWindow | None) -> Generator[Scanline, None, None]:
+    """The scans of ``plan``'s topics (within ``window``) merged into stamp order through the
+    reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index``."""
+    heap: list[tuple[int, int, Scanline]] = []
+    counter = itertools.count()
+    start, stop = window.log_range_ns() if window is not None else (None, None)
+    conns = [c for c in src._reader.connections if c.topic in plan]  # the bag's order (ties in log time)
+    for conn, t_ns, msg in src.messages(conns, start, stop):
+        s_ns = stamp_ns(msg.header)
+        lag = t_ns - s_ns
+        index.lag_ns = (lag, lag) if index.lag_ns is None else (min(index.lag_ns[0], lag), max(index.lag_ns[1], lag))
+        if window is None or window.contains(s_ns * 1e-9):
+            name = plan[conn.topic] or str(msg.header.frame_id) or conn.topic
+            try:
+                line = Scanline.from_laserscan(msg, stamp=s_ns * 1e-9, scanner_id=name)
+            except ValueError as e:
+                raise input_error(src.path, f"bad LaserScan at log time {t_ns * 1e-9:.9f} s: {e}", conn.topic) from None
+            heapq.heappush(heap, (s_ns, next(counter), line))
+        while heap and heap[0][0] < t_ns - reorder_ns:
+            yield _recorded(index, heapq.heappop(heap)[2])
+    while heap:
+        yield _recorded(index, heapq.heappop(heap)[2])
+
+
+def _recorded(index: StreamIndex, line: Scanline) -> Scanline:
+    index.stamps.append(line.stamp)
+    index.scanner_ids.append(line.scanner_id)
+    return line
 
 
 __all__ = [
