@@ -41,6 +41,7 @@ from slam.prefetch import PreparedScans, prepared_scans
 from slam.rerun_map import MapOptions, write_map_rrd
 from slam.run_folder import RunSummary, write_cloud_outputs, write_tables
 
+# bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
 __all__ = ["bag_time_range", "load_imu", "peak_rss_gb", "run_slam"]
 
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
@@ -48,8 +49,8 @@ IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's bo
 
 def load_imu(bag: BagSource | str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> ImuSamples | None:
     """The bag's IMU samples for the run (``cfg.imu.use``: auto = when the bag has the topic and it
-    covers the scans, ``t_start``-``t_end`` s); None when the run goes without. Errors name the
-    bag and the topic."""
+    covers the scans, ``t_start``-``t_end`` s); None when the run goes without. ``bag``: an open
+    source, or a path opened for this call. Errors name the bag and the topic."""
     if not isinstance(bag, BagSource):
         with BagSource(bag) as source:
             return load_imu(source, cfg, t_start, t_end)

@@ -16,10 +16,11 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
+from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import InputError
 from slam.io.source import BagSource
 from slam.prefetch import can_fork_reader, prepared_scans
-from slam.run import bag_time_range, load_imu, run_slam
+from slam.run import load_imu, run_slam
 from slam.scan_prep import ScanPreparer
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
