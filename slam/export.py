@@ -13,7 +13,8 @@ Files of a run folder ``DIR``:
   header last; it is read back with numpy, whole or a chunk at a time.
 - ``segments.npz``: one row per segment (scanner index, scan index, stamp, inclusive beam range,
   plane id).
-- ``summary.json``: free-form run summary (config, counts, timings, residuals).
+- ``summary.json``: the run summary (config, counts, timings, residuals; the record is
+  ``slam.run_folder.RunSummary``).
 
 Every writer is atomic: it writes to a temporary name in the target folder and renames it
 over the target only when complete, so an interrupted write never leaves a partial file.

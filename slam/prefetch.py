@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from pathlib import Path
 from typing import Any
 
 from common.rig import Rig
 from slam.config import SlamConfig
 from slam.imu_feed import ImuSamples
-from slam.io.bag import read_scans
+from slam.io.source import BagSource, StreamIndex
 from slam.scan_prep import PreparedScan, ScanPreparer
 
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
@@ -48,8 +48,27 @@ def can_fork_reader() -> bool:
     return "fork" in mp.get_all_start_methods() and not mp.current_process().daemon
 
 
+class PreparedScans:
+    """The scans of a bag (the rig's topics, stamp order) prepared for the front end, as an
+    iterator; ``index`` is their stream's :class:`StreamIndex`, complete once the iterator is."""
+
+    def __init__(self, scans: Generator[PreparedScan, None, None], index: StreamIndex) -> None:
+        self._scans = scans
+        self.index = index
+
+    def __iter__(self) -> PreparedScans:
+        return self
+
+    def __next__(self) -> PreparedScan:
+        return next(self._scans)
+
+    def close(self) -> None:
+        """Stop early (and the reader process with it)."""
+        self._scans.close()
+
+
 def prepared_scans(
-    bag: str | Path,
+    source: BagSource,
     rig: Rig,
     cfg: SlamConfig,
     imu: ImuSamples | None,
@@ -57,42 +76,48 @@ def prepared_scans(
     process: bool = True,
     chunk: int = 64,
     max_chunks: int = 32,
-) -> Iterator[PreparedScan]:
-    """The bag's scans (the rig's topics, time order) prepared for the front end.
+) -> PreparedScans:
+    """The scans of ``source`` (the rig's topics, time order) prepared for the front end.
 
-    With ``process`` (and :func:`can_fork_reader`) a forked reader process prepares them and this
-    generator hands them on, ``chunk`` scans at a time, at most ``max_chunks`` chunks ahead; an
-    error in the reader (an ``InputError`` naming the bag, say) is raised here. Closing the
-    generator early stops the reader. The bag and its topics are checked before this returns."""
-    scans = read_scans(bag, rig=rig)  # checks the bag now, in this process
+    With ``process`` (and :func:`can_fork_reader`) a forked reader process, with its own
+    ``BagSource``, prepares them and this iterator hands them on, ``chunk`` scans at a time, at
+    most ``max_chunks`` chunks ahead; an error in the reader (an ``InputError`` naming the bag,
+    say) is raised here. Closing the iterator early stops the reader. The bag and its topics are
+    checked before this returns."""
     if not (process and can_fork_reader()):
         preparer = ScanPreparer(rig, cfg, imu)
-        return (preparer.prepare(line) for line in scans)
-    scans.close()
-    return _from_reader(bag, rig, cfg, imu, chunk, max_chunks)
+        stream = source.scans(rig=rig)
+        return PreparedScans((preparer.prepare(line) for line in stream), stream.index)
+    source.scan_plan(rig=rig)  # checks the bag's topics now, in this process
+    index = StreamIndex()
+    return PreparedScans(_from_reader(source.path, rig, cfg, imu, chunk, max_chunks, index), index)
 
 
-def _reader(bag: str | Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, q: Any) -> None:
-    """The reader process: prepares every scan and puts them on ``q`` in chunks, then ``_DONE``;
-    any exception goes on ``q`` as ``(_ERROR, exception)``."""
+def _reader(bag: Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, q: Any) -> None:
+    """The reader process: prepares every scan of its own ``BagSource`` of ``bag`` and puts them
+    on ``q`` in chunks, then ``(_DONE, the stream's index)``; any exception goes on ``q`` as
+    ``(_ERROR, exception)``."""
     try:
         preparer = ScanPreparer(rig, cfg, imu)
         batch: list[PreparedScan] = []
-        for line in read_scans(bag, rig=rig):
-            batch.append(preparer.prepare(line))
-            if len(batch) >= chunk:
-                q.put(batch)
-                batch = []
+        with BagSource(bag) as source:
+            stream = source.scans(rig=rig)
+            for line in stream:
+                batch.append(preparer.prepare(line))
+                if len(batch) >= chunk:
+                    q.put(batch)
+                    batch = []
         if batch:
             q.put(batch)
-        q.put(_DONE)
+        q.put((_DONE, stream.index))
     except BaseException as e:  # handed to the estimator's process, which raises it
         q.put((_ERROR, e))
 
 
 def _from_reader(
-    bag: str | Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, max_chunks: int
-) -> Iterator[PreparedScan]:
+    bag: Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, max_chunks: int, index: StreamIndex
+) -> Generator[PreparedScan, None, None]:
+    """The reader process's scans; ``index`` is filled with its stream's index at the end."""
     ctx = mp.get_context("fork")
     q = ctx.Queue(maxsize=max_chunks)
     proc = ctx.Process(target=_reader, args=(bag, rig, cfg, imu, chunk, q), name="backpack-slam-reader", daemon=True)
@@ -100,7 +125,9 @@ def _from_reader(
     try:
         while True:
             item = get_from_children(q, [proc], f"{bag}: the scan reader process")
-            if isinstance(item, str) and item == _DONE:
+            if isinstance(item, tuple) and len(item) == 2 and item[0] == _DONE:
+                done: StreamIndex = item[1]
+                index.stamps, index.scanner_ids, index.lag_ns = done.stamps, done.scanner_ids, done.lag_ns
                 break
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:
                 raise item[1]

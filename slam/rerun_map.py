@@ -34,8 +34,6 @@ from slam.export import (
     PlaneRecord,
     cloud_ply_layout,
     iter_cloud_ply,
-    read_planes_json,
-    read_trajectory_tum,
 )
 
 FloatArray = NDArray[np.float64]
@@ -317,32 +315,4 @@ def _log_segments(rec: rr.RecordingStream, seg: SegmentLines, t0: float, opt: Ma
             strips=np.asarray(seg.endpoints_world, dtype=np.float64).reshape(-1, 2, 3)[order].astype(np.float32),
             colors=plane_colors(np.asarray(seg.plane_id)[order]),
         ).partition(lengths),
-    )
-
-
-def write_map_from_dir(
-    run_dir: str | Path,
-    out: str | Path | None = None,
-    scanner_names: Sequence[str] = (),
-    options: MapOptions | None = None,
-) -> Path:
-    """Build ``map.rrd`` from a run folder's trajectory.tum, planes.json and cloud.ply.
-
-    planes.json and cloud.ply are optional; the trajectory is required. The cloud is read a
-    chunk at a time (:func:`view_of_cloud_ply`).
-    """
-    d = Path(run_dir)
-    times, T = read_trajectory_tum(d / "trajectory.tum")
-    planes = read_planes_json(d / "planes.json") if (d / "planes.json").is_file() else []
-    cloud = None
-    if (d / "cloud.ply").is_file() and cloud_ply_layout(d / "cloud.ply")[0] > 0:
-        cloud = view_of_cloud_ply(d / "cloud.ply", options)
-    return write_map_rrd(
-        Path(out) if out is not None else d / "map.rrd",
-        times=times,
-        T_world_body=T,
-        planes=planes,
-        cloud=cloud,
-        scanner_names=scanner_names,
-        options=options,
     )

@@ -1,4 +1,4 @@
-"""The cloud written as it comes (slam.run, slam.export) and read a chunk at a time (slam.evaluate,
+"""The cloud written as it comes (slam.cloud_pass, slam.export) and read a chunk at a time (slam.evaluate,
 slam.rerun_map): the same numbers as holding it whole."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import slam.cloud_pass
 import slam.run
 from common.atomic import OutputFileError
 from common.rig import resolve_rig
@@ -25,6 +26,7 @@ from slam.export import (
     write_cloud_ply,
 )
 from slam.io.bag import read_scans
+from slam.io.source import BagSource, StreamIndex
 from slam.pipeline import SlamResult, SlamRunner
 from slam.rerun_map import CloudView, MapOptions, view_of_cloud, view_of_cloud_ply
 from slam.trajectory.placement import place_points
@@ -250,8 +252,10 @@ def _reference_cloud(bag: Path, res: SlamResult) -> tuple[CloudRecord, np.ndarra
     return CloudRecord(pw, np.concatenate(sc), t_all, np.concatenate(pid)), pw[np.asarray(ends, dtype=np.int64)]
 
 
-def _streamed(walk: SimulationResult, res: SlamResult, ply: Path) -> tuple[int, Any]:
-    return slam.run._cloud(walk.bag, resolve_rig("itc_backpack"), res, ply, progress=False)
+def _streamed(walk: SimulationResult, res: SlamResult, ply: Path, index: StreamIndex | None = None,
+              processes: int = 1) -> tuple[int, Any]:
+    with BagSource(walk.bag) as source:
+        return slam.cloud_pass.write_cloud(source, resolve_rig("itc_backpack"), res, ply, index, False, processes)
 
 
 def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, estimate: SlamResult, tmp_path: Path,
@@ -264,11 +268,28 @@ def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, esti
     np.testing.assert_array_equal(lines.endpoints_world.reshape(-1, 3), ref_ends)
     assert lines.stamp.shape[0] == lines.plane_id.shape[0] == ref_ends.shape[0] // 2
     # batches that end inside a scan's worth of points, placed in odd chunks: the same file
-    monkeypatch.setattr(slam.run, "_EXPORT_BATCH", 1500)
-    monkeypatch.setattr(slam.run, "_PLACE_CHUNK", 333)
+    monkeypatch.setattr(slam.cloud_pass, "_EXPORT_BATCH", 1500)
+    monkeypatch.setattr(slam.cloud_pass, "_PLACE_CHUNK", 333)
     _, small = _streamed(walk, estimate, tmp_path / "small.ply")
     assert (tmp_path / "small.ply").read_bytes() == (tmp_path / "default.ply").read_bytes()
     np.testing.assert_array_equal(small.endpoints_world, lines.endpoints_world)
+
+
+def test_a_cloud_cut_by_stamp_windows_is_the_same_file(walk: SimulationResult, estimate: SlamResult,
+                                                      tmp_path: Path) -> None:
+    """The pass cut into parts found again by their stamps (the stream's index), written by forked
+    processes: the same bytes and segments as one pass; no part files left."""
+    stream = read_scans(walk.bag, rig=resolve_rig("itc_backpack"))
+    for _ in stream:
+        pass
+    parts = slam.cloud_pass.plan_parts(stream.index, estimate.scanner_names, 3)
+    assert len(parts) == 3 and parts[0].window is not None and parts[1].first_scan_index[0] > 0
+    n_one, one = _streamed(walk, estimate, tmp_path / "one.ply")
+    n_cut, cut = _streamed(walk, estimate, tmp_path / "cut.ply", stream.index, processes=3)
+    assert n_one == n_cut and (tmp_path / "one.ply").read_bytes() == (tmp_path / "cut.ply").read_bytes()
+    np.testing.assert_array_equal(one.endpoints_world, cut.endpoints_world)
+    np.testing.assert_array_equal(one.stamp, cut.stamp)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ply", "one.ply"]
 
 
 def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> None:
@@ -286,3 +307,5 @@ def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> 
     assert 0 < n == cloud_ply_layout(tmp_path / "run" / "cloud.ply")[0]
     # a well-posed walk meets no singular linear system in its solves
     assert summary["singular_systems"] == {"count": 0, "first": []}
+    # the window solver has no iSAM2 updates to count
+    assert cfg.backend.solver == "window" and "isam2_updates" not in summary["counts"]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 import pytest
@@ -253,3 +253,22 @@ def test_failed_cloud_write_midway(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 def test_missing_folder_is_clear(tmp_path: Path) -> None:
     with pytest.raises(OutputFileError, match="does not exist"):
         write_summary_json(tmp_path / "nope" / "summary.json", {})
+
+
+def test_run_counts_take_the_runner_statistics_by_name() -> None:
+    """summary.json's counts: the runner's statistics by field name, the derived ones computed,
+    and ``isam2_updates`` (the runner's back-end updates) only under the iSAM2 solver."""
+    from dataclasses import fields
+    from types import SimpleNamespace
+
+    from slam.run_folder import RunCounts
+
+    derived = {"segments_associated", "isam2_updates", "cloud_points"}
+    stats = {f.name: i for i, f in enumerate(fields(RunCounts)) if f.name not in derived} | {"updates": 77}
+    res: Any = SimpleNamespace(stats=stats, segment_rows={"plane_id": np.array([-1, 3, 3, -1, 0])})
+    isam2 = RunCounts.of(res, "isam2", cloud_points=12).to_dict()
+    assert list(isam2) == [f.name for f in fields(RunCounts)]
+    assert isam2["isam2_updates"] == 77 and isam2["segments_associated"] == 3 and isam2["cloud_points"] == 12
+    assert all(isam2[k] == v for k, v in stats.items() if k != "updates")
+    window = RunCounts.of(res, "window", cloud_points=12).to_dict()
+    assert "isam2_updates" not in window and window == {k: v for k, v in isam2.items() if k != "isam2_updates"}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import shutil
 from pathlib import Path
@@ -17,7 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from common.rig import Rig
 from slam.io import InputError, detect_format, open_scans
-from slam.io.bag import read_imu, read_poses, read_scans, read_tf_static, topics
+from slam.io.bag import read_imu, read_poses, read_scans, read_tf_static, time_range, topics
+from slam.io.source import BagSource, StampWindow
 
 REAL_BAG = Path("/work/shared/data/real/obstacle_detector_scans_demo.bag")
 needs_data = pytest.mark.skipif(not REAL_BAG.is_file(), reason="real data not available")
@@ -165,9 +167,10 @@ def _scan_ranges(k: int, j: int) -> np.ndarray:
     return r.astype(np.float32)
 
 
-def _messages(ts: Any, ros1: bool) -> list[tuple[str, str, int, Any]]:
+def _messages(ts: Any, ros1: bool, clock_ns: int = 0) -> list[tuple[str, str, int, Any]]:
     """(topic, type, log time ns, message): interleaved scans whose log times lag their stamps
-    by different amounts (so log order differs from stamp order), tf_static, poses, IMU."""
+    by different amounts (so log order differs from stamp order), tf_static, poses, IMU; the
+    scans' log times moved by ``clock_ns`` more (a recorder's clock off the sensors')."""
     T = ts.types
     out: list[tuple[str, str, int, Any]] = []
     tfs = []
@@ -200,7 +203,7 @@ def _messages(ts: Any, ros1: bool) -> list[tuple[str, str, int, Any]]:
                 ranges=_scan_ranges(k, j),
                 intensities=np.zeros(0, dtype=np.float32),
             )
-            out.append((topic, "sensor_msgs/msg/LaserScan", stamp + lag, msg))
+            out.append((topic, "sensor_msgs/msg/LaserScan", stamp + lag + clock_ns, msg))
         pose_t = T0 + k * 25_000_000
         q = Rotation.from_euler("z", 0.01 * k).as_quat()
         pose = T["geometry_msgs/msg/Pose"](
@@ -222,10 +225,10 @@ def _messages(ts: Any, ros1: bool) -> list[tuple[str, str, int, Any]]:
     return sorted(out, key=lambda m: m[2])
 
 
-def _write_ros1(path: Path) -> Path:
+def _write_ros1(path: Path, clock_ns: int = 0) -> Path:
     ts = get_typestore(Stores.ROS1_NOETIC)
     ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
-    msgs = _messages(ts, ros1=True)
+    msgs = _messages(ts, ros1=True, clock_ns=clock_ns)
     with Writer1(path) as w:
         conns = {(t, mt): w.add_connection(t, mt, typestore=ts) for t, mt in sorted({(m[0], m[1]) for m in msgs})}
         for topic, mt, t_ns, msg in msgs:
@@ -233,9 +236,9 @@ def _write_ros1(path: Path) -> Path:
     return path
 
 
-def _write_ros2(path: Path) -> Path:
+def _write_ros2(path: Path, clock_ns: int = 0) -> Path:
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    msgs = _messages(ts, ros1=False)
+    msgs = _messages(ts, ros1=False, clock_ns=clock_ns)
     with Writer2(path, version=9) as w:
         conns = {t: w.add_connection(t[0], t[1], typestore=ts) for t in sorted({(m[0], m[1]) for m in msgs})}
         for topic, mt, t_ns, msg in msgs:
@@ -293,3 +296,58 @@ def test_ros2_storage_file_path_is_accepted(tmp_path: Path) -> None:
     moved = tmp_path / "copy"
     shutil.copytree(bag, moved)
     assert len(list(read_scans(moved, topics=["/scan_top"]))) == 10
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
+def test_one_source_answers_every_question_with_one_open(tmp_path: Path, fmt: str,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    bag = _write_ros1(tmp_path / "run.bag") if fmt == "ros1" else _write_ros2(tmp_path / "run")
+    made = []
+    original = AnyReader.__init__
+
+    def counted(self: Any, *args: Any, **kwargs: Any) -> None:
+        made.append(args)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(AnyReader, "__init__", counted)
+    with BagSource(bag) as source:
+        assert source.topics() == topics(bag)
+        assert source.time_range() == time_range(bag)
+        assert set(source.tf_static()) == set(EXTRINSICS)
+        assert len(source.imu()) == len(source.poses()) == 10
+        assert len(list(source.scans())) == len(list(source.scans(topics=["/scan_top"]))) * 2 == 20
+        made.clear()
+    assert made == []
+    stream = read_scans(bag)
+    list(stream)
+    assert len(made) == 1  # checked and read through one open
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
+@pytest.mark.parametrize("clock_s", [0.0, -5.0])
+def test_scans_by_stamp_window_cut_the_stream(tmp_path: Path, fmt: str, clock_s: float) -> None:
+    """Consecutive stamp windows give the whole stream's scans in its order, also when the log
+    times run seconds behind the stamps (further than the reorder buffer reaches)."""
+    clock = round(clock_s * 1e9)
+    bag = _write_ros1(tmp_path / "run.bag", clock) if fmt == "ros1" else _write_ros2(tmp_path / "run", clock)
+    with BagSource(bag) as source:
+        whole = source.scans()
+        lines = [(s.stamp, s.scanner_id) for s in whole]
+        index = whole.index
+        assert index.stamps == [s for s, _ in lines] and index.scanner_ids == [n for _, n in lines]
+        assert index.in_stamp_order() and index.lag_ns == (clock + 1_000_000, clock + 30_000_000)
+        for cuts in ([7], [1, 2, 13], [5, 19]):
+            bounds = [None, *(index.stamps[c] for c in cuts), None]
+            got = []
+            for start, stop in itertools.pairwise(bounds):
+                got += [(s.stamp, s.scanner_id) for s in source.scans(window=StampWindow(start, stop, index.lag_ns))]
+            assert got == lines, cuts
+
+
+def test_a_stream_out_of_stamp_order_says_so(tmp_path: Path) -> None:
+    """Log times seconds after the stamps: the reorder buffer cannot restore stamp order, and
+    the index tells (a cloud pass then reads the stream whole)."""
+    with BagSource(_write_ros1(tmp_path / "late.bag", 5_000_000_000)) as source:
+        stream = source.scans()
+        list(stream)
+        assert not stream.index.in_stamp_order()

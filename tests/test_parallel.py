@@ -1,9 +1,11 @@
 """The second core: scans prepared in a reader process (slam.prefetch) and the cloud written by
-several processes (slam.run) give the same results, bit for bit, as one process; errors in those
-processes reach the caller."""
+several processes (slam.cloud_pass) give the same results, bit for bit, as one process; errors in
+those processes reach the caller; each process opens the bag once."""
 
 from __future__ import annotations
 
+import os
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -14,9 +16,11 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
+from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import InputError
+from slam.io.source import BagSource
 from slam.prefetch import can_fork_reader, prepared_scans
-from slam.run import bag_time_range, load_imu, run_slam
+from slam.run import load_imu, run_slam
 from slam.scan_prep import ScanPreparer
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
@@ -61,9 +65,15 @@ def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig:
     t0, t1 = bag_time_range(walk.bag)
     imu = load_imu(walk.bag, cfg, t0, t1)
     assert imu is not None  # the deskew is part of what is compared
-    here = list(prepared_scans(walk.bag, rig, cfg, imu, process=False))
-    there = list(prepared_scans(walk.bag, rig, cfg, imu, process=True, chunk=7, max_chunks=2))
+    with BagSource(walk.bag) as source:
+        in_process = prepared_scans(source, rig, cfg, imu, process=False)
+        here = list(in_process)
+        reader = prepared_scans(source, rig, cfg, imu, process=True, chunk=7, max_chunks=2)
+        there = list(reader)
     assert len(here) == len(there) > 100
+    # the reader process hands back its stream's index: the same as this process's
+    assert reader.index == in_process.index and len(reader.index) == len(here)
+    assert reader.index.stamps == [s.stamp for s in here] and reader.index.lag_ns is not None
     n_segs = n_tests = 0
     for a, b in zip(here, there, strict=True):
         assert (a.scanner, a.scan_index, a.stamp, a.skipped) == (b.scanner, b.scan_index, b.stamp, b.skipped)
@@ -91,15 +101,20 @@ def test_an_error_in_the_reader_process_is_raised_here(walk: SimulationResult, r
         return original(self, line)
 
     monkeypatch.setattr(ScanPreparer, "prepare", failing)  # the forked reader inherits the patch
-    with pytest.raises(InputError, match="bad LaserScan"):
-        for _ in prepared_scans(walk.bag, rig, SlamConfig(), None, process=True, chunk=4):
+    with pytest.raises(InputError, match="bad LaserScan"), BagSource(walk.bag) as source:
+        for _ in prepared_scans(source, rig, SlamConfig(), None, process=True, chunk=4):
             pass
     assert calls["n"] == 0  # the scans were prepared in the reader, not here
 
 
-def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, tmp_path: Path) -> None:
+def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    opens = _count_bag_opens(monkeypatch, tmp_path / "opens.log")
     one = run_slam(walk.bag, rig, _cfg(False, 1), tmp_path / "one", progress=False)
+    assert list(opens().values()) == [1]  # one process, one open
     par = run_slam(walk.bag, rig, _cfg(True, 3), tmp_path / "par", progress=False)
+    # this process, the reader and two cloud parts: each opens the bag once
+    assert list(opens().values()) == [1, 1, 1, 1]
     for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply"):
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "par" / name).read_bytes(), name
     assert one["counts"] == par["counts"]
@@ -108,18 +123,40 @@ def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, 
     assert sorted(p.name for p in (tmp_path / "par").iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
 
 
+def _count_bag_opens(monkeypatch: pytest.MonkeyPatch, log: Path) -> Any:
+    """Records each ``AnyReader`` made, by process id, in ``log`` (forked processes inherit the
+    patch); returns a function that gives the counts per process so far and starts over."""
+    from rosbags.highlevel import AnyReader
+
+    original = AnyReader.__init__
+
+    def counted(self: Any, *args: Any, **kwargs: Any) -> None:
+        with log.open("a") as f:
+            f.write(f"{os.getpid()}\n")
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(AnyReader, "__init__", counted)
+
+    def counts() -> Counter[str]:
+        got = Counter(log.read_text().split()) if log.exists() else Counter()
+        log.unlink(missing_ok=True)
+        return got
+
+    return counts
+
+
 def test_an_error_in_an_export_process_leaves_no_output(walk: SimulationResult, rig: Any, tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    import slam.run as run_mod
+    import slam.cloud_pass as cloud_mod
 
-    original = run_mod._cloud_part
+    original = cloud_mod.cloud_part
 
-    def failing(bag: Any, rig: Any, res: Any, writer: Any, lo: int, hi: int, bar: Any = None) -> Any:
-        if lo > 0:  # the forked parts only
+    def failing(scans: Any, part: Any, rig: Any, res: Any, writer: Any, bar: Any = None) -> Any:
+        if part.lo > 0:  # the forked parts only
             raise OSError("disk full")
-        return original(bag, rig, res, writer, lo, hi, bar)
+        return original(scans, part, rig, res, writer, bar)
 
-    monkeypatch.setattr(run_mod, "_cloud_part", failing)
+    monkeypatch.setattr(cloud_mod, "cloud_part", failing)
     out = tmp_path / "run"
     with pytest.raises(OSError, match="disk full"):
         run_slam(walk.bag, rig, _cfg(True, 2), out, progress=False)
@@ -138,8 +175,9 @@ def test_the_precomputed_edge_tests_are_those_the_front_end_computes(walk: Simul
     runs = []
     for keep in (True, False):
         runner = SlamRunner(rig, cfg, imu)
-        for scan in prepared_scans(walk.bag, rig, cfg, imu, process=False):
-            runner.add_prepared(scan if keep else replace(scan, edge_tests={}))
+        with BagSource(walk.bag) as source:
+            for scan in prepared_scans(source, rig, cfg, imu, process=False):
+                runner.add_prepared(scan if keep else replace(scan, edge_tests={}))
         runner.finish()
         runs.append(runner.result(batch=False))
     a, b = runs
@@ -160,8 +198,9 @@ def test_scans_fed_raw_or_prepared_elsewhere_give_the_same_run(walk: SimulationR
     raw, prepared = SlamRunner(rig, cfg, imu), SlamRunner(rig, cfg, imu)
     for line in read_scans(walk.bag, rig=rig):
         raw.add_scan(line)
-    for scan in prepared_scans(walk.bag, rig, cfg, imu, process=True):
-        prepared.add_prepared(scan)
+    with BagSource(walk.bag) as source:
+        for scan in prepared_scans(source, rig, cfg, imu, process=True):
+            prepared.add_prepared(scan)
     results = []
     for runner in (raw, prepared):
         runner.finish()

@@ -2,6 +2,8 @@
 
 ``open_scans(path)`` picks the reader from the file's content and name and returns a
 stream of ``segmentation.Scanline`` records (scanner frame, absolute per-beam times).
+A bag asked several questions (time range, topics, IMU, scans by stamp window) is opened once
+as a ``slam.io.source.BagSource``; ``slam.io.bag`` asks one question per open.
 Every reader raises ``InputError`` (a ``ValueError``) naming the file, and the topic
 for bags, when the input cannot be used.
 """

@@ -1,0 +1,209 @@
+"""What a run writes into its folder from its result (``slam.export`` holds the formats):
+trajectory.tum, planes.json and segments.npz (:func:`write_tables`), cloud.ply and the cloud
+shown in map.rrd (:func:`write_cloud_outputs`), and summary.json's record (:class:`RunSummary`,
+with the run's counts as one :class:`RunCounts`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.rig import Rig
+from slam.cloud_pass import write_cloud
+from slam.config import SlamConfig
+from slam.export import (
+    PlaneRecord,
+    make_segment_table,
+    read_cloud_ply,
+    write_cloud_ply,
+    write_planes_json,
+    write_segments_npz,
+    write_trajectory_tum,
+)
+from slam.frontend.planemap import KIND_NAMES
+from slam.io.source import BagSource, StreamIndex
+from slam.pipeline import SlamResult, SlamRunner
+from slam.rerun_map import CloudView, MapOptions, SegmentLines, view_of_cloud_ply
+
+FloatArray = NDArray[np.float64]
+
+MEMORY_DEFINITION = ("peak resident memory (ru_maxrss, GB) of the process so far, after the estimation "
+                     "(runner.result) and after the export; it never decreases, so the stage whose "
+                     "figure rises is the one that sets the peak")
+
+TIMINGS_DEFINITION = ("seconds per stage; 'segmentation' and 'frontend' (lifting into the body frame, deskew, the "
+                      "scan-only edge tests) are spent in the reader process when parallel.reader is on, overlapped "
+                      "with the estimator's stages; 'export' is elapsed time (its cloud pass split across "
+                      "parallel.export_processes); 'wall' is the whole run's elapsed time")
+
+
+def _plane_covariances(res: SlamResult, runner: SlamRunner) -> dict[int, FloatArray]:
+    """Each plane's marginal covariance (3, 3) over (Unit3 tangent of the normal, d); a plane
+    whose covariance cannot be computed is left out.
+
+    The one place that reaches into the runner (its back end): once ``SlamResult.plane_covariances``
+    is filled (issue 20), this is ``return res.plane_covariances``."""
+    out = {}
+    for pid in res.plane_ids:
+        try:
+            out[int(pid)] = runner.backend.plane_covariance(int(pid))
+        except (ValueError, RuntimeError):
+            pass
+    return out
+
+
+def plane_records(res: SlamResult, covariances: dict[int, FloatArray]) -> list[PlaneRecord]:
+    """The estimated planes (world frame) with their extents, kinds and ``covariances``."""
+    recs = []
+    for pid, n, d in zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True):
+        p = res.plane_map.planes[int(pid)]
+        recs.append(
+            PlaneRecord(
+                id=int(pid),
+                normal=np.asarray(n),
+                d=float(d),
+                polygon=res.plane_map.polygon(int(pid)),
+                kind=KIND_NAMES[p.kind],
+                n_segments=int(p.n_segments),
+                covariance=covariances.get(int(pid)),
+            )
+        )
+    return recs
+
+
+def write_tables(out: Path, res: SlamResult, runner: SlamRunner) -> list[PlaneRecord]:
+    """trajectory.tum, planes.json and segments.npz into ``out``; returns the planes written."""
+    write_trajectory_tum(out / "trajectory.tum", res.knot_times, res.T_world_body)
+    planes = plane_records(res, _plane_covariances(res, runner))
+    write_planes_json(out / "planes.json", planes)
+    rows = res.segment_rows
+    table = make_segment_table(res.scanner_names, rows["scanner"], rows["scan_index"], rows["stamp"],
+                               rows["first_beam"], rows["last_beam"], rows["plane_id"])
+    write_segments_npz(out / "segments.npz", table)
+    return planes
+
+
+@dataclass(frozen=True)
+class CloudOutputs:
+    """What the cloud pass left for the rest of the run: cloud.ply's number of points (0 when it
+    is not written), and for map.rrd the cloud's view and the associated segments (world frame)."""
+
+    points: int = 0
+    view: CloudView | None = None
+    segments: SegmentLines | None = None
+
+
+def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig, res: SlamResult,
+                        index: StreamIndex | None, progress: bool, voxel: float | None) -> CloudOutputs:
+    """cloud.ply into ``out`` (``output.cloud``; thinned to one point per ``voxel`` m, else
+    ``output.voxel``, when given) and the view of every point for map.rrd (``output.rerun``), from
+    one pass over ``source``'s scans (their stream's ``index``, see ``slam.cloud_pass``)."""
+    if not (cfg.output.cloud or cfg.output.rerun):
+        return CloudOutputs()
+    v = voxel if voxel is not None else (cfg.output.voxel or None)
+    # every point goes to a file as it is placed; the recording and the voxel thinning read it
+    # back (the recording a chunk at a time)
+    every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
+    n_every, lines = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes)
+    view = view_of_cloud_ply(every, MapOptions()) if cfg.output.rerun and n_every > 0 else None
+    n_cloud = 0
+    if cfg.output.cloud:
+        n_cloud = n_every
+        if v is not None:
+            c = read_cloud_ply(every)
+            n_cloud = write_cloud_ply(out / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id, voxel=v)
+    if every.name != "cloud.ply":
+        every.unlink()
+    return CloudOutputs(n_cloud, view, lines)
+
+
+@dataclass(frozen=True)
+class RunCounts:
+    """What a run counted (summary.json's ``counts``). Fields named as the runner's statistics
+    are taken from them by name; ``isam2_updates`` (the runner's ``updates``: back-end updates)
+    only under the iSAM2 solver (None, and left out of the summary, under the window solver)."""
+
+    scans: int
+    knots: int
+    segments: int
+    segments_associated: int
+    planes: int
+    planes_created: int
+    planes_merged: int
+    planes_rejected: int
+    planes_rejected_oblique: int
+    observation_blocks: int
+    wall_faces: int
+    edges: int
+    edges_created: int
+    edges_merged: int
+    edge_observations: int
+    trimmed_points: int
+    trimmed_blocks: int
+    isam2_updates: int | None
+    isam2_rebuilds: int
+    isam2_fallbacks: int
+    imu_used: int
+    zero_velocity_updates: int
+    cloud_points: int
+
+    @classmethod
+    def of(cls, res: SlamResult, solver: str, cloud_points: int) -> RunCounts:
+        """The counts of a run's result (its statistics and segment rows) and its cloud."""
+        derived: dict[str, Any] = {
+            "segments_associated": int((res.segment_rows["plane_id"] >= 0).sum()),
+            "isam2_updates": res.stats["updates"] if solver == "isam2" else None,
+            "cloud_points": cloud_points,
+        }
+        return cls(**{f.name: derived[f.name] if f.name in derived else res.stats[f.name] for f in fields(cls)})
+
+    def to_dict(self) -> dict[str, int]:
+        return {f.name: v for f in fields(self) if (v := getattr(self, f.name)) is not None}
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """summary.json: the run's inputs, counts, solver diagnostics, memory and timings (s)."""
+
+    bag: str
+    rig: str
+    config: dict[str, Any]
+    counts: RunCounts
+    batch: dict[str, Any] | None
+    singular_systems: dict[str, Any]
+    residuals: dict[str, float] | None
+    memory: dict[str, Any]
+    timings: dict[str, float]
+    timings_definition: str
+    data_duration: float
+    realtime_factor: float
+
+    @classmethod
+    def of(cls, bag: str | Path, rig: Rig, cfg: SlamConfig, res: SlamResult, cloud_points: int,
+           memory: dict[str, float], wall: float, time_range: tuple[float, float]) -> RunSummary:
+        """The summary of a run on ``bag`` (log ``time_range``, s) that took ``wall`` s."""
+        st = res.stats
+        timings = {k: round(v, 3) for k, v in res.timings.items()} | {"wall": round(wall, 3)}
+        duration = time_range[1] - time_range[0]
+        return cls(
+            bag=str(bag),
+            rig=rig.name,
+            config=cfg.model_dump(),
+            counts=RunCounts.of(res, cfg.backend.solver, cloud_points),
+            batch=st.get("batch"),
+            singular_systems={"count": len(st["singular_systems"]), "first": st["singular_systems"][:5]},
+            residuals=st.get("residuals"),
+            memory={k: round(v, 3) for k, v in memory.items()} | {"definition": MEMORY_DEFINITION},
+            timings=timings,
+            timings_definition=TIMINGS_DEFINITION,
+            data_duration=duration,
+            realtime_factor=duration / max(timings["wall"], 1e-9),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)} | {"counts": self.counts.to_dict()}
