@@ -9,14 +9,11 @@ translation) tangent coordinates, and ``time_offset`` [s]; it loads with
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
-from common.atomic import write_text
 from common.rig import Extrinsic, Rig
 from common.rotations import matrix_to_rpy
 
@@ -48,13 +45,3 @@ def updated_rig(rig: Rig, extrinsics: Mapping[str, tuple[FloatArray, FloatArray 
             upd["time_offset"] = float(offsets[s.name])
         scanners.append(s.model_copy(update=upd))
     return rig.model_copy(update={"scanners": scanners, "name": name or rig.name})
-
-
-def write_rig(path: str | Path, rig: Rig, header: str = "") -> Path:
-    """Write ``rig`` as YAML to ``path`` through a temporary file and a rename."""
-    p = Path(path)
-    data = rig.model_dump(mode="json")
-    text = "".join(f"# {line}\n" for line in header.splitlines()) + yaml.safe_dump(
-        data, sort_keys=False, default_flow_style=None, width=120)
-    write_text(p, text)
-    return p

@@ -17,9 +17,11 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 from pydantic import Field, field_validator, model_validator
 
+from common.atomic import write_text
 from common.config import StrictModel, load, resolve_config
 from common.rotations import rpy_to_matrix
 
@@ -167,6 +169,18 @@ class Rig(StrictModel):
 
     def by_topic(self) -> dict[str, ScannerConfig]:
         return {s.topic: s for s in self.scanners}
+
+
+def rig_yaml(rig: Rig, header: str = "") -> str:
+    """The rig as YAML (``header`` lines as comments first): what :func:`load_rig` reads back."""
+    text = yaml.safe_dump(rig.model_dump(mode="json", exclude_defaults=True), sort_keys=False,
+                          default_flow_style=None, width=120)
+    return "".join(f"# {line}\n" for line in header.splitlines()) + text
+
+
+def write_rig(path: str | Path, rig: Rig, header: str = "") -> Path:
+    """Write ``rig`` as YAML to ``path`` atomically."""
+    return write_text(path, rig_yaml(rig, header))
 
 
 def load_rig(path: str | Path) -> Rig:

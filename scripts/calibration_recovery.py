@@ -38,9 +38,9 @@ from calibration.calibrate import CalibrationOptions, RoundInfo, calibrate_bag
 from calibration.estimator import EstimatorConfig
 from calibration.observability import PARAMETERS, parameter_covariance
 from calibration.report import write_report
-from calibration.rig_io import updated_rig, write_rig
+from calibration.rig_io import updated_rig
 from common.config import configs_dir
-from common.rig import Rig
+from common.rig import Rig, write_rig
 from common.rotations import matrix_to_rpy
 from slam.config import SlamConfig
 

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from common.rig import Extrinsic, ImuMount, MessageType, Rig, ScannerConfig, ScannerModel
 from common.rotations import matrix_to_rpy
+from slam.io.source import MULTIECHO, SCAN_TYPES, BagSource
 
 FloatArray = NDArray[np.float64]
 Transforms = Mapping[tuple[str, str], FloatArray]  # (parent, child) -> T_parent_child
@@ -231,3 +232,53 @@ def rig_verdict(rig: Rig, mismatches: Sequence[RigMismatch], source: str) -> tup
         worst = max(bad, key=lambda m: (m.angle / REFUSE_ANGLE + m.distance / REFUSE_DISTANCE))
         error = f"rig '{rig.name}' does not match the transforms of {source}: {worst}"
     return error, [f"rig '{rig.name}' differs slightly from the transforms of {source}: {m}" for m in warn]
+
+
+def scan_topics(src: BagSource) -> list[ScanTopic]:
+    """Every scan topic of the recording, described by its first message (topic order)."""
+    out = []
+    counts = src.message_counts()
+    for topic, msgtype in src.topics().items():
+        if msgtype not in SCAN_TYPES or counts.get(topic, 0) == 0:
+            continue
+        for _, _, msg in src.messages(src.connections(topic, SCAN_TYPES)):
+            n = len(msg.ranges)
+            out.append(ScanTopic(topic, "MultiEchoLaserScan" if msgtype == MULTIECHO else "LaserScan",
+                                 str(msg.header.frame_id), float(msg.angle_min), float(msg.angle_increment), n,
+                                 float(msg.time_increment), float(msg.scan_time), float(msg.range_min),
+                                 float(msg.range_max)))
+            break
+    return out
+
+
+def static_transforms(src: BagSource) -> dict[tuple[str, str], FloatArray]:
+    """``/tf_static`` and the pairs of ``/tf`` whose transform never changes in the recording."""
+    out = src.tf_static()
+    moving: set[tuple[str, str]] = set()
+    dynamic: dict[tuple[str, str], FloatArray] = {}
+    for key, T in src.transforms("/tf"):
+        if key in dynamic and not np.allclose(dynamic[key], T, atol=1e-9):
+            moving.add(key)
+        dynamic.setdefault(key, T)
+    for key, T in dynamic.items():
+        if key not in moving and key not in out:
+            out[key] = T
+    return out
+
+
+def rig_from_source(src: BagSource, urdf: str | Path | None = None, base: str | None = None,
+                    name: str | None = None) -> Rig:
+    """The rig of a recording: its scan topics, mounted as its transforms (or ``urdf``) say."""
+    scans = scan_topics(src)
+    if not scans:
+        raise RigError(f"{src.path}: no LaserScan or MultiEchoLaserScan topic with messages")
+    if urdf is not None:
+        tree = FrameTree(urdf_transforms(urdf), str(urdf))
+    else:
+        transforms = static_transforms(src)
+        if not transforms:
+            raise RigError(f"{src.path}: the recording has no /tf_static or static /tf transforms; "
+                           "give the rig (--rig) or a URDF (--urdf)")
+        tree = FrameTree(transforms, f"the transforms of {src.path}")
+    imu = src.imu_topic()
+    return build_rig(name or f"{Path(src.path).stem}_rig", scans, tree, base, imu)

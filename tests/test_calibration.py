@@ -15,8 +15,8 @@ from calibration.estimator import EstimatorConfig, estimate_extrinsics
 from calibration.factors import timed_scanner_plane_factor
 from calibration.observability import UnobservableWarning, parameter_sigmas, warn_unobservable
 from calibration.observations import PointObservations
-from calibration.rig_io import updated_rig, write_rig
-from common.rig import load_rig, resolve_rig
+from calibration.rig_io import updated_rig
+from common.rig import load_rig, resolve_rig, write_rig
 from slam.factors import RobustKernel
 from slam.motion import MotionPriorConfig
 from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_log

@@ -44,8 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from calibration.estimator import EstimatorConfig
     from calibration.observability import UnobservableWarning
     from calibration.report import write_report
-    from calibration.rig_io import write_rig
-    from common.rig import resolve_rig
+    from common.rig import resolve_rig, write_rig
     from slam.config import load_slam_config
 
     rig = resolve_rig(args.rig)

@@ -19,8 +19,8 @@ import itertools
 from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
-from typing import Any
+from types import SimpleNamespace, TracebackType
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +33,9 @@ from segmentation import Scanline
 from slam.io.errors import InputError, input_error
 
 LASERSCAN = "sensor_msgs/msg/LaserScan"
+MULTIECHO = "sensor_msgs/msg/MultiEchoLaserScan"
+SCAN_TYPES = (LASERSCAN, MULTIECHO)
+Echo = Literal["first", "last", "strongest"]
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 POSESTAMPED = "geometry_msgs/msg/PoseStamped"
 IMU = "sensor_msgs/msg/Imu"
@@ -191,8 +194,10 @@ class BagSource:
         """Topic -> message type (``pkg/msg/Name``) of every connection in the bag."""
         return {c.topic: c.msgtype for c in self._reader.connections}
 
-    def connections(self, topic: str, msgtype: str) -> list[Any]:
-        """The connections of ``topic``, checked to exist, carry ``msgtype`` and hold messages."""
+    def connections(self, topic: str, msgtype: str | tuple[str, ...]) -> list[Any]:
+        """The connections of ``topic``, checked to exist, carry ``msgtype`` (one of them, for a
+        tuple) and hold messages."""
+        kinds = (msgtype,) if isinstance(msgtype, str) else msgtype
         r, p = self._reader, self.path
         if not r.connections or r.message_count == 0:
             raise input_error(p, "empty bag (no messages)")
@@ -200,9 +205,9 @@ class BagSource:
         if not conns:
             have = ", ".join(sorted({c.topic for c in r.connections}))
             raise input_error(p, f"no such topic (topics: {have})", topic)
-        wrong = {c.msgtype for c in conns} - {msgtype}
+        wrong = {c.msgtype for c in conns} - set(kinds)
         if wrong:
-            raise input_error(p, f"has message type {', '.join(sorted(wrong))}, expected {msgtype}", topic)
+            raise input_error(p, f"has message type {', '.join(sorted(wrong))}, expected {' or '.join(kinds)}", topic)
         if sum(c.msgcount for c in conns) == 0:
             raise input_error(p, "no messages", topic)
         return conns
@@ -235,14 +240,14 @@ class BagSource:
         else:
             if not r.connections or r.message_count == 0:
                 raise input_error(p, "empty bag (no messages)")
-            names = {c.topic: None for c in r.connections if c.msgtype == LASERSCAN and c.msgcount > 0}
+            names = {c.topic: None for c in r.connections if c.msgtype in SCAN_TYPES and c.msgcount > 0}
             if not names:
                 have = ", ".join(f"{c.topic} ({c.msgtype})" for c in r.connections)
-                raise input_error(p, f"no {LASERSCAN} topic with messages (topics: {have})")
+                raise input_error(p, f"no {LASERSCAN} or {MULTIECHO} topic with messages (topics: {have})")
         if not names:
             raise input_error(p, "no topics requested")
         for t in names:
-            self.connections(t, LASERSCAN)
+            self.connections(t, SCAN_TYPES)
         return names
 
     def scans(
@@ -253,8 +258,10 @@ class BagSource:
         reorder_window: float = 1.0,
         window: StampWindow | None = None,
         owned: bool = False,
+        echo: Echo = "first",
     ) -> ScanStream:
-        """The ``sensor_msgs/LaserScan`` messages as Scanlines ordered by header stamp (topics as in
+        """The ``sensor_msgs/LaserScan`` (and ``MultiEchoLaserScan``: the ``echo`` of each beam,
+        see :func:`single_echo`) messages as Scanlines ordered by header stamp (topics as in
         :meth:`scan_plan`; checked before this returns).
 
         ``scanner_id`` is the rig's scanner name for the topic, else the message's frame id, else
@@ -267,7 +274,7 @@ class BagSource:
         plan = self.scan_plan(topics, rig)
         if reorder_window < 0:
             raise ValueError(f"reorder_window must be >= 0, got {reorder_window}")
-        return ScanStream(self, plan, int(reorder_window * 1e9), window, owned)
+        return ScanStream(self, plan, int(reorder_window * 1e9), window, owned, echo)
 
     def imu(self, topic: str = "/imu") -> ImuSeries:
         """All ``sensor_msgs/Imu`` messages of ``topic`` as arrays, in log order."""
@@ -288,21 +295,40 @@ class BagSource:
             frame,
         )
 
-    def tf_static(self, topic: str = "/tf_static") -> dict[tuple[str, str], FloatArray]:
-        """Static transforms: (parent, child) -> 4x4 ``T_parent_child`` (maps child-frame points to
-        the parent frame). An empty dict when the bag has no ``topic``; a later message for the
-        same pair overrides an earlier one."""
-        out: dict[tuple[str, str], FloatArray] = {}
-        if topic not in self.topics():
-            return out
+    def message_counts(self) -> dict[str, int]:
+        """Topic -> number of messages."""
+        out: dict[str, int] = {}
+        for c in self._reader.connections:
+            out[c.topic] = out.get(c.topic, 0) + int(c.msgcount)
+        return out
+
+    def transforms(self, topic: str) -> Iterator[tuple[tuple[str, str], FloatArray]]:
+        """Every transform of the ``tf2_msgs/TFMessage`` topic in log order: ((parent, child),
+        4x4 ``T_parent_child``, mapping child-frame points to the parent frame); nothing when the
+        bag has no ``topic``."""
+        if self.message_counts().get(topic, 0) == 0:
+            return
         for _, _, msg in self.messages(self.connections(topic, TFMESSAGE)):
             for tf in msg.transforms:
                 tr, q = tf.transform.translation, tf.transform.rotation
                 T = np.eye(4)
                 T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
                 T[:3, 3] = (tr.x, tr.y, tr.z)
-                out[(str(tf.header.frame_id), str(tf.child_frame_id))] = T
-        return out
+                yield (str(tf.header.frame_id), str(tf.child_frame_id)), T
+
+    def tf_static(self, topic: str = "/tf_static") -> dict[tuple[str, str], FloatArray]:
+        """Static transforms: (parent, child) -> 4x4 ``T_parent_child``. An empty dict when the bag
+        has no ``topic``; a later message for the same pair overrides an earlier one."""
+        return dict(self.transforms(topic))
+
+    def imu_topic(self) -> tuple[str, str] | None:
+        """(topic, frame id) of the first ``sensor_msgs/Imu`` topic with messages, or None."""
+        counts = self.message_counts()
+        for topic, msgtype in self.topics().items():
+            if msgtype == IMU and counts.get(topic, 0) > 0:
+                for _, _, msg in self.messages(self.connections(topic, IMU)):
+                    return topic, str(msg.header.frame_id)
+        return None
 
     def poses(self, topic: str = "/ground_truth") -> PoseSeries:
         """All ``geometry_msgs/PoseStamped`` messages of ``topic`` as arrays, in log order."""
@@ -322,12 +348,12 @@ class ScanStream:
     records what it yielded (:class:`StreamIndex`)."""
 
     def __init__(self, source: BagSource, plan: dict[str, str | None], reorder_ns: int, window: StampWindow | None,
-                 owned: bool) -> None:
+                 owned: bool, echo: Echo = "first") -> None:
         self.source = source
         self.index = StreamIndex()
         self._owned = owned
         # the generator holds no reference to this stream, so that dropping it closes the bag at once
-        self._lines = _merged(source, self.index, plan, reorder_ns, window)
+        self._lines = _merged(source, self.index, plan, reorder_ns, window, echo)
 
     def __iter__(self) -> ScanStream:
         return self
@@ -349,8 +375,31 @@ class ScanStream:
         self.close()  # a stream dropped before its end (a caller that only wanted the check)
 
 
+def single_echo(msg: Any, echo: Echo) -> SimpleNamespace:
+    """A ``MultiEchoLaserScan`` as a LaserScan-like record: per beam its first, last or strongest
+    echo (strongest: by the echoes' intensities, the first echo where there are none); a beam
+    without echoes has no return (inf)."""
+    n = len(msg.ranges)
+    ranges = np.full(n, np.inf, dtype=np.float32)
+    inten = msg.intensities if len(msg.intensities) == n else None
+    for k, e in enumerate(msg.ranges):
+        ech = e.echoes
+        if len(ech) == 0:
+            continue
+        if echo == "first":
+            ranges[k] = ech[0]
+        elif echo == "last":
+            ranges[k] = ech[-1]
+        else:
+            ii = inten[k].echoes if inten is not None else ()
+            ranges[k] = ech[int(np.argmax(ii))] if len(ii) == len(ech) else ech[0]
+    return SimpleNamespace(header=msg.header, angle_min=msg.angle_min, angle_increment=msg.angle_increment,
+                           time_increment=msg.time_increment, range_min=msg.range_min, range_max=msg.range_max,
+                           ranges=ranges)
+
+
 def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reorder_ns: int,
-            window: StampWindow | None) -> Generator[Scanline, None, None]:
+            window: StampWindow | None, echo: Echo = "first") -> Generator[Scanline, None, None]:
     """The scans of ``plan``'s topics (within ``window``) merged into stamp order through the
     reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index``."""
     heap: list[tuple[int, int, Scanline]] = []
@@ -364,6 +413,8 @@ def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reo
         if window is None or window.contains(s_ns * 1e-9):
             name = plan[conn.topic] or str(msg.header.frame_id) or conn.topic
             try:
+                if conn.msgtype == MULTIECHO:
+                    msg = single_echo(msg, echo)
                 line = Scanline.from_laserscan(msg, stamp=s_ns * 1e-9, scanner_id=name)
             except ValueError as e:
                 raise input_error(src.path, f"bad LaserScan at log time {t_ns * 1e-9:.9f} s: {e}", conn.topic) from None
