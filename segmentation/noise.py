@@ -92,6 +92,8 @@ LAG = 4
 MIN_SAMPLES = 30
 #: mean resultant length of the range phases above which a lattice step is accepted
 LATTICE_COHERENCE = 0.9
+#: a candidate difference is tried as up to this many lattice steps
+MAX_DIVISOR = 5
 #: the noise and angular step every segmenter's fixed defaults assume (a UTM-30LX indoors)
 REFERENCE_SIGMA = 0.003
 REFERENCE_ANGLE_STEP = math.radians(0.25)
@@ -366,7 +368,8 @@ def detect_quantum(ranges: FloatArray) -> float:
     """The step (m) of the lattice the range values lie on, or 0 when they lie on none.
 
     Candidates are the smallest differences between distinct values (beyond
-    float32 round-off); the first whose phases ``2 pi r / q`` agree is the step.
+    float32 round-off) and their divisors up to ``MAX_DIVISOR``; the first
+    whose phases ``2 pi r / q`` agree is the step.
     """
     r = np.asarray(ranges, dtype=np.float64)
     r = r[np.isfinite(r) & (r > 0)]
@@ -391,16 +394,28 @@ def detect_quantum(ranges: FloatArray) -> float:
         if support < max(3, d.size // 200):
             continue
         tried += 1
-        # the cluster's mean carries float32 jitter, which adds up over r / q steps: also try it
-        # snapped to 2 and 3 significant digits (steps are round numbers in practice)
-        best_q, best_c = 0.0, 0.0
-        for q in (float(f"{q_mean:.2g}"), float(f"{q_mean:.3g}"), q_mean):
-            c = float(abs(np.mean(np.exp(2j * np.pi * r / q))))
-            if c > best_c + 1e-9:
-                best_q, best_c = q, c
-        if best_c >= LATTICE_COHERENCE:
-            return best_q
+        # the difference may span several steps (few values, as in one scan): its largest divisor
+        # that is a lattice step (GCD-like)
+        for m in range(1, MAX_DIVISOR + 1):
+            q = _lattice_step(r, q_mean / m)
+            if q > 0:
+                return q
     return 0.0
+
+
+def _lattice_step(r: FloatArray, q_mean: float) -> float:
+    """``q_mean`` (or it snapped to a round number) if the values lie on a lattice of that step, else 0.
+
+    The mean of measured differences carries float32 jitter, which adds up over
+    ``r / q`` steps: it is also tried snapped to 2 and 3 significant digits
+    (steps are round numbers in practice).
+    """
+    best_q, best_c = 0.0, 0.0
+    for q in (float(f"{q_mean:.2g}"), float(f"{q_mean:.3g}"), q_mean):
+        c = float(abs(np.mean(np.exp(2j * np.pi * r / q))))
+        if c > best_c + 1e-9:
+            best_q, best_c = q, c
+    return best_q if best_c >= LATTICE_COHERENCE else 0.0
 
 
 def angle_step(lines: Iterable[Scanline]) -> float:
