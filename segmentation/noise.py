@@ -29,11 +29,12 @@ frame, scan order) and needs no ground truth:
   plus ``JUMP_SIGMAS`` noise (no depth jump) and its ``|z|`` within
   ``TRIM_SIGMAS`` beam-to-beam scales; a lagged triple is used only when every
   consecutive triple inside its stretch is clean. The samples then go into a
-  robust scale: a start from the median of ``|z|`` (or its 75 % quantile when
-  the median is degenerate), then rounds of the root mean square of the
+  robust scale: a start from the 25 % quantile of ``|z|`` (at least the
+  quantisation's ``q / sqrt(12)``), then rounds of the root mean square of the
   samples within ``TRIM_SIGMAS`` of the current scale, corrected for the
-  Gaussian truncation. (Not the median absolute deviation alone: quantised
-  ranges give nearly ternary ``z`` whose median says nothing about their spread.)
+  Gaussian truncation; from below, the rounds climb to the inliers' scale and
+  stop there. (Not the median absolute deviation: quantised ranges give
+  nearly ternary ``z`` whose median says nothing about their spread.)
 * **Growth with range:** the same scale in up to ``MAX_BINS`` range bins
   (quantiles of the middle beam's range, at least ``BIN_SAMPLES`` triples
   each, trimming started from the overall scale), fitted by weighted least
@@ -107,8 +108,7 @@ def _truncated_var_factor(c: float) -> float:
 
 
 _TRUNC = _truncated_var_factor(TRIM_SIGMAS)
-_Q50 = 0.6744897501960817  # median of |N(0, 1)|
-_Q75 = 1.1503493803760079  # 75 % quantile of |N(0, 1)|
+_Q25 = 0.31863936396437514  # 25 % quantile of |N(0, 1)|
 
 
 @dataclass(frozen=True)
@@ -223,7 +223,9 @@ def _estimate(lines: list[Scanline], scanner_id: str, lag: int | None) -> NoiseM
     if np.count_nonzero(ok1) < MIN_SAMPLES:
         raise ValueError(f"noise estimate for '{scanner_id}': only {np.count_nonzero(ok1)} triples of consecutive "
                          f"valid beams in {len(lines)} scanline(s), need {MIN_SAMPLES}")
-    s1 = robust_scale(z1[ok1])
+    valid_r = np.concatenate([ln.ranges[ln.valid_index] for ln in lines])
+    quantum = detect_quantum(valid_r)
+    s1 = robust_scale(z1[ok1], quantum=quantum)
     z_fine, r_fine, z_lag, r_lag = [], [], [], []
     for ln, (z, jump) in zip(lines, fine, strict=True):
         r = ln.ranges
@@ -249,12 +251,11 @@ def _estimate(lines: list[Scanline], scanner_id: str, lag: int | None) -> NoiseM
     if z.size < MIN_SAMPLES:
         raise ValueError(f"noise estimate for '{scanner_id}': only {z.size} triples of consecutive valid beams "
                          f"without a depth jump in {len(lines)} scanline(s), need {MIN_SAMPLES}")
-    sigma0, slope, r_ref = _fit_growth(z, r_mid)
-    valid_r = np.concatenate([ln.ranges[ln.valid_index] for ln in lines])
+    sigma0, slope, r_ref = _fit_growth(z, r_mid, quantum)
     return NoiseModel(
         sigma0=sigma0,
         slope=slope,
-        quantum=detect_quantum(valid_r),
+        quantum=quantum,
         angle_step=step,
         range_ref=r_ref,
         beam_sigma=max(s1, SIGMA_FLOOR),
@@ -298,21 +299,21 @@ def triple_residuals(line: Scanline, lag: int, step: float) -> tuple[FloatArray,
     return z, jump
 
 
-def robust_scale(z: FloatArray, start: float | None = None) -> float:
+def robust_scale(z: FloatArray, start: float | None = None, quantum: float = 0.0) -> float:
     """Standard deviation of the inlying part of zero-mean samples ``z`` (see the module docstring).
 
     Rounds of the truncation-corrected root mean square of the samples within
-    ``TRIM_SIGMAS`` scales, from ``start`` or from the median of ``|z|`` (the
-    75 % quantile when the median is degenerate, as for quantised ranges).
-    Started low, the rounds climb to the inliers' scale and stop there: far
-    outliers never enter.
+    ``TRIM_SIGMAS`` scales, from ``start`` or from the 25 % quantile of ``|z|``
+    but at least the quantisation's ``quantum / sqrt(12)`` (quantised ranges
+    give many near-zero samples). Started low, the rounds climb to the
+    inliers' scale and stop there: far outliers never enter, even when they
+    are a third of the samples.
     """
     a = np.abs(z)
     if a.size == 0:
         return 0.0
     if start is None:
-        q50, q75 = (float(v) for v in np.quantile(a, [0.5, 0.75]))
-        s = q50 / _Q50 if q50 / _Q50 >= 0.5 * q75 / _Q75 else q75 / _Q75
+        s = max(float(np.quantile(a, 0.25)) / _Q25, quantum / math.sqrt(12.0))
     else:
         s = start
     if not s > 0:
@@ -328,10 +329,10 @@ def robust_scale(z: FloatArray, start: float | None = None) -> float:
     return s
 
 
-def _fit_growth(z: FloatArray, r: FloatArray) -> tuple[float, float, float]:
+def _fit_growth(z: FloatArray, r: FloatArray, quantum: float) -> tuple[float, float, float]:
     """(sigma0, slope, reference range) of ``sigma(r) = sigma0 + slope * r`` from samples ``z`` at ranges ``r``."""
     r_ref = float(np.median(r))
-    total = max(robust_scale(z), SIGMA_FLOOR)
+    total = max(robust_scale(z, quantum=quantum), SIGMA_FLOOR)
     n_bins = min(MAX_BINS, z.size // BIN_SAMPLES)
     if n_bins < 2:
         return total, 0.0, r_ref
