@@ -117,7 +117,8 @@ class NoiseModel:
     included), range quantisation step ``quantum`` (m, 0 = none found) and ``angle_step`` (rad).
 
     ``range_ref`` is the median range of the samples (m), where ``sigma_ref`` is quoted;
-    ``beam_sigma`` the beam-to-beam noise (m, consecutive triples; 0 = not estimated);
+    ``beam_sigma`` the beam-to-beam noise at ``range_ref`` (m, from consecutive triples; 0 = not
+    estimated);
     ``n_samples`` and ``n_scans`` say how much data the estimate rests on (0 for a model
     stated by hand, see ``NoiseModel.of``).
     """
@@ -245,6 +246,7 @@ def _estimate(lines: list[Scanline], scanner_id: str, lag: int | None) -> NoiseM
         z_lag.append(zk[i[keep]])
         r_lag.append(r[i[keep]])
     z, r_mid = np.concatenate(z_fine), np.concatenate(r_fine)
+    fine_model = _fit_growth(z, r_mid, quantum) if z.size >= MIN_SAMPLES else None
     if lag > 1 and sum(a.size for a in z_lag) >= MIN_SAMPLES:
         z, r_mid = np.concatenate(z_lag), np.concatenate(r_lag)
     # else: too few clean stretches of 2 lag + 1 beams (one cluttered scan): the consecutive triples
@@ -252,13 +254,14 @@ def _estimate(lines: list[Scanline], scanner_id: str, lag: int | None) -> NoiseM
         raise ValueError(f"noise estimate for '{scanner_id}': only {z.size} triples of consecutive valid beams "
                          f"without a depth jump in {len(lines)} scanline(s), need {MIN_SAMPLES}")
     sigma0, slope, r_ref = _fit_growth(z, r_mid, quantum)
+    beam_sigma = fine_model[0] + fine_model[1] * r_ref if fine_model is not None else s1
     return NoiseModel(
         sigma0=sigma0,
         slope=slope,
         quantum=quantum,
         angle_step=step,
         range_ref=r_ref,
-        beam_sigma=max(s1, SIGMA_FLOOR),
+        beam_sigma=max(beam_sigma, SIGMA_FLOOR),
         scanner_id=scanner_id,
         n_samples=int(z.size),
         n_scans=len(lines),
