@@ -256,8 +256,8 @@ the issue's reference for it is about 2.5 lines per ACES scan (its default range
   its quadratic trend removed, scatters about 9 mm about its line with a lag-1 autocorrelation of
   the range errors of about 0.9, in line with the URG-04LX's +-10 mm accuracy). On simulated white
   noise both agree within a few per cent (`tests/test_noise.py`).
-- The bag's front scanner sees one long wall at grazing incidence that bends by a few centimetres
-  along its 5 m. RoR follows it with a few segments whose rms is about 1.7 times the estimated
+- The bag's front scanner sees one long wall, partly at grazing incidence, whose points bend by
+  up to about 10 cm along its 5 m. RoR follows it with a few segments whose rms is about 1.7 times the estimated
   noise (RoR tolerates a single point up to 9.5 noise widths and runs of points up to about 2.5
   noise widths; split-and-merge cuts the same wall into shorter pieces and stays near 1). A
   noise estimate from consecutive beams (lag 1) gives the same ratio: the wall's bends are larger
