@@ -13,6 +13,17 @@ thresholds, stated for the constant noise ``point_sigma``, are scaled per
 point by ``sigma(r) / point_sigma``. With ``noise_slope = 0`` (the default)
 thresholds are constant, as in the paper.
 
+Defaults from a scanner's noise (``segmentation.noise.NoiseModel``): the fixed
+defaults are stated for a UTM-30LX indoors (``noise.REFERENCE``: 3 mm, 0.25 deg
+steps). ``Segmenter(noise=model)`` (``segmentation.get(name, noise=model)``)
+takes every parameter not given explicitly from ``Params.from_noise(model)``:
+``point_sigma`` and ``noise_slope`` are the model's effective noise, metric
+thresholds scale with the noise (``scaled_threshold``), point counts follow the
+angular step (``scaled_count``: the same metric length at ``RANGE_REF`` spans
+fewer beams at coarser steps, with a floor of ``MIN_SEGMENT_POINTS``) and
+``max_gap`` follows the beam spacing. ``from_noise(noise.REFERENCE)`` gives the
+fixed defaults exactly; without a model nothing changes.
+
 Input errors (ValueError, one line): empty input, all beams invalid, fewer
 valid points than ``Segmenter.min_points`` (``max(2, n_init)``), NaN/inf
 coordinates in an (n, 2) array input. Duplicate points and a single straight
@@ -22,6 +33,7 @@ line are ordinary input.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from abc import ABC, abstractmethod
@@ -34,12 +46,42 @@ from numpy.typing import ArrayLike, NDArray
 
 from segmentation.labels import combine_directions, finalize_runs, reverse_labels
 from segmentation.lines import fit_segments
+from segmentation.noise import REFERENCE_ANGLE_STEP, REFERENCE_SIGMA, NoiseModel
 from segmentation.result import Segmentation
 from segmentation.scanline import Scanline
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 Direction = Literal["forward", "backward", "combined"]
+
+#: range (m) at which a segment's fewest points are turned into a metric length
+RANGE_REF = 5.0
+#: fewest points a noise-derived ``min_len`` (or other count) goes down to at coarse angular steps
+MIN_SEGMENT_POINTS = 8
+#: a noise-derived ``max_gap`` is at least this many times the noise at the typical range
+GAP_SIGMAS = 10.0
+
+
+def noise_ratio(model: NoiseModel) -> float:
+    """The model's noise (at r = 0: ``point_sigma``) over the noise the fixed defaults assume."""
+    return model.sigma0 / REFERENCE_SIGMA
+
+
+def scaled_threshold(default: float, model: NoiseModel) -> float:
+    """A metric threshold stated for the reference noise, scaled to the model's noise."""
+    return default * noise_ratio(model)
+
+
+def scaled_count(default: int, model: NoiseModel) -> int:
+    """A point count stated for the reference angular step, for the model's step.
+
+    ``default - 1`` beam spacings at the reference step and ``RANGE_REF`` are a
+    metric length (RoR's 15 points: 0.31 m at 5 m); the count is the beams that
+    length spans at the model's step, at least ``MIN_SEGMENT_POINTS`` (or
+    ``default``, if smaller).
+    """
+    n = 1 + math.floor((default - 1) * REFERENCE_ANGLE_STEP / model.angle_step + 0.5)
+    return max(n, min(default, MIN_SEGMENT_POINTS))
 
 
 @dataclass(frozen=True)
@@ -63,6 +105,19 @@ class CommonParams:
         _check(self.max_gap > 0, "max_gap", self.max_gap, "> 0")
         _check(self.point_sigma > 0, "point_sigma", self.point_sigma, "> 0")
         _check(self.noise_slope >= 0, "noise_slope", self.noise_slope, ">= 0")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """Parameter values derived from a scanner's noise model (module docstring); subclasses
+        add their thresholds. ``max_gap`` follows the beam spacing, and stays 10 noise widths."""
+        d = cls()
+        step_ratio = model.angle_step / REFERENCE_ANGLE_STEP
+        return {
+            "point_sigma": model.sigma0,
+            "noise_slope": model.slope,
+            "min_len": scaled_count(d.min_len, model),
+            "max_gap": max(d.max_gap * step_ratio, GAP_SIGMAS * model.sigma_ref),
+        }
 
 
 @dataclass(frozen=True)
@@ -145,8 +200,9 @@ class Segmenter(ABC):
     Params: ClassVar[type[CommonParams]] = CommonParams
     sequential: ClassVar[bool] = False
 
-    def __init__(self, **params: Any) -> None:
-        self.params = self.make_params(**params)
+    def __init__(self, noise: NoiseModel | None = None, **params: Any) -> None:
+        self.noise = noise
+        self.params = self.make_params(noise, **params)
         self._params_dict: dict[str, Any] = dataclasses.asdict(self.params)
         self._const_noise: dict[int, tuple[FloatArray, FloatArray]] = {}
 
@@ -155,12 +211,23 @@ class Segmenter(ABC):
         return [f.name for f in dataclasses.fields(cls.Params)]
 
     @classmethod
-    def defaults(cls) -> dict[str, Any]:
-        return dataclasses.asdict(cls.Params())
+    def defaults(cls, noise: NoiseModel | None = None) -> dict[str, Any]:
+        """The default parameters: fixed, or derived from the noise model ``noise``."""
+        if noise is None:
+            return dataclasses.asdict(cls.Params())
+        return dataclasses.asdict(cls.make_params(noise))
 
     @classmethod
-    def make_params(cls, **params: Any) -> CommonParams:
-        """Validated parameters; unknown names or bad values raise ValueError listing the valid ones."""
+    def make_params(cls, noise: NoiseModel | None = None, **params: Any) -> CommonParams:
+        """Validated parameters; unknown names or bad values raise ValueError listing the valid ones.
+
+        With a noise model, every parameter not in ``params`` takes its value from
+        ``Params.from_noise(noise)`` (explicit parameters win).
+        """
+        if noise is not None:
+            if not isinstance(noise, NoiseModel):
+                raise ValueError(f"noise={noise!r} is invalid: expected a segmentation.noise.NoiseModel")
+            params = {**cls.Params.from_noise(noise), **params}
         hints = typing.get_type_hints(cls.Params)
         names = cls.param_names()
         unknown = sorted(set(params) - set(names))

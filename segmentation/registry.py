@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Callable, Iterable
+from typing import Any, Literal, TypeVar
 
 from numpy.typing import ArrayLike
 
-from segmentation.base import Segmenter
+from segmentation.base import Segmenter, as_scanline
+from segmentation.noise import NoiseModel, estimate
 from segmentation.result import Segmentation
 from segmentation.scanline import Scanline
 
@@ -40,11 +41,32 @@ def segmenter_class(method: str) -> type[Segmenter]:
         raise ValueError(f"unknown segmenter '{method}'; available: {', '.join(available())}") from None
 
 
-def get(method: str = "ror", **params: Any) -> Segmenter:
-    """A reusable segmenter; ``get(m, **p).segment(x)`` equals ``segment(x, m, **p)``."""
-    return segmenter_class(method)(**params)
+def get(method: str = "ror", noise: NoiseModel | None = None, **params: Any) -> Segmenter:
+    """A reusable segmenter; ``get(m, **p).segment(x)`` equals ``segment(x, m, **p)``.
+
+    With a noise model (``segmentation.noise``), parameters not given take their
+    noise-derived values; without one, the fixed defaults.
+    """
+    return segmenter_class(method)(noise, **params)
 
 
-def segment(data: Scanline | ArrayLike, method: str = "ror", **params: Any) -> Segmentation:
-    """Segment one scanline (a ``Scanline`` or an (n, 2) array of points) with the named method."""
-    return get(method, **params).segment(data)
+def segment(data: Scanline | ArrayLike, method: str = "ror", noise: NoiseModel | Literal["auto"] | None = None,
+            **params: Any) -> Segmentation:
+    """Segment one scanline (a ``Scanline`` or an (n, 2) array of points) with the named method.
+
+    ``noise``: a noise model to derive the defaults from, ``"auto"`` to estimate
+    it from this scanline alone, or None for the fixed defaults.
+    """
+    if isinstance(noise, str):
+        if noise != "auto":
+            raise ValueError(f"noise={noise!r} is invalid: expected a NoiseModel, 'auto' or None")
+        line = as_scanline(data)
+        return get(method, estimate(line), **params).segment(line)
+    return get(method, noise, **params).segment(data)
+
+
+def auto(scanlines: Scanline | Iterable[Scanline], method: str = "ror", **params: Any) -> Segmenter:
+    """A segmenter whose defaults come from the noise model estimated from ``scanlines``
+    (one scanner's; ``segmentation.noise.estimate``); explicit ``params`` win. The model
+    is the segmenter's ``noise`` attribute."""
+    return get(method, estimate(scanlines), **params)

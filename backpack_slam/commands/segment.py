@@ -4,6 +4,7 @@ or an ``.npz``/CSV scanline, with a summary, a plot and a JSON record."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -16,7 +17,12 @@ from typing import IO, Any
 
 DESCRIPTION = """Segment the scans of INPUT (a CARMEN log, plain or gzip; a ROS1 .bag or ROS2 bag
 directory, LaserScan topics; an .npz or CSV scanline) into lines with one of the registered
-segmenters, print a summary, and optionally write a plot and a JSON record."""
+segmenters, print a summary, and optionally write a plot and a JSON record. By default each
+scanner's noise model (range noise, quantisation, angular step) is estimated from its first
+scans, printed, and the segmenter's parameters not given with --param are derived from it."""
+
+#: scans per scanner the noise model is estimated from (the first ones of the input)
+NOISE_SCANS = 200
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -33,6 +39,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--scan", default=0, type=parse_scan, metavar="INDEX|all", help="which scan (0-based, negative from the end) or 'all' (default: 0)")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="write a plot (points coloured by segment)")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write labels and lines as JSON")
+    p.add_argument(
+        "--noise", choices=("auto", "none"), default="auto",
+        help="auto (default): estimate each scanner's noise model from its first scans and derive the "
+             "parameters not given with --param from it; none: the segmenter's fixed defaults",
+    )
     p.add_argument("--list-methods", action="store_true", help="list the segmenters with their default parameters and exit")
     return p
 
@@ -168,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
         scan=args.scan,
         plot=args.plot,
         json_out=args.json,
+        noise=args.noise,
         out=sys.stdout,
     )
 
@@ -181,27 +193,42 @@ def segment_input(
     scan: int | None = 0,
     plot: Path | None = None,
     json_out: Path | None = None,
+    noise: str = "auto",
     out: IO[str] = sys.stdout,
 ) -> int:
-    """Segment the selected scan(s) of ``path``; print a summary, write the plot and the JSON."""
+    """Segment the selected scan(s) of ``path``; print a summary, write the plot and the JSON.
+
+    ``noise="auto"``: each scanner's noise model is estimated from its first
+    ``NOISE_SCANS`` scans and printed; parameters not in ``params`` come from it.
+    ``noise="none"``: the segmenter's fixed defaults.
+    """
     import segmentation
     from common.atomic import atomic_path
     from slam.io import detect_format, open_scans
 
-    segmenter = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading
+    if noise not in ("auto", "none"):
+        raise ValueError(f"segment: noise={noise!r} is invalid: must be auto or none")
+    fixed = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading
     fmt = detect_format(path)
-    scans = open_scans(path, topics=topics)
     source = f"{path}" + (f" topic {','.join(topics)}" if topics else "")
+    models = _noise_models(path, topics, source, out) if noise == "auto" else {}
+    segmenters = {sid: segmentation.get(method, m, **(params or {})) for sid, m in models.items()}
+    scans = open_scans(path, topics=topics)
     header = {"input": {"path": str(path), "format": fmt, "topics": topics, "scan": "all" if scan is None else scan}}
+    first_segmenter = next(iter(segmenters.values()), fixed)
     summary = Summary()
     first_panel = None
     with _json_stream(json_out, atomic_path) as js:
         if js is not None:
-            js.write(json.dumps(json_safe({**header, "method": method, "params": segmenter_params(segmenter)}))[:-1])
+            extra = {"noise_models": {sid: dataclasses.asdict(m) for sid, m in models.items()},
+                     "params_by_scanner": {sid: segmenter_params(g) for sid, g in segmenters.items()}}
+            js.write(json.dumps(json_safe({**header, "method": method, "params": segmenter_params(first_segmenter),
+                                           **extra}))[:-1])
             js.write(', "scans": [')
         n_written = 0
         warmed = False
         for index, line in _progress(select_scans(scans, scan, source), scan is None):
+            segmenter = segmenters.get(line.scanner_id, fixed)
             try:
                 if not warmed:  # the first call loads numba's compiled code: keep it out of the timing
                     segmenter.segment(line)
@@ -237,9 +264,31 @@ def segment_input(
 
 
 def segmenter_params(segmenter: Any) -> dict[str, Any]:
-    import dataclasses
-
     return dataclasses.asdict(segmenter.params)
+
+
+def _noise_models(path: Path, topics: list[str] | None, source: str, out: IO[str]) -> dict[str, Any]:
+    """Each scanner's noise model from its first ``NOISE_SCANS`` scans, printed; scanners whose
+    scans give no estimate are named and keep the fixed defaults."""
+    from segmentation.noise import estimate
+    from slam.io import open_scans
+
+    groups: dict[str, list[Any]] = {}
+    for line in open_scans(path, topics=topics):
+        group = groups.setdefault(line.scanner_id, [])
+        if len(group) < NOISE_SCANS:
+            group.append(line)
+        elif all(len(g) >= NOISE_SCANS for g in groups.values()):
+            break
+    models = {}
+    for sid, lines in groups.items():
+        try:
+            models[sid] = estimate(lines)
+        except ValueError as e:
+            out.write(f"noise model [{sid}]: not estimated ({e}); fixed defaults\n")
+            continue
+        out.write(f"{models[sid]}\n")
+    return models
 
 
 class _json_stream:

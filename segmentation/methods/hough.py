@@ -29,14 +29,24 @@ be taken any more.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
+from segmentation.base import (
+    CommonParams,
+    FloatArray,
+    IntArray,
+    Segmenter,
+    _check,
+    scaled_count,
+    scaled_threshold,
+)
 from segmentation.methods._consensus import can_take_more, pack_alive, refine_line, take_runs
 from segmentation.methods._incremental import gaps_ok
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 Cells = NDArray[np.int32]
@@ -58,6 +68,16 @@ class HoughParams(CommonParams):
         _check(self.rho_res > 0, "rho_res", self.rho_res, "> 0")
         _check(self.threshold > 0, "threshold", self.threshold, "> 0")
         _check(self.min_votes >= 2, "min_votes", self.min_votes, ">= 2")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values, ``threshold`` scaled to the model's noise, ``rho_res`` at least twice
+        that threshold (a wall's votes stay in about one cell) and ``min_votes`` following the
+        angular step like ``min_len``."""
+        d = cls()
+        thr = scaled_threshold(d.threshold, model)
+        return {**super().from_noise(model), "threshold": thr, "rho_res": max(d.rho_res, 2.0 * thr),
+                "min_votes": scaled_count(d.min_votes, model)}
 
 
 @nb.njit(cache=True)

@@ -21,11 +21,20 @@ figure-1 scanline was 11 mm; on a synthetic 1081-beam office scanline with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
+from segmentation.base import (
+    CommonParams,
+    FloatArray,
+    IntArray,
+    Segmenter,
+    _check,
+    scaled_threshold,
+)
 from segmentation.methods._split import assign_labels, split_intervals
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 
@@ -38,6 +47,11 @@ class IEPFParams(CommonParams):
     def validate(self) -> None:
         super().validate()
         _check(self.threshold > 0, "threshold", self.threshold, "> 0")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values plus ``threshold`` scaled to the model's noise."""
+        return {**super().from_noise(model), "threshold": scaled_threshold(cls().threshold, model)}
 
 
 @register("iepf")

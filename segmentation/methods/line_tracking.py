@@ -18,12 +18,19 @@ Sequential: ``direction`` gives forward, backward or combined runs.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numba as nb
 import numpy as np
 
-from segmentation.base import FloatArray, IntArray, Segmenter, SequentialParams, _check
+from segmentation.base import (
+    FloatArray,
+    IntArray,
+    Segmenter,
+    SequentialParams,
+    _check,
+    scaled_threshold,
+)
 from segmentation.methods._incremental import (
     gaps_ok,
     moments_add,
@@ -31,6 +38,7 @@ from segmentation.methods._incremental import (
     moments_of,
     point_line_distance,
 )
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 
@@ -48,6 +56,11 @@ class LineTrackingParams(SequentialParams):
         super().validate()
         _check(self.threshold > 0, "threshold", self.threshold, "> 0")
         _check(self.n_init >= 2, "n_init", self.n_init, ">= 2")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values plus ``threshold`` scaled to the model's noise."""
+        return {**super().from_noise(model), "threshold": scaled_threshold(cls().threshold, model)}
 
 
 @nb.njit(cache=True)

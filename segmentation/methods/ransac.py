@@ -26,11 +26,19 @@ line: the classic extractors were found less reliable for this reason.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
 
-from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
+from segmentation.base import (
+    CommonParams,
+    FloatArray,
+    IntArray,
+    Segmenter,
+    _check,
+    scaled_threshold,
+)
 from segmentation.methods._consensus import (
     can_take_more,
     discard_inliers,
@@ -40,6 +48,7 @@ from segmentation.methods._consensus import (
     take_runs,
 )
 from segmentation.methods._incremental import gaps_ok
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 
@@ -57,6 +66,11 @@ class RansacParams(CommonParams):
         _check(self.threshold > 0, "threshold", self.threshold, "> 0")
         _check(self.n_iter >= 1, "n_iter", self.n_iter, ">= 1")
         _check(self.seed >= 0, "seed", self.seed, ">= 0")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values plus ``threshold`` scaled to the model's noise."""
+        return {**super().from_noise(model), "threshold": scaled_threshold(cls().threshold, model)}
 
 
 @nb.njit(cache=True)

@@ -130,7 +130,7 @@ check costs O(points) per piece.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numba as nb
 import numpy as np
@@ -142,9 +142,11 @@ from segmentation.base import (
     SequentialParams,
     _check,
     reverse_rows,
+    scaled_threshold,
 )
 from segmentation.labels import combine_runs, finalize_runs, reverse_labels
 from segmentation.methods._incremental import gaps_ok, line_from_sums
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 Statistic = Literal["abs", "signed"]
@@ -178,6 +180,11 @@ class RoRParams(SequentialParams):
         _check(self.sigma > 0, "sigma", self.sigma, "> 0")
         _check(0 < self.percentage <= 1, "percentage", self.percentage, "in (0, 1]")
         _check(self.stride >= 1, "stride", self.stride, ">= 1")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values plus ``sigma`` scaled to the model's noise (the paper's 9.5 mm for 3 mm)."""
+        return {**super().from_noise(model), "sigma": scaled_threshold(cls().sigma, model)}
 
 
 @nb.njit(cache=True, inline="always")

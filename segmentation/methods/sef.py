@@ -54,15 +54,25 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
 
-from segmentation.base import FloatArray, IntArray, Segmenter, SequentialParams, _check
+from segmentation.base import (
+    FloatArray,
+    IntArray,
+    Segmenter,
+    SequentialParams,
+    _check,
+)
+from segmentation.noise import REFERENCE_ANGLE_STEP, NoiseModel
 from segmentation.registry import register
 
 #: default corner threshold in units of the point noise: 3 standard deviations of a second difference
 CORNER_SIGMAS = 3.0 * math.sqrt(6.0)
+#: noise-derived jump threshold, at least: 8 standard deviations of a range difference
+JUMP_SIGMAS = 8.0 * math.sqrt(2.0)
 
 
 @dataclass(frozen=True)
@@ -83,6 +93,18 @@ class SEFParams(SequentialParams):
         if self.corner_threshold is not None:
             _check(self.corner_threshold >= 0, "corner_threshold", self.corner_threshold, ">= 0 (0 = off)")
         _check(self.corner_span >= 1, "corner_span", self.corner_span, ">= 1")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values; the jump ``threshold`` follows the beam spacing (a grazing wall's range
+        step grows with the angular step) and stays ``JUMP_SIGMAS`` noise widths of a range
+        difference; ``corner_span`` shrinks at coarse steps (a flat wall's range curvature grows
+        with the step squared)."""
+        d = cls()
+        step_ratio = model.angle_step / REFERENCE_ANGLE_STEP
+        return {**super().from_noise(model),
+                "threshold": max(d.threshold * step_ratio, JUMP_SIGMAS * model.sigma0),
+                "corner_span": max(1, math.floor(d.corner_span / step_ratio + 0.5))}
 
     @property
     def corner(self) -> float:

@@ -28,13 +28,22 @@ go to the neighbour whose line they fit (``segmentation.methods._split``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
 
-from segmentation.base import CommonParams, FloatArray, IntArray, Segmenter, _check
+from segmentation.base import (
+    CommonParams,
+    FloatArray,
+    IntArray,
+    Segmenter,
+    _check,
+    scaled_threshold,
+)
 from segmentation.lines import fit_segments
 from segmentation.methods._split import assign_labels, split_intervals
+from segmentation.noise import NoiseModel
 from segmentation.registry import register
 
 
@@ -52,6 +61,11 @@ class SplitAndMergeParams(CommonParams):
         super().validate()
         _check(self.threshold > 0, "threshold", self.threshold, "> 0")
         _check(0.0 < self.merge_alpha < 1.0, "merge_alpha", self.merge_alpha, "in (0, 1)")
+
+    @classmethod
+    def from_noise(cls, model: NoiseModel) -> dict[str, Any]:
+        """The common values plus ``threshold`` scaled to the model's noise."""
+        return {**super().from_noise(model), "threshold": scaled_threshold(cls().threshold, model)}
 
 
 @nb.njit(cache=True)
