@@ -28,7 +28,7 @@ from typing import Any, NoReturn
 PROG = "backpack-slam"
 
 # one entry per module in backpack_slam/commands/
-COMMANDS: list[str] = ["segment", "demo", "evaluate", "view", "export", "run", "simulate", "sweep", "report", "calibrate"]
+COMMANDS: list[str] = ["segment", "demo", "evaluate", "view", "export", "rig", "run", "simulate", "sweep", "report", "calibrate"]
 
 
 class UsageError(ValueError):

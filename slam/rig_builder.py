@@ -63,6 +63,11 @@ class ScanTopic:
         )
 
 
+def _f32(x: float) -> float:
+    """A float32 message field as the shortest decimal that reads back to it (0.1, not 0.10000000149)."""
+    return float(str(np.float32(x)))
+
+
 def _inverse(T: FloatArray) -> FloatArray:
     out = np.eye(4)
     out[:3, :3] = T[:3, :3].T
@@ -168,7 +173,7 @@ def build_rig(name: str, scans: Sequence[ScanTopic], tree: FrameTree, base: str 
     used: set[str] = set()
     for s in scans:
         T = tree.transform(body, s.frame_id)
-        nm = _scanner_name(s.topic, used)
+        nm = _scanner_name(s.frame_id, s.topic, used)
         roll, pitch, yaw = matrix_to_rpy(T[:3, :3])
         scanners.append(ScannerConfig(
             name=nm, topic=s.topic, frame_id=s.frame_id, message=s.message,
@@ -181,8 +186,11 @@ def build_rig(name: str, scans: Sequence[ScanTopic], tree: FrameTree, base: str 
     return Rig(name=name, reference=reference, scanners=scanners, body_frame=body, imu=mount)
 
 
-def _scanner_name(topic: str, used: set[str]) -> str:
-    base = topic.strip("/").replace("/", "_") or "scanner"
+def _scanner_name(frame: str, topic: str, used: set[str]) -> str:
+    """The frame id (``/`` -> ``_``) when it is free, else the topic's."""
+    base = (frame or topic).strip("/").replace("/", "_") or "scanner"
+    if base in used:
+        base = topic.strip("/").replace("/", "_") or "scanner"
     name, k = base, 2
     while name in used:
         name, k = f"{base}_{k}", k + 1
@@ -244,9 +252,9 @@ def scan_topics(src: BagSource) -> list[ScanTopic]:
         for _, _, msg in src.messages(src.connections(topic, SCAN_TYPES)):
             n = len(msg.ranges)
             out.append(ScanTopic(topic, "MultiEchoLaserScan" if msgtype == MULTIECHO else "LaserScan",
-                                 str(msg.header.frame_id), float(msg.angle_min), float(msg.angle_increment), n,
-                                 float(msg.time_increment), float(msg.scan_time), float(msg.range_min),
-                                 float(msg.range_max)))
+                                 str(msg.header.frame_id), _f32(msg.angle_min), _f32(msg.angle_increment), n,
+                                 _f32(msg.time_increment), _f32(msg.scan_time), _f32(msg.range_min),
+                                 _f32(msg.range_max)))
             break
     return out
 
@@ -281,4 +289,24 @@ def rig_from_source(src: BagSource, urdf: str | Path | None = None, base: str | 
                            "give the rig (--rig) or a URDF (--urdf)")
         tree = FrameTree(transforms, f"the transforms of {src.path}")
     imu = src.imu_topic()
-    return build_rig(name or f"{Path(src.path).stem}_rig", scans, tree, base, imu)
+    return build_rig(name or f"{Path(src.path).stem}_rig", scans, tree, base, imu, measured_noise(src, scans))
+
+
+def measured_noise(src: BagSource, scans: Sequence[ScanTopic], n_scans: int = 200) -> dict[str, float]:
+    """Each scan topic's range noise (m, at its median range) from its first ``n_scans`` scans
+    (``segmentation.noise``); topics whose scans do not hold enough straight stretches are left
+    out (the rig then takes the default)."""
+    from segmentation.noise import estimate
+
+    out: dict[str, float] = {}
+    for s in scans:
+        stream = src.scans(topics=[s.topic])
+        try:
+            lines = [line for _, line in zip(range(n_scans), stream, strict=False)]
+        finally:
+            stream.close()
+        try:
+            out[s.topic] = float(estimate(lines).sigma_ref)
+        except ValueError:
+            continue
+    return out

@@ -1,0 +1,67 @@
+"""Checks before a run processes anything: the rig it is given (or builds from the recording)
+against the recording's transforms, and whether the rig's scanners observe every degree of
+freedom or leave some to an IMU the recording does not have.
+
+A failed check is a :class:`slam.rig_builder.RigError` naming the rig, the recording and the
+cause, raised before any output is written; smaller findings come back as notes to print.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.rig import Rig
+from slam.io.source import BagSource
+from slam.rig_builder import (
+    FrameTree,
+    RigError,
+    compare_rig,
+    rig_from_source,
+    rig_verdict,
+    scan_topics,
+    static_transforms,
+    urdf_transforms,
+)
+from slam.rig_check import rig_observability
+
+
+@dataclass
+class RigCheck:
+    """The rig a run uses, where it came from, and what the checks found (one line each)."""
+
+    rig: Rig
+    source: str
+    notes: list[str] = field(default_factory=list)
+
+
+def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None, imu_topic: str | None) -> RigCheck:
+    """The run's rig: ``rig`` checked against the recording's transforms (or ``urdf``), or, when
+    None, built from them. ``imu_topic`` is the IMU topic the run will use (None: none)."""
+    if rig is None:
+        built = rig_from_source(src, urdf=urdf)
+        where = f"the URDF {urdf}" if urdf is not None else "the recording's transforms"
+        out = RigCheck(built, f"built from {where}", [f"rig built from {where} of {src.path}: "
+                                                       + ", ".join(f"{s.name} on {s.topic}" for s in built.scanners)])
+    else:
+        out = RigCheck(rig, "given")
+        transforms = urdf_transforms(urdf) if urdf is not None else static_transforms(src)
+        if transforms:
+            where = str(urdf) if urdf is not None else f"{src.path}"
+            tree = FrameTree(transforms, where)
+            by_topic = rig.by_topic()
+            frames = {by_topic[s.topic].name: s.frame_id for s in scan_topics(src) if s.topic in by_topic}
+            error, warnings = rig_verdict(rig, compare_rig(rig, tree, frames), where)
+            if error is not None:
+                raise RigError(error)
+            out.notes += warnings
+    obs = rig_observability(out.rig)
+    if not obs.observed:
+        left = ", ".join(obs.unobserved_names())
+        if imu_topic is None:
+            raise RigError(
+                f"rig '{out.rig.name}' leaves {left} to an IMU (its scanners do not observe it from walls, floor "
+                f"and ceiling) and {src.path} has no IMU the run can use: the estimate would drift; record an IMU "
+                "or add a scanner that sees it")
+        out.notes.append(f"rig '{out.rig.name}': {obs.summary()} ({imu_topic})")
+    return out
