@@ -1,6 +1,6 @@
 """A point-on-plane block factor with the scanner's extrinsic *and* time offset as variables.
 
-Like :func:`slam.factors.scanner_point_plane_factor` (points in the scanner frame, keys
+Like :func:`slam.backend.factors.scanner_point_plane_factor` (points in the scanner frame, keys
 ``X(i), X(i+1), P(j), E(s)``) plus a scalar ``D(s)``: the scanner's clock offset delta [s], so
 that a beam stamped ``t_k`` was really taken at ``t_k + delta``. The point moves along the
 trajectory's geodesic of its knot interval::
@@ -14,7 +14,7 @@ derivative wrt delta is exact and uses the interval's body velocity ``xi / dt``:
     d e_k / d delta = g_k . xi / dt,   g_k = [p_k x m_k, m_k]
 
 with ``p_k`` the point and ``m_k`` the plane normal in the body frame at the beam time. Per-point
-robust weights as in :mod:`slam.factors` (IRLS inside the factor).
+robust weights as in :mod:`slam.backend.factors` (IRLS inside the factor).
 """
 
 from __future__ import annotations
@@ -25,7 +25,13 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.factors import RobustKernel, point_plane_terms, robust_rows, robust_rows_dim, scaled_rows
+from slam.backend.factors import (
+    RobustKernel,
+    point_plane_terms,
+    robust_rows,
+    robust_rows_dim,
+    scaled_rows,
+)
 
 FloatArray = NDArray[np.float64]
 

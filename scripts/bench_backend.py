@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from box_scene import make_scene, walking_knots
 
 from slam.backend import Backend, BackendConfig
-from slam.factors import point_plane_factor
+from slam.backend.factors import point_plane_factor
 from slam.motion import MotionPriorConfig, constant_velocity_terms
 
 

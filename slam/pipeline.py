@@ -38,9 +38,8 @@ from numpy.typing import NDArray
 
 from common.rig import Rig
 from segmentation import Scanline
-from slam.backend import Backend, BackendConfig
+from slam.backend import Backend, BackendConfig, RobustKernel
 from slam.config import SlamConfig
-from slam.factors import RobustKernel
 from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.edges import (

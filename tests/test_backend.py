@@ -9,7 +9,7 @@ import pytest
 from box_scene import SCANNERS, Scene, make_scene, perturb_pose, walking_knots
 
 from slam.backend import Backend, BackendConfig
-from slam.factors import RobustKernel
+from slam.backend.factors import RobustKernel
 from slam.motion import ImuConfig
 from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_inverse, se3_log
 
@@ -395,7 +395,7 @@ def _check_two_plane_jacobians(error: Any, a: Any, b: Any, rows: int) -> list[np
 def test_perpendicular_error_jacobians_match_numerical_differentiation() -> None:
     import gtsam
 
-    from slam.backend import _perpendicular_error
+    from slam.backend.facade import _perpendicular_error
 
     rng = np.random.default_rng(3)
     a = gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), 1.2)
@@ -407,7 +407,7 @@ def test_perpendicular_error_jacobians_match_numerical_differentiation() -> None
 def test_plane_equality_jacobians_match_numerical_differentiation() -> None:
     import gtsam
 
-    from slam.backend import _plane_equality
+    from slam.backend.facade import _plane_equality
 
     rng = np.random.default_rng(4)
     n = rng.normal(size=3)
@@ -434,7 +434,7 @@ def test_solver_fallback_stops_at_its_time_bound(monkeypatch: pytest.MonkeyPatch
     """A linear solve that fails falls back to Levenberg-Marquardt, bounded by FALLBACK_SECONDS."""
     import gtsam
 
-    import slam.solver as sv
+    import slam.backend.solver as sv
 
     def run() -> sv.Solution:
         failed = [False]
@@ -466,7 +466,7 @@ def test_solver_retries_a_singular_system_with_more_damping(monkeypatch: pytest.
     the Gauss-Newton loop with more damping (not by the slow Levenberg-Marquardt fallback)."""
     import gtsam
 
-    import slam.solver as sv
+    import slam.backend.solver as sv
 
     J = 1e3  # one direction observed with weight J^2, the other not at all
 

@@ -17,7 +17,7 @@ from calibration.observability import UnobservableWarning, parameter_sigmas, war
 from calibration.observations import PointObservations
 from calibration.rig_io import updated_rig, write_rig
 from common.rig import load_rig, resolve_rig
-from slam.factors import RobustKernel
+from slam.backend.factors import RobustKernel
 from slam.motion import MotionPriorConfig
 from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_log
 
@@ -128,7 +128,7 @@ def test_time_offset_factor_jacobians_match_numerical() -> None:
     import gtsam
     from gtsam.symbol_shorthand import D, E, P, X
 
-    from slam.factors import RobustKernel
+    from slam.backend.factors import RobustKernel
 
     rng = np.random.default_rng(0)
     kt, kp = walking_knots(duration=0.1)

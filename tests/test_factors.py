@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import E, P, X
 
-from slam.factors import (
+from slam.backend.factors import (
     RobustKernel,
     point_plane_factor,
     point_plane_terms,

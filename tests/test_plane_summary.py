@@ -1,4 +1,4 @@
-"""Exact plane summaries of held observation blocks (slam.plane_summary) and the fixed-lag window
+"""Exact plane summaries of held observation blocks (slam.backend.plane_summary) and the fixed-lag window
 that uses them (Backend.window_optimize)."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from box_scene import make_scene, perturb_pose
 from gtsam.symbol_shorthand import P, X
 
 from slam.backend import Backend, BackendConfig
-from slam.factors import RobustKernel
-from slam.plane_summary import plane_summary_factor, scatter, shift_anchor, square_root
-from slam.solver import damped_gauss_newton
+from slam.backend.factors import RobustKernel
+from slam.backend.plane_summary import plane_summary_factor, scatter, shift_anchor, square_root
+from slam.backend.solver import damped_gauss_newton
 
 DEG = np.pi / 180.0
 

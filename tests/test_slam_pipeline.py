@@ -252,7 +252,7 @@ def test_door_edges_observe_the_corridor_direction(door_corridor: SimulationResu
 
 
 def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult, rig: Any) -> None:
-    """The solver takes an accepted step's error from its linearisation (``slam.solver``): on a
+    """The solver takes an accepted step's error from its linearisation (``slam.backend.solver``): on a
     whole SLAM graph (robust blocks, edge planes, ties, IMU, priors) ``0.5 ||b||^2`` of the
     linearisation equals the graph's error."""
     from slam.io.bag import read_scans

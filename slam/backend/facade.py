@@ -23,7 +23,7 @@ interval given by :meth:`Backend.add_imu` plus priors on the first velocity and 
 An observation block is the set of points seen on one plane during one knot interval
 ``[t_i, t_i+1]`` (``alphas`` the beam times' fractions of that interval; all zero or None gives a
 single-pose factor on ``X(i)``), with per-point point-to-plane sigmas, all in one batched
-factor (:mod:`slam.factors`) with per-point robust kernels. Points are in the body frame at their
+factor (:mod:`slam.backend.factors`) with per-point robust kernels. Points are in the body frame at their
 beam times, or in the scanner frame when ``scanner=s`` is given and ``E(s)`` was added.
 
 Incremental estimation: ``update()`` hands new factors and variables to gtsam.ISAM2 and runs one
@@ -45,7 +45,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, E, P, V, X
 from numpy.typing import ArrayLike, NDArray
 
-from slam.factors import (
+from slam.backend.factors import (
     RobustKernel,
     check_block,
     point_plane_factor,
@@ -54,6 +54,8 @@ from slam.factors import (
     robust_weights,
     scanner_point_plane_factor,
 )
+from slam.backend.plane_summary import plane_summary_factor, scatter, shift_anchor
+from slam.backend.solver import Solution, solve
 from slam.motion import (
     ImuConfig,
     MotionPriorConfig,
@@ -64,8 +66,6 @@ from slam.motion import (
     initial_velocity_factor,
     preintegrate,
 )
-from slam.plane_summary import plane_summary_factor, scatter, shift_anchor
-from slam.solver import Solution, solve
 from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions, se3_exp, se3_log
 from slam.trajectory.placement import interval_poses
 
@@ -634,7 +634,7 @@ class Backend:
 
     def _summarize_block(self, bid: int) -> None:
         """Fold block ``bid`` into its plane's scatter at the current poses (held from now on) and
-        robust weights (frozen): see :mod:`slam.plane_summary`."""
+        robust weights (frozen): see :mod:`slam.backend.plane_summary`."""
         blk = self._blocks[bid]
         v = self._values
         pts = blk.points
@@ -664,7 +664,7 @@ class Backend:
         (poses, velocities, biases) and every plane they observe, with every factor touching
         those knots and the planes' priors and ties; older variables those factors reach are held
         at their estimates. The observation blocks of older knots enter as one exact summary per
-        plane (:mod:`slam.plane_summary`, taken when a block leaves the window: its poses are held
+        plane (:mod:`slam.backend.plane_summary`, taken when a block leaves the window: its poses are held
         from then on), so a solve costs what the window holds, not what the walk has seen. The
         window never reopens summarised knots (``first_knot`` is raised to them). The full
         problem is left to a final :meth:`batch_optimize` (loop closures reach the old knots
@@ -735,7 +735,7 @@ class Backend:
 
     def _solve(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                max_iterations: int | None, fixed: Sequence[int] = ()) -> Solution:
-        """:func:`slam.solver.solve` with the configured iterations and tolerance; a failure of
+        """:func:`slam.backend.solver.solve` with the configured iterations and tolerance; a failure of
         its Levenberg-Marquardt fallback is a ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
         try:

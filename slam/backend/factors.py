@@ -28,7 +28,7 @@ both poses (gtsam's ``Pose3`` retract: ``R Exp(w)``, ``t + R v``), ``D = R_i^T R
     H_i     = [ (Exp(alpha_k phi) g_k)^T - H_{i+1,rot} D^T , (1 - alpha_k) n^T R_i ]
     H_plane = [ (R_k p_k + t_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
 
-The two-pose terms run in a compiled loop (:mod:`slam.factor_kernels`): a block holds few
+The two-pose terms run in a compiled loop (:mod:`slam.backend.factor_kernels`): a block holds few
 points, for which numpy's per-call overhead would dominate.
 
 Robustness (per point, wrong associations): a robust noise model on the block would weight
@@ -58,12 +58,12 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam import factor_kernels as _fk
-from slam.factor_kernels import two_pose_terms
+from slam.backend import factor_kernels as _fk
+from slam.backend.factor_kernels import two_pose_terms
 from slam.trajectory.interpolation import hat3
 
 FloatArray = NDArray[np.float64]
-# the compiled kernels' codes (slam.factor_kernels)
+# the compiled kernels' codes (slam.backend.factor_kernels)
 _KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2, "geman_mcclure": 3}
 KernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
@@ -125,7 +125,7 @@ def robust_rows(e: FloatArray, kernel: RobustKernel, linearize: bool) -> tuple[F
     (Gauss-Newton steps of iteratively reweighted least squares) and one row with no Jacobian,
     ``sqrt(2 sum(rho - w e^2 / 2))`` (>= 0 for Huber, Cauchy and Geman-McClure), so that a linearisation's
     ``0.5 ||b||^2`` is the robust cost at its point: the solver takes an accepted step's error
-    from the linearisation it needs next anyway (:mod:`slam.solver`)."""
+    from the linearisation it needs next anyway (:mod:`slam.backend.solver`)."""
     if kernel.name == "none":
         return e, (np.ones_like(e) if linearize else None)
     out, sw = _fk.robust_rows(np.ascontiguousarray(e, dtype=np.float64), _KERNEL_CODE[kernel.name],
