@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import gtsam
@@ -21,9 +22,10 @@ import numpy as np
 from gtsam.symbol_shorthand import P, X
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from backend_defaults import backend_defaults
 from box_scene import make_scene, walking_knots
 
-from slam.backend import Backend, BackendConfig
+from slam.backend import Backend
 from slam.backend.factors import point_plane_factor
 from slam.motion import MotionPriorConfig, constant_velocity_terms
 
@@ -71,7 +73,7 @@ def bench_isam(duration: float) -> None:
     for b in scene.blocks:
         by_knot.setdefault(b["knot"], []).append(b)
     rng = np.random.default_rng(2)
-    be = Backend(BackendConfig())
+    be = Backend(replace(backend_defaults(), solver="isam2"))
     for j, p in enumerate(scene.planes):
         be.add_plane(j, p[:3] + rng.normal(0, 0.01, 3), p[3] + rng.normal(0, 0.02))
     print(f"\n2. iSAM2 update per knot (box room, 3 scanners x 181 beams, "
@@ -85,10 +87,10 @@ def bench_isam(duration: float) -> None:
             be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
         if i >= 8:
             t0 = time.perf_counter()
-            be.update()
+            be.step()
             times.append(time.perf_counter() - t0)
             if i in report:
-                print(f"{i:>6d} {1e3 * np.mean(times[-5:]):>10.1f} {len(be._blocks):>7d}")
+                print(f"{i:>6d} {1e3 * np.mean(times[-5:]):>10.1f} {len(be.blocks.blocks):>7d}")
     t0 = time.perf_counter()
     s = be.batch_optimize(graduated=False)
     print(f"final LM over {be.num_knots} knots: {s.iterations} iterations, "

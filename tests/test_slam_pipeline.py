@@ -268,8 +268,8 @@ def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult,
         runner.add_scan(line)
     runner.finish()
     be = runner.backend
-    graph = be._graph()
-    values = be._used_values(graph)
+    graph = be.blocks.whole_graph()
+    values = be.graph.used_values(graph)
     assert be.num_knots > 40 and graph.size() > 100
     lin = graph.linearize(values)
     assert lin.error(values.zeroVectors()) == pytest.approx(graph.error(values), rel=1e-9)
