@@ -98,7 +98,7 @@ class EstimatorConfig:
     variance_factor: bool = True
     scale_rounds: int = 2
     scale_floor: float = 1.0
-    motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
+    motion: MotionPriorConfig = field(default_factory=lambda: MotionPriorConfig(q_ang=1.0, q_lin=0.25))
     plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
     pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
     min_plane_points: int = 6

@@ -46,7 +46,7 @@ def timed_scanner_plane_factor(
     alphas: FloatArray,
     interval: float,
     sigmas: FloatArray,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
 ) -> gtsam.CustomFactor:
     """Factor on ``(X(i), X(i+1), P(j), E(s), D(s))`` for N scanner-frame points (N, 3) at
     interval fractions ``alphas`` (N,) of a knot interval of ``interval`` seconds."""
@@ -58,7 +58,6 @@ def timed_scanner_plane_factor(
         raise ValueError(f"points_scanner: expected a finite non-empty (N, 3) array, got shape {pts.shape}")
     if al.shape != (n,) or s.shape != (n,) or np.any(s <= 0) or not interval > 0:
         raise ValueError("alphas, sigmas: expected (N,) arrays (sigmas > 0) and interval > 0")
-    kern = kernel or RobustKernel()
     inv_s = 1.0 / s
 
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
@@ -70,7 +69,7 @@ def timed_scanner_plane_factor(
         t = point_plane_terms(T_a, T_b, v.atOrientedPlane3(plane_key), p_b, al + delta / interval,
                               H is not None)
         e = t.residuals * inv_s
-        out, sw = robust_rows(e, kern, H is not None)
+        out, sw = robust_rows(e, kernel, H is not None)
         if H is None:
             return out
         assert t.H_a is not None and t.H_b is not None and t.H_plane is not None
@@ -87,6 +86,6 @@ def timed_scanner_plane_factor(
         H[4] = scaled_rows((t.dres_dalpha / interval)[:, None], f, rows)
         return out
 
-    rows = robust_rows_dim(n, kern)
+    rows = robust_rows_dim(n, kernel)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows),
                               [key_a, key_b, plane_key, extrinsic_key, offset_key], error)

@@ -27,7 +27,7 @@ from box_scene import make_scene, walking_knots
 
 from slam.backend import Backend
 from slam.backend.factors import point_plane_factor
-from slam.motion import MotionPriorConfig, constant_velocity_terms
+from slam.motion import constant_velocity_terms
 
 
 def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, repeat: int) -> float:
@@ -42,6 +42,7 @@ def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
 
 def bench_factor(repeat: int) -> None:
     rng = np.random.default_rng(0)
+    kernel = backend_defaults().kernel  # the SLAM configuration's
     Ta = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3))
     values = gtsam.Values()
     values.insert(X(0), Ta)
@@ -58,10 +59,10 @@ def bench_factor(repeat: int) -> None:
         batched = gtsam.NonlinearFactorGraph()
         for b in range(blocks):
             s = slice(b * n, (b + 1) * n)
-            batched.add(point_plane_factor(X(0), X(1), P(0), pts[s], al[s], 0.003))
+            batched.add(point_plane_factor(X(0), X(1), P(0), pts[s], al[s], 0.003, kernel))
         single = gtsam.NonlinearFactorGraph()
         for k in range(min(blocks * n, 1000)):
-            single.add(point_plane_factor(X(0), X(1), P(0), pts[k:k + 1], al[k:k + 1], 0.003))
+            single.add(point_plane_factor(X(0), X(1), P(0), pts[k:k + 1], al[k:k + 1], 0.003, kernel))
         tb = _linearize_seconds(batched, values, repeat) / (blocks * n) * 1e6
         ts = _linearize_seconds(single, values, repeat) / single.size() * 1e6
         print(f"{n:>12d} {tb:>14.3f} {ts:>16.2f} {ts / tb:>7.1f} {tb * n:>17.1f}")
@@ -99,7 +100,7 @@ def bench_isam(duration: float) -> None:
 
 def bench_motion_prior(duration: float) -> None:
     kt, poses = walking_knots(duration)
-    cfg = MotionPriorConfig()
+    cfg = backend_defaults().motion  # the SLAM configuration's
     r = []
     for i in range(1, kt.size - 1):
         res, *_ = constant_velocity_terms(*(gtsam.Pose3(poses[k]) for k in (i - 1, i, i + 1)),

@@ -233,6 +233,8 @@ class SlamRunner:
                 bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
                 gravity=ic.gravity,
                 integration_sigma=ic.integration_sigma,
+                velocity_prior_sigma=1.0,
+                T_body_imu=None,
             )
             if imu is not None
             else None

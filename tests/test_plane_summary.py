@@ -12,7 +12,7 @@ from box_scene import make_scene, perturb_pose
 from gtsam.symbol_shorthand import P, X
 
 from slam.backend import Backend
-from slam.backend.factors import RobustKernel
+from slam.backend.factors import NO_KERNEL, RobustKernel
 from slam.backend.incremental import WindowSolver
 from slam.backend.plane_summary import plane_summary_factor, scatter, shift_anchor, square_root
 from slam.backend.solver import damped_gauss_newton
@@ -99,7 +99,7 @@ def _box_backend(kernel: RobustKernel) -> tuple[Backend, int]:
 def test_window_with_summaries_equals_the_window_over_every_old_block() -> None:
     """With the old knots held, summarising their blocks changes nothing: the window solve gives
     the solution of the same window with every old block in the graph as it is."""
-    be, first = _box_backend(RobustKernel("none"))
+    be, first = _box_backend(NO_KERNEL)
     be.batch_optimize(3)
     rng = np.random.default_rng(6)
     for k in range(first, be.num_knots):

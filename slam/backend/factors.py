@@ -42,8 +42,8 @@ Jacobians requested: Levenberg-Marquardt's step acceptance) the factor returns
 (Returning ``sqrt(2 rho)`` at linearisation too, with its exact derivative, gives steps that
 overshoot by far for points in the outlier regime, which iSAM2 does not damp; returning
 ``sqrt(w) e`` as the error too makes LM judge steps on ``sum w e^2``, another cost.)
-Cauchy is the default (``RobustKernel``: 3 sigma, the calibration's; the SLAM configuration's
-``backend.robust``: 2.5 sigma): it is redescending, so a point associated with the wrong surface
+Cauchy is the SLAM configuration's kernel (``backend.robust``, 2.5 sigma; the calibration's:
+3 sigma): it is redescending, so a point associated with the wrong surface
 (a door 1-2 cm behind its wall) stops pulling; Huber keeps a constant pull and is convex.
 :func:`robust_weights` gives the weights for diagnostics.
 """
@@ -70,16 +70,20 @@ KernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
 @dataclass(frozen=True)
 class RobustKernel:
-    """Per-point robust kernel; ``threshold`` is in units of the point's sigma."""
+    """Per-point robust kernel; ``threshold`` is in units of the point's sigma (unused by
+    ``"none"``: :data:`NO_KERNEL`)."""
 
-    name: KernelName = "cauchy"
-    threshold: float = 3.0
+    name: KernelName
+    threshold: float
 
     def __post_init__(self) -> None:
         if self.name not in _KERNEL_CODE:
             raise ValueError(f"robust kernel name: expected none, huber, cauchy or geman_mcclure, got {self.name!r}")
         if not (np.isfinite(self.threshold) and self.threshold > 0.0):
             raise ValueError(f"robust kernel threshold: must be > 0, got {self.threshold}")
+
+
+NO_KERNEL = RobustKernel("none", 1.0)  # plain least squares
 
 
 def robust_loss(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
@@ -248,7 +252,7 @@ def point_plane_factor(
     points_body: ArrayLike,
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for N body-frame points (N, 3) [m] observed between knots a and b on a plane.
@@ -258,8 +262,7 @@ def point_plane_factor(
     point-to-plane standard deviations from the scanner noise model. Error dimension N.
     """
     p, al, s = check_block(points_body, alphas, sigmas, pose_key_b is not None, "points_body")
-    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel or RobustKernel(),
-                         _anchor(anchor))
+    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel, _anchor(anchor))
 
 
 def scanner_point_plane_factor(
@@ -270,7 +273,7 @@ def scanner_point_plane_factor(
     points_scanner: ArrayLike,
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Like :func:`point_plane_factor` with points (N, 3) in the scanner frame and
@@ -278,7 +281,7 @@ def scanner_point_plane_factor(
     p, al, s = check_block(points_scanner, alphas, sigmas, pose_key_b is not None,
                             "points_scanner")
     return _block_factor(pose_key_a, pose_key_b, plane_key, extrinsic_key, p, al, s,
-                         kernel or RobustKernel(), _anchor(anchor))
+                         kernel, _anchor(anchor))
 
 
 def _anchor(anchor: ArrayLike | None) -> FloatArray | None:
@@ -347,7 +350,7 @@ def point_planes_factor(
     points_body: ArrayLike,
     alphas: ArrayLike,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchors: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for the N body-frame points (N, 3) [m] seen between knots a and b on several
@@ -369,8 +372,7 @@ def point_planes_factor(
     if not np.all(np.isfinite(anc)):
         raise ValueError("anchors: must be finite")
     assert al is not None
-    kern = kernel or RobustKernel()
-    code, thr = _KERNEL_CODE[kern.name], float(kern.threshold)
+    code, thr = _KERNEL_CODE[kernel.name], float(kernel.threshold)
     inv_s = 1.0 / s
     keys = [int(pose_key_a), int(pose_key_b), *pk]
 
@@ -394,4 +396,4 @@ def point_planes_factor(
                 H[2 + j] = Hp[j]
         return rows
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(robust_rows_dim(p.shape[0], kern)), keys, error)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(robust_rows_dim(p.shape[0], kernel)), keys, error)
