@@ -38,7 +38,7 @@ from slam.backend.graph import FactorGraph
 from slam.backend.incremental import IncrementalSolver, make_incremental
 from slam.backend.knots import Knots
 from slam.backend.ties import PlaneTies
-from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions
+from slam.trajectory.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
 
@@ -94,11 +94,6 @@ class Backend:
         at the knot itself), with point-to-plane sigmas (N,) or scalar [m]. Returns the block
         id (with ``config.coalesce_blocks`` possibly that of the block it joined)."""
         return self.blocks.add(knot, plane_id, points, alphas, sigmas)
-
-    def replace_observations(self, block_id: int, points: ArrayLike, alphas: ArrayLike | None,
-                             sigmas: ArrayLike) -> int:
-        """Replace a block's points (same knot and plane); returns the new block id."""
-        return self.blocks.replace(block_id, points, alphas, sigmas)
 
     def remove_observations(self, block_id: int) -> None:
         """Remove an observation block."""
@@ -212,10 +207,6 @@ class Backend:
         """World-frame velocity (3,) [m/s] of one knot (IMU configurations only)."""
         return self.knots.velocity(knot)
 
-    def biases(self) -> FloatArray:
-        """IMU biases (K, 6): accelerometer (m/s^2) then gyroscope (rad/s) per knot."""
-        return self.knots.biases()
-
     def bias(self, knot: int) -> FloatArray:
         """IMU bias (6,) of one knot: accelerometer (m/s^2) then gyroscope (rad/s)."""
         return self.knots.bias(knot)
@@ -236,10 +227,6 @@ class Backend:
         p = self.graph.values.atOrientedPlane3(P(j))
         n = np.asarray(p.normal().point3())
         return n, float(p.distance()) - float(n @ self.graph.anchors.get(j, np.zeros(3)))
-
-    def knot_fractions(self, times: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
-        """Knot interval index and fraction alpha of each time (see :mod:`slam.trajectory.interpolation`)."""
-        return knot_fractions(self.graph.times, times)
 
     def T_world_body(self, times: ArrayLike) -> FloatArray:
         """Interpolated ``T_world_body`` (M, 4, 4) at times (M,) within the knots, exactly as the

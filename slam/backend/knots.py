@@ -131,11 +131,6 @@ class Knots:
         self._need_imu("velocity")
         return np.asarray(self.graph.values.atVector(V(self.graph.check_knot(knot))))
 
-    def biases(self) -> FloatArray:
-        """IMU biases (K, 6): accelerometer (m/s^2) then gyroscope (rad/s) per knot."""
-        self._need_imu("biases")
-        return np.array([self.graph.values.atConstantBias(B(i)).vector() for i in range(len(self.graph.times))])
-
     def bias(self, knot: int) -> FloatArray:
         """IMU bias (6,) of one knot: accelerometer (m/s^2) then gyroscope (rad/s)."""
         self._need_imu("bias")
