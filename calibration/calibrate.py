@@ -218,7 +218,7 @@ def calibrate(scans: ScanSource, rig: Rig, slam_cfg: SlamConfig,
     ``on_round`` gets every round's numbers and the rig it produced."""
     opt = options or CalibrationOptions()
     est = opt.estimator
-    if est.motion == MotionPriorConfig():
+    if est.motion == EstimatorConfig().motion:  # not chosen: the SLAM configuration's
         est = replace(est, motion=motion_prior_of(slam_cfg))
     current = rig
     rounds: list[RoundInfo] = []

@@ -66,20 +66,20 @@ from numpy.typing import NDArray
 
 from calibration.factors import timed_scanner_plane_factor
 from calibration.observations import PointObservations
-from slam.factors import (
+from slam.backend.factors import (
     RobustKernel,
     point_plane_factor,
     point_plane_terms,
     robust_weights,
     scanner_point_plane_factor,
 )
+from slam.backend.solver import damped_gauss_newton
 from slam.motion import (
     MotionPriorConfig,
     constant_velocity_factor,
     datum_prior,
     initial_velocity_factor,
 )
-from slam.solver import damped_gauss_newton
 from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions
 
 FloatArray = NDArray[np.float64]
@@ -98,7 +98,7 @@ class EstimatorConfig:
     variance_factor: bool = True
     scale_rounds: int = 2
     scale_floor: float = 1.0
-    motion: MotionPriorConfig = field(default_factory=MotionPriorConfig)
+    motion: MotionPriorConfig = field(default_factory=lambda: MotionPriorConfig(q_ang=1.0, q_lin=0.25))
     plane_prior_sigma: tuple[float, float] = (0.2, 0.2)
     pose_prior_sigma: tuple[float, float] = (0.5, 1.0)
     min_plane_points: int = 6
@@ -493,7 +493,7 @@ def _solve_error(err: RuntimeError) -> ValueError:
 
 def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
            cfg: EstimatorConfig) -> tuple[gtsam.Values, int]:
-    """The SLAM back end's batch solver (:func:`slam.solver.damped_gauss_newton`: lightly damped
+    """The SLAM back end's batch solver (:func:`slam.backend.solver.damped_gauss_newton`: lightly damped
     Gauss-Newton with step halving, Levenberg-Marquardt on a singular system); its failures
     become a ValueError."""
     try:

@@ -1,6 +1,6 @@
 """A point-on-plane block factor with the scanner's extrinsic *and* time offset as variables.
 
-Like :func:`slam.factors.scanner_point_plane_factor` (points in the scanner frame, keys
+Like :func:`slam.backend.factors.scanner_point_plane_factor` (points in the scanner frame, keys
 ``X(i), X(i+1), P(j), E(s)``) plus a scalar ``D(s)``: the scanner's clock offset delta [s], so
 that a beam stamped ``t_k`` was really taken at ``t_k + delta``. The point moves along the
 trajectory's geodesic of its knot interval::
@@ -14,7 +14,7 @@ derivative wrt delta is exact and uses the interval's body velocity ``xi / dt``:
     d e_k / d delta = g_k . xi / dt,   g_k = [p_k x m_k, m_k]
 
 with ``p_k`` the point and ``m_k`` the plane normal in the body frame at the beam time. Per-point
-robust weights as in :mod:`slam.factors` (IRLS inside the factor).
+robust weights as in :mod:`slam.backend.factors` (IRLS inside the factor).
 """
 
 from __future__ import annotations
@@ -25,7 +25,13 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.factors import RobustKernel, point_plane_terms, robust_rows, robust_rows_dim, scaled_rows
+from slam.backend.factors import (
+    RobustKernel,
+    point_plane_terms,
+    robust_rows,
+    robust_rows_dim,
+    scaled_rows,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +46,7 @@ def timed_scanner_plane_factor(
     alphas: FloatArray,
     interval: float,
     sigmas: FloatArray,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
 ) -> gtsam.CustomFactor:
     """Factor on ``(X(i), X(i+1), P(j), E(s), D(s))`` for N scanner-frame points (N, 3) at
     interval fractions ``alphas`` (N,) of a knot interval of ``interval`` seconds."""
@@ -52,7 +58,6 @@ def timed_scanner_plane_factor(
         raise ValueError(f"points_scanner: expected a finite non-empty (N, 3) array, got shape {pts.shape}")
     if al.shape != (n,) or s.shape != (n,) or np.any(s <= 0) or not interval > 0:
         raise ValueError("alphas, sigmas: expected (N,) arrays (sigmas > 0) and interval > 0")
-    kern = kernel or RobustKernel()
     inv_s = 1.0 / s
 
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
@@ -64,7 +69,7 @@ def timed_scanner_plane_factor(
         t = point_plane_terms(T_a, T_b, v.atOrientedPlane3(plane_key), p_b, al + delta / interval,
                               H is not None)
         e = t.residuals * inv_s
-        out, sw = robust_rows(e, kern, H is not None)
+        out, sw = robust_rows(e, kernel, H is not None)
         if H is None:
             return out
         assert t.H_a is not None and t.H_b is not None and t.H_plane is not None
@@ -81,6 +86,6 @@ def timed_scanner_plane_factor(
         H[4] = scaled_rows((t.dres_dalpha / interval)[:, None], f, rows)
         return out
 
-    rows = robust_rows_dim(n, kern)
+    rows = robust_rows_dim(n, kernel)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows),
                               [key_a, key_b, plane_key, extrinsic_key, offset_key], error)

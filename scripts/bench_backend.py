@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import gtsam
@@ -21,11 +22,12 @@ import numpy as np
 from gtsam.symbol_shorthand import P, X
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from backend_defaults import backend_defaults
 from box_scene import make_scene, walking_knots
 
-from slam.backend import Backend, BackendConfig
-from slam.factors import point_plane_factor
-from slam.motion import MotionPriorConfig, constant_velocity_terms
+from slam.backend import Backend
+from slam.backend.factors import point_plane_factor
+from slam.motion import constant_velocity_terms
 
 
 def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, repeat: int) -> float:
@@ -40,6 +42,7 @@ def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
 
 def bench_factor(repeat: int) -> None:
     rng = np.random.default_rng(0)
+    kernel = backend_defaults().kernel  # the SLAM configuration's
     Ta = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3))
     values = gtsam.Values()
     values.insert(X(0), Ta)
@@ -56,10 +59,10 @@ def bench_factor(repeat: int) -> None:
         batched = gtsam.NonlinearFactorGraph()
         for b in range(blocks):
             s = slice(b * n, (b + 1) * n)
-            batched.add(point_plane_factor(X(0), X(1), P(0), pts[s], al[s], 0.003))
+            batched.add(point_plane_factor(X(0), X(1), P(0), pts[s], al[s], 0.003, kernel))
         single = gtsam.NonlinearFactorGraph()
         for k in range(min(blocks * n, 1000)):
-            single.add(point_plane_factor(X(0), X(1), P(0), pts[k:k + 1], al[k:k + 1], 0.003))
+            single.add(point_plane_factor(X(0), X(1), P(0), pts[k:k + 1], al[k:k + 1], 0.003, kernel))
         tb = _linearize_seconds(batched, values, repeat) / (blocks * n) * 1e6
         ts = _linearize_seconds(single, values, repeat) / single.size() * 1e6
         print(f"{n:>12d} {tb:>14.3f} {ts:>16.2f} {ts / tb:>7.1f} {tb * n:>17.1f}")
@@ -71,7 +74,7 @@ def bench_isam(duration: float) -> None:
     for b in scene.blocks:
         by_knot.setdefault(b["knot"], []).append(b)
     rng = np.random.default_rng(2)
-    be = Backend(BackendConfig())
+    be = Backend(replace(backend_defaults(), solver="isam2"))
     for j, p in enumerate(scene.planes):
         be.add_plane(j, p[:3] + rng.normal(0, 0.01, 3), p[3] + rng.normal(0, 0.02))
     print(f"\n2. iSAM2 update per knot (box room, 3 scanners x 181 beams, "
@@ -85,10 +88,10 @@ def bench_isam(duration: float) -> None:
             be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
         if i >= 8:
             t0 = time.perf_counter()
-            be.update()
+            be.step()
             times.append(time.perf_counter() - t0)
             if i in report:
-                print(f"{i:>6d} {1e3 * np.mean(times[-5:]):>10.1f} {len(be._blocks):>7d}")
+                print(f"{i:>6d} {1e3 * np.mean(times[-5:]):>10.1f} {len(be.blocks.blocks):>7d}")
     t0 = time.perf_counter()
     s = be.batch_optimize(graduated=False)
     print(f"final LM over {be.num_knots} knots: {s.iterations} iterations, "
@@ -97,7 +100,7 @@ def bench_isam(duration: float) -> None:
 
 def bench_motion_prior(duration: float) -> None:
     kt, poses = walking_knots(duration)
-    cfg = MotionPriorConfig()
+    cfg = backend_defaults().motion  # the SLAM configuration's
     r = []
     for i in range(1, kt.size - 1):
         res, *_ = constant_velocity_terms(*(gtsam.Pose3(poses[k]) for k in (i - 1, i, i + 1)),

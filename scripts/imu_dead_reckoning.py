@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.config import SlamConfig
 from slam.export import read_trajectory_tum
 from slam.imu_feed import ImuSamples, predict_navstate
 from slam.io.bag import InputError, read_imu
@@ -49,7 +50,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"error: {args.bag}: {e}", file=sys.stderr)
         return 2
-    cfg = ImuConfig(gravity=9.80665)
+    ic = SlamConfig().imu  # the SLAM configuration's IMU model (the prediction uses its gravity)
+    cfg = ImuConfig(accel_noise_density=ic.accel_noise, gyro_noise_density=ic.gyro_noise,
+                    accel_bias_rw=ic.accel_bias_walk, gyro_bias_rw=ic.gyro_bias_walk,
+                    integration_sigma=ic.integration_sigma, bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
+                    velocity_prior_sigma=1.0, gravity=ic.gravity, T_body_imu=None)
     h = 1e-3
     end = min(t_gt[-1], series.times[-1]) - args.length
     starts = np.arange(t_gt[0] + args.skip, end, args.every)

@@ -36,11 +36,12 @@ FloatArray = NDArray[np.float64]
 class MotionPriorConfig:
     """White-acceleration power spectral densities of the constant-velocity prior.
 
-    ``q_ang`` [rad^2/s^3] and ``q_lin`` [m^2/s^3]; defaults tuned to a walking operator.
+    ``q_ang`` [rad^2/s^3] and ``q_lin`` [m^2/s^3] (the SLAM configuration's ``backend.motion_sigma_*``
+    squared times the knot interval).
     """
 
-    q_ang: float = 1.0
-    q_lin: float = 0.25
+    q_ang: float
+    q_lin: float
 
     def __post_init__(self) -> None:
         for name in ("q_ang", "q_lin"):
@@ -123,15 +124,15 @@ class ImuConfig:
     [m/s] on the first knot's velocity, ``T_body_imu`` (4, 4).
     """
 
-    accel_noise_density: float = 2e-3
-    gyro_noise_density: float = 2e-4
-    accel_bias_rw: float = 1e-4
-    gyro_bias_rw: float = 1e-5
-    integration_sigma: float = 1e-7
-    bias_prior_sigmas: tuple[float, float] = (0.1, 0.01)
-    velocity_prior_sigma: float = 1.0
-    gravity: float = 9.81
-    T_body_imu: tuple[tuple[float, ...], ...] | None = None
+    accel_noise_density: float
+    gyro_noise_density: float
+    accel_bias_rw: float
+    gyro_bias_rw: float
+    integration_sigma: float
+    bias_prior_sigmas: tuple[float, float]
+    velocity_prior_sigma: float
+    gravity: float
+    T_body_imu: tuple[tuple[float, ...], ...] | None
 
     def params(self) -> gtsam.PreintegrationParams:
         """gtsam preintegration parameters (z-up world)."""

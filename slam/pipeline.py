@@ -38,9 +38,8 @@ from numpy.typing import NDArray
 
 from common.rig import Rig
 from segmentation import Scanline
-from slam.backend import Backend, BackendConfig
+from slam.backend import Backend, BackendConfig, RobustKernel
 from slam.config import SlamConfig
-from slam.factors import RobustKernel
 from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.edges import (
@@ -234,6 +233,8 @@ class SlamRunner:
                 bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
                 gravity=ic.gravity,
                 integration_sigma=ic.integration_sigma,
+                velocity_prior_sigma=1.0,
+                T_body_imu=None,
             )
             if imu is not None
             else None
@@ -242,15 +243,26 @@ class SlamRunner:
             BackendConfig(
                 kernel=RobustKernel(be.robust, be.robust_k),
                 motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
+                initial_velocity_sigmas=(3.0, 3.0),
                 datum="position_yaw",
+                datum_sigma=1e-6,
+                datum_tilt_sigma=0.1,
                 relinearize_threshold=be.relinearize_threshold,
                 relinearize_skip=be.relinearize_skip,
+                plane_relinearize_factor=10.0,
+                lm_max_iterations=50,
                 lm_relative_tolerance=1e-4,
+                robust_schedule=(30.0, 10.0, 3.0),
                 horizontal_sigma=np.radians(be.horizontal_prior_deg),
                 vertical_sigma=np.radians(be.vertical_prior_deg),
                 imu=self.imu_config,
                 use_motion_prior=imu is None or ic.motion_prior,
                 coalesce_blocks=be.solver == "window",
+                solver=be.solver,
+                window_knots=round(be.window_seconds / dt),
+                window_iterations=be.window_iterations,
+                isam2_iterations=be.isam2_iterations,
+                isam2_fallback_iterations=5,
             )
         )
         self.dt = dt
@@ -1090,26 +1102,11 @@ class SlamRunner:
 
     def _update(self) -> None:
         self._since_update = 0
-        if self._n_knots < 2:
+        report = self.backend.step()
+        if not report.solved:
             return
-        be = self.cfg.backend
-        if be.solver == "window":
-            first = self._n_knots - 1 - round(be.window_seconds / self.dt)
-            self.backend.window_optimize(first, be.window_iterations)
-            self._after_update()
-            return
-        try:
-            self.backend.update(be.isam2_iterations)
-        except ValueError:
-            # an iSAM2 step can fail numerically (indeterminate system) where the same graph
-            # relinearised from scratch factors fine: rebuild once; if that fails too, take a
-            # few batch iterations over the whole graph (iSAM2 restarts from its result)
-            self.stats["isam2_rebuilds"] += 1
-            try:
-                self.backend.update()
-            except ValueError:
-                self.stats["isam2_fallbacks"] += 1
-                self.backend.batch_optimize(5, graduated=False)
+        self.stats["isam2_rebuilds"] += report.rebuilds
+        self.stats["isam2_fallbacks"] += report.fallbacks
         self._after_update()
 
     def _after_update(self) -> None:

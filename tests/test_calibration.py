@@ -17,7 +17,7 @@ from calibration.observability import UnobservableWarning, parameter_sigmas, war
 from calibration.observations import PointObservations
 from calibration.rig_io import updated_rig
 from common.rig import load_rig, resolve_rig, write_rig
-from slam.factors import RobustKernel
+from slam.backend.factors import NO_KERNEL
 from slam.motion import MotionPriorConfig
 from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_log
 
@@ -128,8 +128,6 @@ def test_time_offset_factor_jacobians_match_numerical() -> None:
     import gtsam
     from gtsam.symbol_shorthand import D, E, P, X
 
-    from slam.factors import RobustKernel
-
     rng = np.random.default_rng(0)
     kt, kp = walking_knots(duration=0.1)
     v = gtsam.Values()
@@ -141,7 +139,7 @@ def test_time_offset_factor_jacobians_match_numerical() -> None:
     pts = rng.uniform(-3, 3, (5, 3))
     pts[:, 2] = 0.0
     f = timed_scanner_plane_factor(X(0), X(1), P(0), E(1), D(1), pts, rng.uniform(0, 1, 5),
-                                   kt[1] - kt[0], np.full(5, 0.003), RobustKernel("none"))
+                                   kt[1] - kt[0], np.full(5, 0.003), NO_KERNEL)
     A = f.linearize(v).jacobian()[0]
     eps = 1e-7
     col = 0
@@ -246,7 +244,7 @@ def test_sigmas_scale_with_residual_spread_and_outliers_do_not_bias() -> None:
     robust = EstimatorConfig(sigma_rot=1.0, sigma_trans=1.0, motion=MotionPriorConfig(100.0, 100.0))
     res = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0, config=robust)
     naive = estimate_extrinsics(kt, kp, _planes(BOX_PLANES), obs, T0, 0,
-                                config=replace(robust, variance_factor=False, kernel=RobustKernel("none")))
+                                config=replace(robust, variance_factor=False, kernel=NO_KERNEL))
     for s, n in zip(res.scanners, naive.scanners, strict=True):
         assert 1.7 < s.scale < 2.4, (s.name, s.scale)  # MAD of the whitened residuals ~ 2
         assert robust_scale(s.residuals_after / 0.003) == pytest.approx(s.scale, rel=0.35)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import E, P, X
 
-from slam.factors import (
+from slam.backend.factors import (
+    NO_KERNEL,
     RobustKernel,
     point_plane_factor,
     point_plane_terms,
@@ -35,7 +36,7 @@ from slam.trajectory.interpolation import (
     se3_right_jacobian,
 )
 
-KERNELS = [RobustKernel("none"), RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7),
+KERNELS = [NO_KERNEL, RobustKernel("huber", 0.7), RobustKernel("cauchy", 0.7),
            RobustKernel("geman_mcclure", 0.7)]
 
 
@@ -87,7 +88,7 @@ def _block_values(rng: np.random.Generator, motion: float) -> gtsam.Values:
 @pytest.mark.parametrize("motion", [1e-7, 0.02, 0.4])
 def test_point_plane_factor_jacobians(motion: float) -> None:
     rng = np.random.default_rng(11)
-    none = RobustKernel("none")
+    none = NO_KERNEL
     for _ in range(3):
         v = _block_values(rng, motion)
         n = 25
@@ -112,7 +113,7 @@ def test_point_planes_factor_jacobians(motion: float) -> None:
     al = rng.uniform(0.0, 1.0, n)
     al[:2] = [0.0, 1.0]
     f = point_planes_factor(X(0), X(1), [P(j) for j in range(4)], idx, rng.normal(size=(n, 3)) * 3.0, al,
-                            rng.uniform(0.5, 2.0, n), RobustKernel("none"), rng.normal(size=(4, 3)))
+                            rng.uniform(0.5, 2.0, n), NO_KERNEL, rng.normal(size=(4, 3)))
     _check_jacobians(f, v)
 
 
@@ -159,7 +160,7 @@ def test_robust_linearization_is_irls_and_error_is_robust_cost(kernel: RobustKer
         lambda k: point_plane_factor(X(0), X(1), P(0), pts, al, sig, k),
         lambda k: scanner_point_plane_factor(X(0), X(1), P(0), E(0), pts, al, sig, k),
     ):
-        plain, robust = make(RobustKernel("none")), make(kernel)
+        plain, robust = make(NO_KERNEL), make(kernel)
         A0, b0 = plain.linearize(v).jacobian()
         A1, b1 = robust.linearize(v).jacobian()
         e = -b0
@@ -228,15 +229,15 @@ def test_robust_weights_are_the_loss_derivative_over_e(name: str) -> None:
 
 def test_block_input_errors_are_clear() -> None:
     with pytest.raises(ValueError, match="points_body"):
-        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 2)), np.zeros(3), 0.01)
+        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 2)), np.zeros(3), 0.01, NO_KERNEL)
     with pytest.raises(ValueError, match="alphas"):
-        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 3)), np.full(3, 1.5), 0.01)
+        point_plane_factor(X(0), X(1), P(0), np.zeros((3, 3)), np.full(3, 1.5), 0.01, NO_KERNEL)
     with pytest.raises(ValueError, match="alphas"):
-        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), np.full(3, 0.5), 0.01)
+        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), np.full(3, 0.5), 0.01, NO_KERNEL)
     with pytest.raises(ValueError, match="sigmas"):
-        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), None, np.array([0.1, 0.0, 0.1]))
+        point_plane_factor(X(0), None, P(0), np.zeros((3, 3)), None, np.array([0.1, 0.0, 0.1]), NO_KERNEL)
     with pytest.raises(ValueError, match="robust kernel"):
-        RobustKernel("tukey")
+        RobustKernel("tukey", 3.0)
 
 
 @pytest.mark.parametrize("motion", [1e-8, 0.05, 0.5])
@@ -248,7 +249,7 @@ def test_constant_velocity_factor_jacobians(motion: float) -> None:
     v = gtsam.Values()
     for i, T in enumerate([T0, T1, T2]):
         v.insert(X(i), T)
-    _check_jacobians(constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig()), v)
+    _check_jacobians(constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig(q_ang=1.0, q_lin=0.25)), v)
 
 
 def test_constant_velocity_factor_is_zero_for_constant_twist() -> None:
@@ -257,7 +258,7 @@ def test_constant_velocity_factor_is_zero_for_constant_twist() -> None:
     v = gtsam.Values()
     for i, t in enumerate([0.0, 0.025, 0.055]):
         v.insert(X(i), gtsam.Pose3(T0 @ se3_exp(t * xi)))
-    f = constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig())
+    f = constant_velocity_factor(X(0), X(1), X(2), 0.025, 0.03, MotionPriorConfig(q_ang=1.0, q_lin=0.25))
     assert np.abs(f.unwhitenedError(v)).max() < 1e-12
 
 

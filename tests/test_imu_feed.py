@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from backend_defaults import backend_defaults
 
 from slam.imu_feed import ImuSamples, predict_navstate
 from slam.motion import ImuConfig
+
+
+def _imu_config() -> ImuConfig:
+    """The IMU configuration of the default SlamConfig()."""
+    cfg = backend_defaults(imu=True).imu
+    assert cfg is not None
+    return cfg
 
 
 def _samples(rate: float = 200.0, duration: float = 2.0, accel: tuple[float, float, float] = (0.0, 0.0, 9.80665),
@@ -54,7 +62,7 @@ def test_midpoint_rule_follows_a_swaying_torso() -> None:
     A, w = np.radians(5.0), 2.0 * np.pi * 2.0
     gyro = np.column_stack((A * w * np.cos(w * t), np.zeros_like(t), np.zeros_like(t)))
     acc = np.column_stack((np.zeros_like(t), 9.80665 * np.sin(A * np.sin(w * t)), 9.80665 * np.cos(A * np.sin(w * t))))
-    cfg = ImuConfig(gravity=9.80665)
+    cfg = _imu_config()
     roll_true = A * np.sin(w * T)
     errs = {}
     for inst in (True, False):
@@ -88,7 +96,7 @@ def test_bad_samples_are_rejected(bad: str) -> None:
 
 def test_prediction_follows_constant_acceleration_and_rotation() -> None:
     """A body accelerating at 0.5 m/s^2 along x while turning at 0.3 rad/s about z."""
-    cfg = ImuConfig()
+    cfg = _imu_config()
     acc, w = 0.5, 0.3
     t = np.arange(0.0, 1.0, 0.001)
     # specific force in the body frame: the body turns, so world +x acceleration appears rotated
@@ -102,7 +110,7 @@ def test_prediction_follows_constant_acceleration_and_rotation() -> None:
 
 
 def test_prediction_removes_the_given_bias() -> None:
-    cfg = ImuConfig()
+    cfg = _imu_config()
     bias = np.array([0.1, -0.05, 0.02, 0.001, 0.0, -0.002])
     s = _samples(accel=(0.1, -0.05, cfg.gravity + 0.02), gyro=(0.001, 0.0, -0.002))
     T, v = predict_navstate(cfg, np.eye(4), np.zeros(3), bias, s, 0.2, 1.2)

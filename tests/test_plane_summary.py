@@ -1,17 +1,21 @@
-"""Exact plane summaries of held observation blocks (slam.plane_summary) and the fixed-lag window
-that uses them (Backend.window_optimize)."""
+"""Exact plane summaries of held observation blocks (slam.backend.plane_summary) and the fixed-lag window
+that uses them (slam.backend.incremental.WindowSolver)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
+from backend_defaults import backend_defaults
 from box_scene import make_scene, perturb_pose
 from gtsam.symbol_shorthand import P, X
 
-from slam.backend import Backend, BackendConfig
-from slam.factors import RobustKernel
-from slam.plane_summary import plane_summary_factor, scatter, shift_anchor, square_root
-from slam.solver import damped_gauss_newton
+from slam.backend import Backend
+from slam.backend.factors import NO_KERNEL, RobustKernel
+from slam.backend.incremental import WindowSolver
+from slam.backend.plane_summary import plane_summary_factor, scatter, shift_anchor, square_root
+from slam.backend.solver import damped_gauss_newton
 
 DEG = np.pi / 180.0
 
@@ -74,9 +78,14 @@ def test_shift_anchor_gives_the_scatter_about_the_new_anchor() -> None:
     np.testing.assert_allclose(shift_anchor(scatter(pts, a, w), a, b), scatter(pts, b, w), atol=1e-10)
 
 
+def _window(be: Backend) -> WindowSolver:
+    assert isinstance(be.incremental, WindowSolver)
+    return be.incremental
+
+
 def _box_backend(kernel: RobustKernel) -> tuple[Backend, int]:
     scene = make_scene(duration=2.0, beams=61, sigma_range=0.003, seed=4)
-    be = Backend(BackendConfig(kernel=kernel))
+    be = Backend(replace(backend_defaults(), kernel=kernel))
     rng = np.random.default_rng(5)
     for i, (t, T) in enumerate(zip(scene.knot_times, scene.knot_poses, strict=True)):
         be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
@@ -90,28 +99,28 @@ def _box_backend(kernel: RobustKernel) -> tuple[Backend, int]:
 def test_window_with_summaries_equals_the_window_over_every_old_block() -> None:
     """With the old knots held, summarising their blocks changes nothing: the window solve gives
     the solution of the same window with every old block in the graph as it is."""
-    be, first = _box_backend(RobustKernel("none"))
+    be, first = _box_backend(NO_KERNEL)
     be.batch_optimize(3)
     rng = np.random.default_rng(6)
     for k in range(first, be.num_knots):
-        be._values.update(X(k), gtsam.Pose3(perturb_pose(be.pose(k), rng, 0.02, 0.5 * DEG)))
+        be.graph.values.update(X(k), gtsam.Pose3(perturb_pose(be.pose(k), rng, 0.02, 0.5 * DEG)))
     # the reference: every factor touching the window's knots or its planes, older knots held
     active = {int(X(k)) for k in range(first, be.num_knots)} | {int(P(j)) for j in be.plane_ids()}
     graph = gtsam.NonlinearFactorGraph()
     used: set[int] = set()
-    for fid, rec in be._records.items():
+    for fid, rec in be.graph.records.items():
         if any(k in active for k in rec.keys):
-            graph.add(be._factor(fid))
+            graph.add(be.blocks.factor(fid))
             used.update(rec.keys)
     values = gtsam.Values()
     for k in used:
         if chr(gtsam.Symbol(k).chr()) == "x":
-            values.insert(k, be._values.atPose3(k))
+            values.insert(k, be.graph.values.atPose3(k))
         else:
-            values.insert(k, be._values.atOrientedPlane3(k))
+            values.insert(k, be.graph.values.atOrientedPlane3(k))
     ref, _ = damped_gauss_newton(graph, values, 10, 1e-12, fixed=sorted(used - active))
-    s = be.window_optimize(first, max_iterations=10)
-    assert be._summary, "the old blocks were summarised"
+    s = _window(be).optimize(first, max_iterations=10)
+    assert be.blocks.summary, "the old blocks were summarised"
     assert s.final_error < s.initial_error
     for k in range(first, be.num_knots):
         got, want = be.pose(k), ref.atPose3(X(k)).matrix()
@@ -125,24 +134,24 @@ def test_window_with_summaries_equals_the_window_over_every_old_block() -> None:
 
 def test_summaries_follow_merges_and_removals() -> None:
     be, first = _box_backend(RobustKernel("huber", 2.5))
-    be.window_optimize(first)
+    _window(be).optimize(first, 4)
     ids = be.plane_ids()
     j = ids[0]
-    M = be._summary[j].copy()
-    old = [b for b in be.blocks_of_plane(j) if b in be._summarized]
+    M = be.blocks.summary[j].copy()
+    old = [b for b in be.blocks_of_plane(j) if b in be.blocks.summarized]
     be.remove_observations(old[0])
-    assert not np.allclose(be._summary[j], M)
+    assert not np.allclose(be.blocks.summary[j], M)
     # a duplicate plane of j, made of one late block, merged into j: the summaries add up
     n, d = be.plane(j)
     be.add_plane(77, n, d, anchor=np.array([3.0, 1.0, 0.5]))
     blk = be.block(old[1])
     be.add_observations(blk.knot, 77, blk.points, blk.alphas, blk.sigmas)  # an old knot: summarised at once
-    before = be._summary[j] + shift_anchor(be._summary[77], be._anchors[77], be._anchors[j])
+    before = be.blocks.summary[j] + shift_anchor(be.blocks.summary[77], be.graph.anchors[77], be.graph.anchors[j])
     be.merge_planes(j, 77)
-    np.testing.assert_allclose(be._summary[j], before, rtol=1e-12, atol=1e-9)
-    assert 77 not in be._summary
+    np.testing.assert_allclose(be.blocks.summary[j], before, rtol=1e-12, atol=1e-9)
+    assert 77 not in be.blocks.summary
     be.batch_optimize(1)
-    assert not be._summary and not be._summarized  # the held poses moved: summaries dropped
+    assert not be.blocks.summary and not be.blocks.summarized  # the held poses moved: summaries dropped
 
 
 def test_coalesced_blocks_cost_what_the_separate_blocks_cost() -> None:
@@ -151,7 +160,7 @@ def test_coalesced_blocks_cost_what_the_separate_blocks_cost() -> None:
     guesses = [T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG) for i, T in enumerate(scene.knot_poses)]
     errors, counts = [], []
     for coalesce in (False, True):
-        be = Backend(BackendConfig(coalesce_blocks=coalesce))
+        be = Backend(replace(backend_defaults(), coalesce_blocks=coalesce))
         for t, T in zip(scene.knot_times, guesses, strict=True):
             be.add_pose(t, T)
         for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
@@ -163,6 +172,6 @@ def test_coalesced_blocks_cost_what_the_separate_blocks_cost() -> None:
                     al = None if blk["alphas"] is None else blk["alphas"][sl]
                     be.add_observations(blk["knot"], blk["plane"], blk["points_body"][sl], al, blk["sigmas"][sl])
         errors.append(be.error())
-        counts.append(len(be._blocks))
+        counts.append(len(be.blocks.blocks))
     assert counts[1] <= len(scene.blocks) < counts[0]
     assert abs(errors[0] - errors[1]) <= 1e-9 * errors[0]

@@ -252,7 +252,7 @@ def test_door_edges_observe_the_corridor_direction(door_corridor: SimulationResu
 
 
 def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult, rig: Any) -> None:
-    """The solver takes an accepted step's error from its linearisation (``slam.solver``): on a
+    """The solver takes an accepted step's error from its linearisation (``slam.backend.solver``): on a
     whole SLAM graph (robust blocks, edge planes, ties, IMU, priors) ``0.5 ||b||^2`` of the
     linearisation equals the graph's error."""
     from slam.io.bag import read_scans
@@ -268,8 +268,8 @@ def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult,
         runner.add_scan(line)
     runner.finish()
     be = runner.backend
-    graph = be._graph()
-    values = be._used_values(graph)
+    graph = be.blocks.whole_graph()
+    values = be.graph.used_values(graph)
     assert be.num_knots > 40 and graph.size() > 100
     lin = graph.linearize(values)
     assert lin.error(values.zeroVectors()) == pytest.approx(graph.error(values), rel=1e-9)

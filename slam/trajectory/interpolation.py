@@ -7,7 +7,7 @@ constant rate (decoupled, "SO(3) x R^3" interpolation)::
     R(t) = R_i Exp(alpha Log(R_i^T R_{i+1})),   p(t) = p_i + alpha (p_{i+1} - p_i),
     alpha = (t - t_i) / (t_{i+1} - t_i)
 
-which is what the factors in :mod:`slam.factors` use, so deskewing with
+which is what the factors in :mod:`slam.backend.factors` use, so deskewing with
 :func:`interpolate_trajectory` places points exactly as the back end does. Chosen over the
 SE(3) geodesic ``T_i Exp(alpha Log(T_i^-1 T_{i+1}))``, whose path is a screw: it bends the
 position with the torso's sway and pitch, so that the point-to-plane residuals depend on the

@@ -59,7 +59,7 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
     damping = DAMPING
     try:
         # a linearisation's 0.5 ||b||^2 is the graph's error at its point (the robust blocks carry
-        # a correction row: slam.factors.robust_rows), so an accepted step's linearisation also
+        # a correction row: slam.backend.factors.robust_rows), so an accepted step's linearisation also
         # gives its error
         lin: gtsam.GaussianFactorGraph | None = graph.linearize(values)
         assert lin is not None

@@ -1,6 +1,6 @@
-"""Compiled (numba) kernel of the two-pose point-on-plane terms of :mod:`slam.factors`.
+"""Compiled (numba) kernel of the two-pose point-on-plane terms of :mod:`slam.backend.factors`.
 
-The same formulas as ``point_plane_terms`` (see the module docstring of :mod:`slam.factors`),
+The same formulas as ``point_plane_terms`` (see the module docstring of :mod:`slam.backend.factors`),
 one loop over the points: a block holds few points (two virtual points per segment), for which
 numpy's per-call overhead is most of the cost; the back end evaluates blocks tens of thousands
 of times per run.
@@ -139,7 +139,7 @@ def _rho_w(e: float, kernel: int, k: float) -> tuple[float, float]:
 
 @nb.njit(cache=True)
 def robust_rows(e: FloatArray, kernel: int, k: float, linearize: bool) -> tuple[FloatArray, FloatArray]:
-    """Compiled :func:`slam.factors.robust_rows` for ``kernel`` (1 Huber, 2 Cauchy, 3 Geman-McClure) of
+    """Compiled :func:`slam.backend.factors.robust_rows` for ``kernel`` (1 Huber, 2 Cauchy, 3 Geman-McClure) of
     threshold ``k``: the N + 1 rows and the IRLS scales ``sqrt(w)`` (N,) (empty unless
     ``linearize``). One pass; the numpy formulation costs ~30 us a block in ``np.where`` calls."""
     n = e.shape[0]

@@ -28,7 +28,7 @@ both poses (gtsam's ``Pose3`` retract: ``R Exp(w)``, ``t + R v``), ``D = R_i^T R
     H_i     = [ (Exp(alpha_k phi) g_k)^T - H_{i+1,rot} D^T , (1 - alpha_k) n^T R_i ]
     H_plane = [ (R_k p_k + t_k)^T B, 1 ]       B = the normal's tangent basis (``Unit3.basis()``)
 
-The two-pose terms run in a compiled loop (:mod:`slam.factor_kernels`): a block holds few
+The two-pose terms run in a compiled loop (:mod:`slam.backend.factor_kernels`): a block holds few
 points, for which numpy's per-call overhead would dominate.
 
 Robustness (per point, wrong associations): a robust noise model on the block would weight
@@ -42,8 +42,8 @@ Jacobians requested: Levenberg-Marquardt's step acceptance) the factor returns
 (Returning ``sqrt(2 rho)`` at linearisation too, with its exact derivative, gives steps that
 overshoot by far for points in the outlier regime, which iSAM2 does not damp; returning
 ``sqrt(w) e`` as the error too makes LM judge steps on ``sum w e^2``, another cost.)
-Cauchy is the default (``RobustKernel``: 3 sigma, the calibration's; the SLAM configuration's
-``backend.robust``: 2.5 sigma): it is redescending, so a point associated with the wrong surface
+Cauchy is the SLAM configuration's kernel (``backend.robust``, 2.5 sigma; the calibration's:
+3 sigma): it is redescending, so a point associated with the wrong surface
 (a door 1-2 cm behind its wall) stops pulling; Huber keeps a constant pull and is convex.
 :func:`robust_weights` gives the weights for diagnostics.
 """
@@ -58,28 +58,32 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam import factor_kernels as _fk
-from slam.factor_kernels import two_pose_terms
+from slam.backend import factor_kernels as _fk
+from slam.backend.factor_kernels import two_pose_terms
 from slam.trajectory.interpolation import hat3
 
 FloatArray = NDArray[np.float64]
-# the compiled kernels' codes (slam.factor_kernels)
+# the compiled kernels' codes (slam.backend.factor_kernels)
 _KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2, "geman_mcclure": 3}
 KernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
 
 @dataclass(frozen=True)
 class RobustKernel:
-    """Per-point robust kernel; ``threshold`` is in units of the point's sigma."""
+    """Per-point robust kernel; ``threshold`` is in units of the point's sigma (unused by
+    ``"none"``: :data:`NO_KERNEL`)."""
 
-    name: KernelName = "cauchy"
-    threshold: float = 3.0
+    name: KernelName
+    threshold: float
 
     def __post_init__(self) -> None:
         if self.name not in _KERNEL_CODE:
             raise ValueError(f"robust kernel name: expected none, huber, cauchy or geman_mcclure, got {self.name!r}")
         if not (np.isfinite(self.threshold) and self.threshold > 0.0):
             raise ValueError(f"robust kernel threshold: must be > 0, got {self.threshold}")
+
+
+NO_KERNEL = RobustKernel("none", 1.0)  # plain least squares
 
 
 def robust_loss(e: ArrayLike, kernel: RobustKernel) -> FloatArray:
@@ -125,7 +129,7 @@ def robust_rows(e: FloatArray, kernel: RobustKernel, linearize: bool) -> tuple[F
     (Gauss-Newton steps of iteratively reweighted least squares) and one row with no Jacobian,
     ``sqrt(2 sum(rho - w e^2 / 2))`` (>= 0 for Huber, Cauchy and Geman-McClure), so that a linearisation's
     ``0.5 ||b||^2`` is the robust cost at its point: the solver takes an accepted step's error
-    from the linearisation it needs next anyway (:mod:`slam.solver`)."""
+    from the linearisation it needs next anyway (:mod:`slam.backend.solver`)."""
     if kernel.name == "none":
         return e, (np.ones_like(e) if linearize else None)
     out, sw = _fk.robust_rows(np.ascontiguousarray(e, dtype=np.float64), _KERNEL_CODE[kernel.name],
@@ -248,7 +252,7 @@ def point_plane_factor(
     points_body: ArrayLike,
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for N body-frame points (N, 3) [m] observed between knots a and b on a plane.
@@ -258,8 +262,7 @@ def point_plane_factor(
     point-to-plane standard deviations from the scanner noise model. Error dimension N.
     """
     p, al, s = check_block(points_body, alphas, sigmas, pose_key_b is not None, "points_body")
-    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel or RobustKernel(),
-                         _anchor(anchor))
+    return _block_factor(pose_key_a, pose_key_b, plane_key, None, p, al, s, kernel, _anchor(anchor))
 
 
 def scanner_point_plane_factor(
@@ -270,7 +273,7 @@ def scanner_point_plane_factor(
     points_scanner: ArrayLike,
     alphas: ArrayLike | None,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchor: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Like :func:`point_plane_factor` with points (N, 3) in the scanner frame and
@@ -278,7 +281,7 @@ def scanner_point_plane_factor(
     p, al, s = check_block(points_scanner, alphas, sigmas, pose_key_b is not None,
                             "points_scanner")
     return _block_factor(pose_key_a, pose_key_b, plane_key, extrinsic_key, p, al, s,
-                         kernel or RobustKernel(), _anchor(anchor))
+                         kernel, _anchor(anchor))
 
 
 def _anchor(anchor: ArrayLike | None) -> FloatArray | None:
@@ -347,7 +350,7 @@ def point_planes_factor(
     points_body: ArrayLike,
     alphas: ArrayLike,
     sigmas: ArrayLike,
-    kernel: RobustKernel | None = None,
+    kernel: RobustKernel,
     anchors: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for the N body-frame points (N, 3) [m] seen between knots a and b on several
@@ -369,8 +372,7 @@ def point_planes_factor(
     if not np.all(np.isfinite(anc)):
         raise ValueError("anchors: must be finite")
     assert al is not None
-    kern = kernel or RobustKernel()
-    code, thr = _KERNEL_CODE[kern.name], float(kern.threshold)
+    code, thr = _KERNEL_CODE[kernel.name], float(kernel.threshold)
     inv_s = 1.0 / s
     keys = [int(pose_key_a), int(pose_key_b), *pk]
 
@@ -394,4 +396,4 @@ def point_planes_factor(
                 H[2 + j] = Hp[j]
         return rows
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(robust_rows_dim(p.shape[0], kern)), keys, error)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(robust_rows_dim(p.shape[0], kernel)), keys, error)

@@ -1,0 +1,94 @@
+"""Batch solves over the whole graph, and the trim of the points that do not fit their plane.
+
+A solve is :func:`slam.backend.solver.solve` (damped Gauss-Newton with a Levenberg-Marquardt
+fallback) with the configured iterations and tolerance; the singular systems it met are kept
+for the run's statistics. The fixed-lag window (:mod:`slam.backend.incremental`) solves with it too.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+
+from slam.backend.blocks import BlockStore
+from slam.backend.config import BackendConfig, OptimizeSummary
+from slam.backend.factors import RobustKernel
+from slam.backend.graph import FactorGraph, name_keys
+from slam.backend.solver import Solution, solve
+
+
+class BatchSolver:
+    """Whole-graph solves and the trim of a :class:`FactorGraph` and its blocks."""
+
+    def __init__(self, graph: FactorGraph, blocks: BlockStore, config: BackendConfig) -> None:
+        self.graph = graph
+        self.blocks = blocks
+        self.config = config
+        self.singular_systems: list[str] = []  # singular linear systems the solves met (retried damped)
+
+    def solve(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int | None,
+              fixed: Sequence[int] = ()) -> Solution:
+        """:func:`slam.backend.solver.solve` with the configured iterations (unless given) and
+        tolerance, ``fixed`` keys held; a failure of its Levenberg-Marquardt fallback is a
+        ValueError naming the variable."""
+        n_max = max_iterations or self.config.lm_max_iterations
+        try:
+            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            self.singular_systems.extend(name_keys(m) for m in sol.singular)
+            return sol
+        except RuntimeError as err2:
+            raise ValueError(f"batch optimisation failed ({name_keys(str(err2))}); is every "
+                             "variable constrained by its factors?") from None
+
+    def optimize(self, max_iterations: int | None, graduated: bool, kernel: RobustKernel | None) -> OptimizeSummary:
+        """See :meth:`Backend.batch_optimize`."""
+        cfg = self.config
+        own = kernel is None or kernel == cfg.kernel
+        kernel = cfg.kernel if kernel is None else kernel
+        graph = self.blocks.whole_graph() if own else self.blocks.whole_graph(kernel=kernel)
+        values = self.graph.used_values(graph)
+        e0 = graph.error(values)
+        robust = graduated and kernel.name != "none" and bool(self.blocks.blocks)
+        scales = list(cfg.robust_schedule) if robust else []
+        t0 = _time.perf_counter()
+        iterations = 0
+        for scale in [*scales, 1.0]:
+            g = graph
+            if scale != 1.0:
+                g = self.blocks.whole_graph(kernel=RobustKernel(kernel.name, kernel.threshold * scale))
+            sol = self.solve(g, values, max_iterations)
+            values = sol.values
+            iterations += sol.iterations
+        self.graph.values.update(values)
+        self.graph.restructure()
+        self.blocks.drop_summaries()  # the held poses have moved
+        return OptimizeSummary(float(e0), float(graph.error(values)), iterations, _time.perf_counter() - t0)
+
+    def error(self) -> float:
+        """Total graph error (0.5 sum of whitened squares, robust losses) at the current estimate."""
+        graph = self.blocks.whole_graph()
+        return float(graph.error(self.graph.used_values(graph)))
+
+    def trim(self, max_whitened: float, min_distance: float) -> tuple[int, int]:
+        """See :meth:`Backend.trim_observations`."""
+        if not (max_whitened > 0.0 and min_distance >= 0.0):
+            raise ValueError(f"trim thresholds: expected > 0 and >= 0, got {max_whitened}, {min_distance}")
+        n_points = n_blocks = 0
+        for bid in list(self.blocks.blocks):
+            blk = self.blocks.blocks[bid]
+            e = self.blocks.whitened_residuals(blk)
+            out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
+            if not out.any():
+                continue
+            n_points += int(out.sum())
+            n_blocks += 1
+            keep = ~out
+            if not keep.any():
+                self.blocks.remove(bid)
+            else:
+                self.blocks.replace(bid, blk.points[keep], None if blk.alphas is None else blk.alphas[keep],
+                                    blk.sigmas[keep])
+        return n_points, n_blocks

@@ -1,0 +1,151 @@
+"""The back end's factor graph as data: variables (knot times, current estimates, plane anchors)
+and factor records, with the bookkeeping every solver reads.
+
+Variables (gtsam keys): ``X(i)`` body pose ``T_world_body`` at knot i, ``P(j)`` plane j
+(``OrientedPlane3`` about its anchor, world frame), ``V(i)``/``B(i)`` world velocity and IMU bias
+per knot (only with an IMU). A factor record holds its factor (None for an observation block's,
+built when first needed, see :mod:`slam.backend.blocks`), its keys and its index in iSAM2.
+
+Two counters tell the solvers what changed: ``version`` on every change of the factors or of
+the estimate (a covariance computed at another version is stale), ``epoch`` when the graph
+changed in a way an incremental iSAM2 cannot follow (merged or removed variables, estimates
+moved by another solver): iSAM2 is rebuilt from the current estimate at its next update.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class Record:
+    """One factor of the graph: the factor (None: an observation block's, built on first use),
+    its keys and its index in iSAM2 (None: not in iSAM2)."""
+
+    factor: gtsam.NonlinearFactor | None
+    keys: tuple[int, ...]
+    isam_index: int | None
+
+
+class FactorGraph:
+    """Variables and factor records; factors added or removed since the last incremental
+    update are pending (``pending`` ids, ``pending_removals`` iSAM2 indices)."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []  # knot times [s], increasing
+        self.values = gtsam.Values()  # the current estimate
+        self.anchors: dict[int, FloatArray] = {}  # plane id -> anchor point (world) of its variable
+        self.records: dict[int, Record] = {}
+        self._next_id = 0
+        self.pending: list[int] = []
+        self.pending_removals: list[int] = []
+        # factors by the highest knot they touch, and factors on no knot (plane priors and ties)
+        self.by_knot: dict[int, list[int]] = {}
+        self.knotless: list[int] = []
+        self.version = 0
+        self.epoch = 0
+
+    def add_factor(self, factor: gtsam.NonlinearFactor) -> int:
+        """Add ``factor``; returns its id."""
+        return self.add_record(factor, tuple(int(k) for k in factor.keys()))
+
+    def add_record(self, factor: gtsam.NonlinearFactor | None, keys: tuple[int, ...]) -> int:
+        """A new factor id for ``factor`` on ``keys`` (None: an observation block's)."""
+        fid = self._next_id
+        self._next_id += 1
+        self.records[fid] = Record(factor, keys, None)
+        top = top_knot(keys)
+        if top is None:
+            self.knotless.append(fid)
+        else:
+            self.by_knot.setdefault(top, []).append(fid)
+        self.pending.append(fid)
+        self.version += 1
+        return fid
+
+    def remove_factor(self, fid: int) -> None:
+        """Remove factor ``fid`` (from iSAM2 too, at its next update)."""
+        rec = self.records.pop(fid)
+        if rec.isam_index is not None:
+            self.pending_removals.append(rec.isam_index)
+        self.version += 1
+
+    def restructure(self) -> None:
+        """Mark a change iSAM2 cannot follow incrementally (it is rebuilt at its next update)."""
+        self.epoch += 1
+        self.version += 1
+
+    def check_knot(self, knot: int, need_next: bool = False) -> int:
+        """``knot`` as an index of an existing knot (with ``need_next``: of an interval's start)."""
+        i = int(knot)
+        last = len(self.times) - (2 if need_next else 1)
+        if i < 0 or i > last:
+            what = "interval start" if need_next else "knot"
+            raise ValueError(f"knot: {what} {i} outside [0, {last}]")
+        return i
+
+    def used_values(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
+        """The current estimate of the variables ``graph`` touches."""
+        out = gtsam.Values()
+        for k in graph.keyVector():
+            copy_value(out, self.values, int(k))
+        return out
+
+
+def top_knot(keys: Sequence[int]) -> int | None:
+    """The highest knot index among ``keys`` (X, V and B symbols), or None."""
+    top = None
+    for k in keys:
+        sym = gtsam.Symbol(k)
+        if chr(sym.chr()) in "xvb":
+            i = int(sym.index())
+            top = i if top is None else max(top, i)
+    return top
+
+
+def copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = False) -> None:
+    """Copy variable ``key`` from ``src`` into ``dst``: insert it if absent; overwrite it only
+    with ``update``."""
+    exists = dst.exists(key)
+    if exists and not update:
+        return
+    put = dst.update if exists else dst.insert
+    sym = gtsam.Symbol(key)
+    c = chr(sym.chr()).lower()
+    if c == "x":
+        put(key, src.atPose3(key))
+    elif c == "p":
+        put(key, src.atOrientedPlane3(key))
+    elif c == "v":
+        put(key, src.atVector(key))
+    elif c == "b":
+        put(key, src.atConstantBias(key))
+    else:
+        raise ValueError(f"unknown variable {sym.string()}")
+
+
+def as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:
+    """A (4, 4) rigid transform as a ``gtsam.Pose3``; anything else is a ValueError naming ``name``."""
+    M = np.asarray(T, dtype=float)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ValueError(f"{name}: expected a finite (4, 4) matrix, got shape {M.shape}")
+    R = M[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
+        raise ValueError(f"{name}: rotation block is not a rotation matrix")
+    return gtsam.Pose3(gtsam.Rot3(R), M[:3, 3])
+
+
+def name_keys(message: str) -> str:
+    """First line of a gtsam error plus the variable it names (x12, p3), on one line."""
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    first = lines[0] if lines else "gtsam error"
+    m = re.search(r"Symbol: (\w+)", message)
+    return f"{first} {m.group(1)}" if m else first
