@@ -83,7 +83,7 @@ from slam.frontend.planemap import (
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.motion import ImuConfig, MotionPriorConfig
-from slam.scan_prep import (
+from slam.frontend.scan_prep import (
     PreparedScan,
     ScanPreparer,
     knot_deskew,

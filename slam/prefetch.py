@@ -24,7 +24,7 @@ from common.rig import Rig
 from slam.config import SlamConfig
 from slam.imu_feed import ImuSamples
 from slam.io.bag import read_scans
-from slam.scan_prep import PreparedScan, ScanPreparer
+from slam.frontend.scan_prep import PreparedScan, ScanPreparer
 
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
 _DONE = "done"

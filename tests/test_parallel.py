@@ -17,7 +17,7 @@ from slam.config import SlamConfig
 from slam.io.errors import InputError
 from slam.prefetch import can_fork_reader, prepared_scans
 from slam.run import bag_time_range, load_imu, run_slam
-from slam.scan_prep import ScanPreparer
+from slam.frontend.scan_prep import ScanPreparer
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
 
