@@ -32,6 +32,26 @@ MAX_GAP = 0.05  # s: a longer hole in the IMU stream inside a knot interval is a
 
 
 @dataclass(frozen=True, eq=False)
+class ImuMotionParams:
+    """The front end's use of the IMU (``slam.params.imu_motion_params``): zero-velocity updates
+    (``zupt``: the stance test over ``zupt_window`` s below ``zupt_threshold`` with the
+    white-noise densities ``accel_noise``/``gyro_noise`` and ``gravity``, a prior of
+    ``zupt_sigma`` m/s), and tracking against the IMU's prediction: ``increment_sigmas`` (6,: rad,
+    m) on each knot interval's relative pose, translation directions whose information is below
+    ``degenerate_ratio`` of the largest left to the IMU."""
+
+    zupt: bool
+    zupt_window: float
+    zupt_threshold: float
+    zupt_sigma: float
+    accel_noise: float
+    gyro_noise: float
+    gravity: float
+    increment_sigmas: FloatArray
+    degenerate_ratio: float
+
+
+@dataclass(frozen=True, eq=False)
 class ImuSamples:
     """Body-frame IMU samples: ``times`` (N,) s increasing, ``accel`` (N, 3) specific force
     m/s^2, ``gyro`` (N, 3) rad/s."""

@@ -38,7 +38,8 @@ from numpy.typing import NDArray
 
 from common.rig import Rig
 from segmentation import Scanline
-from slam.backend import Backend, BackendConfig
+from slam import params
+from slam.backend import Backend
 from slam.config import SlamConfig
 from slam.factors import RobustKernel
 from slam.frontend import kernels as fk
@@ -47,7 +48,6 @@ from slam.frontend.edges import (
     EDGE_ID_BASE,
     Break,
     EdgeMap,
-    EdgeParams,
     along_wall,
     bracket_point,
     break_pairs,
@@ -62,7 +62,6 @@ from slam.frontend.edges import (
 from slam.frontend.observations import ScanSegments
 from slam.frontend.plane_init import (
     NewPlane,
-    PlaneInitParams,
     PooledSegment,
     SegmentPool,
     on_plane,
@@ -80,9 +79,6 @@ from slam.frontend.planemap import (
     is_other_face,
     merge_tolerance,
 )
-from slam.frontend.tracking import predict_constant_velocity, refine_window
-from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.motion import ImuConfig, MotionPriorConfig
 from slam.frontend.scan_prep import (
     PreparedScan,
     ScanPreparer,
@@ -92,21 +88,13 @@ from slam.frontend.scan_prep import (
     segment_owner,
     segment_returns,
 )
+from slam.frontend.tracking import predict_constant_velocity, refine_window
+from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.trajectory import kernels as tk
 from slam.trajectory.deskew import DeskewTable
 from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
-
-TRACK_WINDOW = 6  # knot intervals refined together by tracking
-FIRST_PRIOR_SIGMAS = np.array([np.radians(0.2)] * 3 + [0.01] * 3)  # oldest knot of the window
-MAX_TILT_SIGMA = np.radians(1.0)  # a new plane's worst tilt must be observed at least this well
-CV_SIGMAS = np.array([0.006] * 3 + [0.002] * 3)  # change of the body twist per knot interval (rad, m)
-# translation directions observed by planes within ~3 deg of parallel only are left to the IMU
-DEGENERATE_RATIO = float(np.sin(np.radians(3.0)) ** 2)
-HOST_MIN_SEGMENTS = 50  # segments of a plane before new planes are tied parallel to it
-# with an IMU: relative pose of one knot interval against the IMU-predicted one (rad, m)
-IMU_INCREMENT_SIGMAS = np.array([np.radians(0.05)] * 3 + [0.001] * 3)
 
 
 @dataclass
@@ -170,89 +158,22 @@ class SlamRunner:
         self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
         self.preparer = ScanPreparer(rig, cfg, imu)
-        fe, be = cfg.frontend, cfg.backend
-        self.gates = Gates(
-            sigma_pose=fe.sigma_pose,
-            sigma_rotation=np.radians(fe.sigma_rotation_deg),
-            sigma_lever=np.radians(fe.sigma_lever_deg),
-            drift_rate=fe.drift_rate,
-            drift_rate_vertical=fe.drift_rate_vertical,
-            extent_margin_cells=fe.extent_margin_cells,
-            child_margin_cells=fe.child_margin_cells,
-            child_host_normal=fe.child_host_normal,
-        )
-        self.loose = self.gates.loosened(fe.tracking_loosen)
-        self.pmap = PlaneMap(cell_size=fe.extent_cell)
-        self.pool = SegmentPool(
-            PlaneInitParams(
-                min_support=fe.min_support,
-                min_scans=fe.min_scans,
-                min_spread=fe.min_spread,
-                coplanar_distance=fe.coplanar_distance,
-                sample_distance=fe.coplanar_distance + 3.0 * fe.point_sigma,
-                window=fe.pool_window,
-                vertical_walls=cfg.backend.vertical_walls,
-            )
-        )
-        ec = cfg.edges
+        self.params = params.components(cfg, with_imu=imu is not None)
+        self.gates = self.params.gates
+        self.loose = self.params.tracking_gates
+        self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
+        self.pool = SegmentPool(self.params.plane_init)
         self.emap = (
-            EdgeMap(
-                EdgeParams(
-                    max_gap=ec.max_gap,
-                    min_incidence_deg=ec.min_incidence_deg,
-                    sigma=ec.sigma,
-                    cluster_width=ec.cluster_width,
-                    min_points=ec.min_points,
-                    min_scans=ec.min_scans,
-                    gate=ec.gate,
-                    window=ec.window,
-                    merge_distance=ec.merge_distance,
-                    min_step=ec.min_step,
-                    max_step=ec.max_step,
-                    step_tolerance=ec.step_tolerance,
-                    max_skipped_points=ec.max_skipped_points,
-                    min_height_span=ec.min_height_span,
-                    point=ec.point,
-                ),
-                self.pmap.resolve,
-                generation=lambda: self.pmap.merges,
-            )
-            if ec.use
+            EdgeMap(self.params.edges, self.pmap.resolve, generation=lambda: self.pmap.merges)
+            if self.params.edges is not None
             else None
         )
         self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
         # _host resolved through the merges, kept while no plane is merged or tied
         self._resolved_hosts: tuple[tuple[int, int], dict[int, int]] | None = None
         dt = 1.0 / cfg.trajectory.knot_rate
-        ic = cfg.imu
-        self.imu_config = (
-            ImuConfig(
-                accel_noise_density=ic.accel_noise,
-                gyro_noise_density=ic.gyro_noise,
-                accel_bias_rw=ic.accel_bias_walk,
-                gyro_bias_rw=ic.gyro_bias_walk,
-                bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
-                gravity=ic.gravity,
-                integration_sigma=ic.integration_sigma,
-            )
-            if imu is not None
-            else None
-        )
-        self.backend = Backend(
-            BackendConfig(
-                kernel=RobustKernel(be.robust, be.robust_k),
-                motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
-                datum="position_yaw",
-                relinearize_threshold=be.relinearize_threshold,
-                relinearize_skip=be.relinearize_skip,
-                lm_relative_tolerance=1e-4,
-                horizontal_sigma=np.radians(be.horizontal_prior_deg),
-                vertical_sigma=np.radians(be.vertical_prior_deg),
-                imu=self.imu_config,
-                use_motion_prior=imu is None or ic.motion_prior,
-                coalesce_blocks=be.solver == "window",
-            )
-        )
+        self.imu_config = self.params.imu
+        self.backend = Backend(self.params.backend)
         self.dt = dt
         self.t0: float | None = None
         self._deskew: DeskewTable | None = None  # built at the first scan (the knots start there)
@@ -492,12 +413,11 @@ class SlamRunner:
     def _track(self, ready: list[_Pending], k_new: int, T_pred: FloatArray) -> FloatArray:
         """Refine the window of the last ``TRACK_WINDOW`` knots, the new one included, against the
         map (planes fixed): loose association, windowed Gauss-Newton, twice. Returns the new knot."""
-        fe = self.cfg.frontend
         self._recent.extend(ready)
-        k0 = max(0, k_new - TRACK_WINDOW)
+        k0 = max(0, k_new - self.params.tracking.window)
         t_lo = self._knot_time(k0)
         self._recent = [p for p in self._recent if p.t_end >= t_lo]
-        if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
+        if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not self._recent:
             return T_pred
         hosts = self._host_map() if self.emap is not None and self.emap.edges else None
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
@@ -552,11 +472,11 @@ class SlamRunner:
                 np.concatenate(nrm),
                 np.concatenate(off),
                 np.maximum(np.concatenate(sig), 0.001),
-                FIRST_PRIOR_SIGMAS,
-                CV_SIGMAS,
-                iterations=fe.tracking_iterations,
-                increment_sigmas=IMU_INCREMENT_SIGMAS if self.imu is not None else None,
-                degenerate_ratio=DEGENERATE_RATIO if self.imu is not None else None,
+                self.params.tracking.first_prior_sigmas,
+                self.params.tracking.twist_sigmas,
+                iterations=self.params.tracking.iterations,
+                increment_sigmas=self.params.imu_motion.increment_sigmas if self.params.imu_motion else None,
+                degenerate_ratio=self.params.imu_motion.degenerate_ratio if self.params.imu_motion else None,
             )
             self._T[k0 : k_new + 1] = window
         return self._T[k_new].copy()
@@ -1013,7 +933,7 @@ class SlamRunner:
         best: tuple[float, int] | None = None
         for pid in self.pmap.active_ids():
             h = self.pmap.planes[int(pid)]
-            if h.n_segments < HOST_MIN_SEGMENTS or float(h.normal @ plane.normal) < cos_max:
+            if h.n_segments < self.cfg.frontend.host_min_segments or float(h.normal @ plane.normal) < cos_max:
                 continue
             off = float(np.max(np.abs(pts @ h.normal + h.d)))
             if off > fe.parallel_max_offset:
@@ -1033,7 +953,7 @@ class SlamRunner:
         best: tuple[int, int] | None = None
         for pid in self.pmap.active_ids():
             w = self.pmap.planes[int(pid)]
-            if w.kind != KIND_WALL or w.n_segments < HOST_MIN_SEGMENTS:
+            if w.kind != KIND_WALL or w.n_segments < self.cfg.frontend.host_min_segments:
                 continue
             if not is_other_face(w.normal, w.d, normal, pts, cos_min, fe.wall_thickness):
                 continue
@@ -1061,7 +981,7 @@ class SlamRunner:
         if len(pts) < 2:
             return False
         about = np.array([0.0, 0.0, 1.0]) if vertical else None
-        return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < MAX_TILT_SIGMA
+        return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < np.radians(self.cfg.frontend.max_tilt_sigma_deg)
 
     def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
         """Give a new plane the pooled segments that lie on it but were not among its seed group."""

@@ -22,9 +22,9 @@ from typing import Any
 
 from common.rig import Rig
 from slam.config import SlamConfig
+from slam.frontend.scan_prep import PreparedScan, ScanPreparer
 from slam.imu_feed import ImuSamples
 from slam.io.bag import read_scans
-from slam.frontend.scan_prep import PreparedScan, ScanPreparer
 
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
 _DONE = "done"

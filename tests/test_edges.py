@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 
+from slam.config import SlamConfig
 from slam.frontend.edges import (
     EDGE_ID_BASE,
     Break,
@@ -21,8 +25,14 @@ from slam.frontend.edges import (
     steps_within,
     surface_end,
 )
+from slam.params import edge_params
 
 WALL_N = np.array([0.0, 1.0, 0.0])  # a wall y = 0 facing +y; along it: x
+
+
+def _params(**changes: Any) -> EdgeParams:
+    """The default configuration's edge parameters with ``changes``."""
+    return replace(edge_params(SlamConfig()), **changes)
 
 
 def _break(u: float, serial: int, z: float = 1.5, host: int = 1, step: int = -1, side: int = 1) -> Break:
@@ -76,7 +86,7 @@ def test_break_sigma_and_incidence() -> None:
 
 
 def test_vertical_edge_clusters_and_top_edge_does_not() -> None:
-    em = EdgeMap(EdgeParams(min_points=6, min_scans=4, cluster_width=0.02), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=6, min_scans=4, cluster_width=0.02), resolve=lambda i: i)
     rng = np.random.default_rng(0)
     # a jamb at u = 2.0: breaks of 8 scans within +-5 mm, at several heights
     for s in range(8):
@@ -97,7 +107,7 @@ def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
     """A tilted scanline nearly parallel to a board's bottom edge puts its breaks close together at
     one height: not a vertical edge. The horizontal scanner's breaks are all at one height too, but
     its scanlines cross the wall flat and can only cross vertical edges."""
-    em = EdgeMap(EdgeParams(min_points=4, min_scans=3), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=4, min_scans=3), resolve=lambda i: i)
     for s in range(6):
         em.pending.append(_break(5.0 + 0.002 * s, s, z=0.9))
     assert em.cluster() == []
@@ -110,14 +120,14 @@ def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
 
 
 def test_too_few_scans_make_no_edge() -> None:
-    em = EdgeMap(EdgeParams(min_points=6, min_scans=4), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=6, min_scans=4), resolve=lambda i: i)
     for k in range(9):
         em.pending.append(_break(2.0, serial=k % 3))  # 9 breaks but 3 scans
     assert em.cluster() == []
 
 
 def test_match_respects_key_side_and_gate() -> None:
-    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: {5: 1}.get(i, i))
+    em = EdgeMap(_params(gate=0.03), resolve=lambda i: {5: 1}.get(i, i))
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     assert e.id == EDGE_ID_BASE
     assert em.match(_break(2.01, 0)) is e
@@ -131,7 +141,7 @@ def test_match_respects_key_side_and_gate() -> None:
 def test_match_with_an_index_follows_merges_and_new_edges() -> None:
     merged: dict[int, int] = {}
     gen = [0]
-    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
+    em = EdgeMap(_params(gate=0.03), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     assert em.match(_break(2.01, 0)) is e
     assert em.match(_break(2.01, 0, host=5)) is None  # wall 5 is another wall ...
@@ -145,7 +155,7 @@ def test_match_with_an_index_follows_merges_and_new_edges() -> None:
 
 
 def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
-    em = EdgeMap(EdgeParams(gate=0.15, height_margin=0.1), resolve=lambda i: i)
+    em = EdgeMap(_params(gate=0.15, height_margin=0.1), resolve=lambda i: i)
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0, z_range=(0.5, 1.8))
     assert em.match(_break(2.1, 0, z=1.85)) is e
     top = _break(2.1, 0, z=2.05)  # a break on the door's top edge, 10 cm along it
@@ -156,7 +166,7 @@ def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
 
 def test_duplicates_pair_the_same_edge_made_twice() -> None:
     merged: dict[int, int] = {}
-    em = EdgeMap(EdgeParams(merge_distance=0.25), resolve=lambda i: merged.get(i, i))
+    em = EdgeMap(_params(merge_distance=0.25), resolve=lambda i: merged.get(i, i))
     a = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     a.n_obs = 40
     b = em.add(3, -1, 1, along_wall(WALL_N), u=2.12, time=5.0)  # the same wall, a second plane

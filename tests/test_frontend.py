@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 
+from slam.config import SlamConfig
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
 from slam.frontend.planemap import PlaneMap, is_other_face, merge_tolerance
 from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
+from slam.params import plane_init_params
 from slam.trajectory.interpolation import (
     interpolate_poses,
     interpolate_trajectory,
@@ -16,6 +21,11 @@ from slam.trajectory.interpolation import (
     se3_log,
 )
 from slam.trajectory.placement import interval_poses, place_points
+
+
+def _init_params(**changes: Any) -> PlaneInitParams:
+    """The default configuration's plane creation (samples within 15 mm) with ``changes``."""
+    return replace(plane_init_params(SlamConfig()), **{"sample_distance": 0.015, **changes})
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -36,7 +46,7 @@ def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.ran
 
 def test_a_door_recessed_13_mm_does_not_join_its_wall() -> None:
     rng = np.random.default_rng(3)
-    p = PlaneInitParams(min_support=4, min_scans=3)
+    p = _init_params(min_support=4, min_scans=3)
     # the two tilted scanners' lines slant opposite ways across the wall
     wall = [_segment(i, 2.0, 0.2 + 0.1 * i, 0.1 * i, 0.1 * i + 0.8, rng, rise=0.5 if i % 2 else -0.5)
             for i in range(6)]
@@ -309,7 +319,7 @@ def test_the_wall_hypothesis_takes_level_scan_planes_only() -> None:
     lies on the table as much as on the vertical plane through it, so it makes no wall. The
     level scanner's repeated lines on a wall it faces do (kept vertical by a prior)."""
     rng = np.random.default_rng(4)
-    p = PlaneInitParams(min_support=4, min_scans=3)
+    p = _init_params(min_support=4, min_scans=3)
     tilted = np.array([0.66, 0.66, 0.34])  # 20 deg from vertical, its level direction along (1, -1, 0)
     table = SegmentPool(p)
     for i in range(8):

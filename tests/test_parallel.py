@@ -14,10 +14,10 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
+from slam.frontend.scan_prep import ScanPreparer
 from slam.io.errors import InputError
 from slam.prefetch import can_fork_reader, prepared_scans
 from slam.run import bag_time_range, load_imu, run_slam
-from slam.frontend.scan_prep import ScanPreparer
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
 

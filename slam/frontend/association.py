@@ -51,23 +51,23 @@ class WorldSegments:
 
 @dataclass(frozen=True)
 class Gates:
-    """Uncertainties added to every test, and the extent margin."""
+    """Uncertainties added to every test, and the extent margin (``slam.params.gates``)."""
 
-    sigma_pose: float = 0.004  # m, current pose estimate at the segment
-    sigma_rotation: float = np.radians(0.3)  # rad, in the angle test
-    sigma_lever: float = np.radians(0.05)  # rad, rotation error times range in the distance test
-    drift_rate: float = 0.003  # m of offset uncertainty per m walked since the plane was seen
-    drift_rate_vertical: float = 0.0003  # the same for floors and ceilings
-    extent_margin_cells: int = 2
-    max_extra_cells: int = 8  # cap of the drift-grown extent margin
-    max_drift_sigma: float = 0.05  # m, cap of the drift-grown offset uncertainty
-    chi2: float = CHI2_2DOF_99
-    max_endpoint_distance: float = 0.05  # m, hard cap on either endpoint's distance
+    sigma_pose: float  # m, current pose estimate at the segment
+    sigma_rotation: float  # rad, in the angle test
+    sigma_lever: float  # rad, rotation error times range in the distance test
+    drift_rate: float  # m of offset uncertainty per m walked since the plane was seen
+    drift_rate_vertical: float  # the same for floors and ceilings
+    extent_margin_cells: int
+    max_extra_cells: int  # cap of the drift-grown extent margin
+    max_drift_sigma: float  # m, cap of the drift-grown offset uncertainty
+    chi2: float  # gate of the combined test (CHI2_2DOF_99: 99 % of a chi-square with 2 dof)
+    max_endpoint_distance: float  # m, hard cap on either endpoint's distance
     # planes tied parallel to a host wall (doors, boards: ``associate``'s ``children``): their
     # extent margin (cells, not grown with the drift; -1: as every plane's), and whether their
     # distance is taken to the plane through their extent's centre with the host's normal
-    child_margin_cells: int = -1
-    child_host_normal: bool = False
+    child_margin_cells: int
+    child_host_normal: bool
 
     def loosened(self, factor: float) -> Gates:
         return Gates(

@@ -52,25 +52,33 @@ EDGE_ID_BASE = 1_000_000  # back-end plane ids of edge planes start here; map pl
 
 @dataclass(frozen=True)
 class EdgeParams:
-    """Break detection, clustering and association of door/board edges (metres, degrees, seconds)."""
+    """Break detection, clustering, association and ties of door/board edges (metres, seconds;
+    ``slam.params.edge_params``, see ``slam.config.EdgeSection``)."""
 
-    max_gap: float = 0.08
-    min_incidence_deg: float = 25.0
-    sigma: float = 0.003
-    cluster_width: float = 0.02
-    min_points: int = 4
-    min_scans: int = 3
-    gate: float = 0.04
-    window: float = 6.0
-    merge_distance: float = 0.25
-    min_step: float = 0.004
-    max_step: float = 0.04
-    step_tolerance: float = 0.005
-    max_skipped_points: int = 15
-    min_height_span: float = 0.15
-    point: str = "bracket"
-    height_margin: float = 0.1
-    flat_slope: float = 0.3
+    max_gap: float
+    min_incidence_deg: float
+    sigma: float
+    cluster_width: float
+    min_points: int
+    min_scans: int
+    gate: float
+    tracking_gate: float  # the gate of the tracker's pre-association
+    window: float
+    merge_distance: float
+    link_sigma: float  # m and rad, the tie between merged edges
+    min_step: float
+    max_step: float
+    step_tolerance: float
+    max_skipped_points: int
+    min_height_span: float
+    point: str
+    height_margin: float
+    flat_slope: float
+    perpendicular_sigma: float  # rad, the edge plane's tie across its wall
+    inline: bool  # also steps inside wall segments
+    inline_window: int
+    inline_z: float
+    min_segment_points: int  # a wall segment shorter than this yields no break (the front end's limit)
 
 
 @dataclass
