@@ -184,7 +184,7 @@ def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
     for line in scans:
         runner.add_scan(line)
     runner.finish()
-    return runner.result(batch=False)
+    return runner.result(batch=False, covariances=False)
 
 
 def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamConfig,

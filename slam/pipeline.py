@@ -90,6 +90,7 @@ from slam.frontend.scan_prep import (
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
+from slam.result import BatchStats, RunStats, SlamResult, StageTimer
 from slam.trajectory import kernels as tk
 from slam.trajectory.deskew import DeskewTable
 from slam.trajectory.interpolation import so3_exp
@@ -115,34 +116,6 @@ class _Pending:
     # the breaks found last with these plane ids and hosts (the tracking pre-association's are
     # mostly the observation's: only their world placement changes with the tracked trajectory)
     breaks_memo: tuple[bytes, dict[int, int], list[Break]] | None = None
-
-
-@dataclass
-class SlamResult:
-    """Final estimates and bookkeeping of a run (world frame)."""
-
-    knot_times: FloatArray
-    T_world_body: FloatArray
-    plane_ids: NDArray[np.int64]
-    plane_normals: FloatArray
-    plane_offsets: FloatArray
-    plane_map: PlaneMap
-    scanner_names: list[str]
-    segment_rows: dict[str, NDArray[Any]]
-    stats: dict[str, Any]
-    timings: dict[str, float]
-    plane_covariances: dict[int, FloatArray] = field(default_factory=dict)
-    deskew: DeskewTable | None = None  # the gyro's rotation between knots (``slam.trajectory.deskew``), applied to body points
-
-
-class _Timer:
-    def __init__(self) -> None:
-        self.t: dict[str, float] = {}
-
-    def add(self, name: str, since: float) -> float:
-        now = _time.perf_counter()
-        self.t[name] = self.t.get(name, 0.0) + now - since
-        return now
 
 
 class SlamRunner:
@@ -188,30 +161,8 @@ class SlamRunner:
         self._serial = 0
         self._odometer = 0.0
         self._odo_at_knot: list[float] = []
-        self._timer = _Timer()
-        self.stats: dict[str, int] = {
-            "scans": 0,
-            "segments": 0,
-            "associated": 0,
-            "planes_created": 0,
-            "planes_merged": 0,
-            "observation_blocks": 0,
-            "updates": 0,
-            "skipped_scans": 0,
-            "planes_rejected": 0,
-            "planes_rejected_oblique": 0,
-            "planes_parallel": 0,
-            "wall_faces": 0,
-            "isam2_rebuilds": 0,
-            "isam2_fallbacks": 0,
-            "imu_used": int(imu is not None),
-            "zero_velocity_updates": 0,
-            "edges_created": 0,
-            "edges_merged": 0,
-            "edge_observations": 0,
-            "trimmed_points": 0,
-            "trimmed_blocks": 0,
-        }
+        self._timer = StageTimer()
+        self.stats = RunStats(imu_used=int(imu is not None))
         self._since_update = 0
 
     # ------------------------------------------------------------------ trajectory mirror
@@ -244,7 +195,7 @@ class SlamRunner:
             self.backend.add_imu(k - 1, a, g, dt)
         if self.imu is not None and self._at_rest(self._knot_time(k), T[2, :3]):
             self.backend.add_velocity_prior(k, np.zeros(3), self.cfg.imu.zupt_sigma)
-            self.stats["zero_velocity_updates"] += 1
+            self.stats.zero_velocity_updates += 1
         return k
 
     def _at_rest(self, t: float, up_body: FloatArray) -> bool:
@@ -303,7 +254,7 @@ class SlamRunner:
         possibly in another process, ``slam.prefetch``); knots are processed as soon as they are
         complete."""
         t_start = _time.perf_counter()
-        self.stats["scans"] += 1
+        self.stats.scans += 1
         if self.t0 is None:
             self.t0 = scan.stamp
             # the table the runner's own preparer built for this stream, else (scans prepared in
@@ -311,14 +262,14 @@ class SlamRunner:
             own = self.preparer.t0 == scan.stamp
             self._deskew = self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp)
             self._append_knot(self._initial_pose(scan.stamp))
-        self._timer.t["segmentation"] = self._timer.t.get("segmentation", 0.0) + scan.seconds_segmentation
-        self._timer.t["frontend"] = self._timer.t.get("frontend", 0.0) + scan.seconds_lift
+        self._timer.add_seconds("segmentation", scan.seconds_segmentation)
+        self._timer.add_seconds("frontend", scan.seconds_lift)
         if scan.skipped:
-            self.stats["skipped_scans"] += 1
+            self.stats.skipped_scans += 1
             return
         segs = scan.segs
         if segs is not None:
-            self.stats["segments"] += segs.n_segments
+            self.stats.segments += segs.n_segments
             self._pending.append(
                 _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64),
                          edge_tests=scan.edge_tests)  # the scan is handed over: its tests are the pending's
@@ -503,7 +454,7 @@ class SlamRunner:
                 self.pmap.extend(pid, pts)
                 self.pmap.planes[pid].n_segments += 1
                 self.pmap.seen(pid, now, self._odometer)
-            self.stats["associated"] += int((ids >= 0).sum())
+            self.stats.associated += int((ids >= 0).sum())
             v_all, e_all = summary[0], summary[1]
             for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
                 v_world, e_world = v_all[j], e_all[j]
@@ -787,7 +738,7 @@ class SlamRunner:
                        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
         idx, alpha = self._fractions(np.array([brk.time]))
         blocks.setdefault((int(idx[0]), pid), []).append((brk.point_body, alpha, np.array([brk.sigma])))
-        self.stats["edge_observations"] += 1
+        self.stats.edge_observations += 1
 
     def _create_edges(self, now: float) -> None:
         """New edge planes from clusters of pending breaks: vertical, tied perpendicular to the wall."""
@@ -807,7 +758,7 @@ class SlamRunner:
                 self._observe_point(b, edge.id, blocks)
             self._flush_blocks(blocks)
             edge.n_obs = len(members)
-            self.stats["edges_created"] += 1
+            self.stats.edges_created += 1
 
     def _refresh_edges(self, now: float) -> None:
         """Copy the recently seen edges' estimates in and tie duplicated edges together."""
@@ -822,7 +773,7 @@ class SlamRunner:
             keep.z_range = (min(keep.z_range[0], drop.z_range[0]), max(keep.z_range[1], drop.z_range[1]))
             keep.n_obs += drop.n_obs
             keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
-            self.stats["edges_merged"] += 1
+            self.stats.edges_merged += 1
 
     def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int | NDArray[np.int64]) -> list[FloatArray]:
         """World points (world frame) of the segments ``js``: every ``max(1, n // per)``-th of a
@@ -851,7 +802,7 @@ class SlamRunner:
             al = np.concatenate([r[1] for r in rows])
             sg = np.concatenate([r[2] for r in rows])
             self.backend.add_observations(knot, pid, pts, al, sg)
-            self.stats["observation_blocks"] += 1
+            self.stats.observation_blocks += 1
 
     def _compact(self, now: float) -> None:
         """Drop the point data of scans the pool can no longer use, keeping their segment rows."""
@@ -876,11 +827,11 @@ class SlamRunner:
             kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
             vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
             if kind == KIND_OTHER and len(plane.members) < fe.min_support_oblique:
-                self.stats["planes_rejected"] += 1
-                self.stats["planes_rejected_oblique"] += 1
+                self.stats.planes_rejected += 1
+                self.stats.planes_rejected_oblique += 1
                 continue
             if not self._constrained(plane, by_serial, kind, vertical):
-                self.stats["planes_rejected"] += 1
+                self.stats.planes_rejected += 1
                 continue
             pts = np.vstack([m.samples for m in plane.members])
             host = self._host_of(plane, pts)
@@ -903,12 +854,12 @@ class SlamRunner:
             if host is not None:
                 self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
                 self._host[pl.id] = host
-                self.stats["planes_parallel"] += 1
+                self.stats.planes_parallel += 1
             elif kind == KIND_WALL and fe.wall_faces:
                 face = self._other_face_of(plane.normal, pts)
                 if face is not None:
                     self.backend.add_parallel(face, pl.id, np.radians(fe.wall_faces_sigma_deg))
-                    self.stats["wall_faces"] += 1
+                    self.stats.wall_faces += 1
             blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
             for m in plane.members:
                 rec = by_serial.get(m.ref[0])
@@ -920,8 +871,8 @@ class SlamRunner:
                 self.pmap.extend(pl.id, m.samples)
                 pl.n_segments += 1
             self._flush_blocks(blocks)
-            self.stats["planes_created"] += 1
-            self.stats["associated"] += len(plane.members)
+            self.stats.planes_created += 1
+            self.stats.associated += len(plane.members)
             self._adopt_pooled(pl.id, by_serial)
 
     def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
@@ -1006,7 +957,7 @@ class SlamRunner:
         if taken:
             self._flush_blocks(blocks)
             self.pool.remove(taken)
-            self.stats["associated"] += len(taken)
+            self.stats.associated += len(taken)
 
     def _update(self) -> None:
         self._since_update = 0
@@ -1024,16 +975,16 @@ class SlamRunner:
             # an iSAM2 step can fail numerically (indeterminate system) where the same graph
             # relinearised from scratch factors fine: rebuild once; if that fails too, take a
             # few batch iterations over the whole graph (iSAM2 restarts from its result)
-            self.stats["isam2_rebuilds"] += 1
+            self.stats.isam2_rebuilds += 1
             try:
                 self.backend.update()
             except ValueError:
-                self.stats["isam2_fallbacks"] += 1
+                self.stats.isam2_fallbacks += 1
                 self.backend.batch_optimize(5, graduated=False)
         self._after_update()
 
     def _after_update(self) -> None:
-        self.stats["updates"] += 1
+        self.stats.updates += 1
         # refresh the recent knots and the recently seen planes
         k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
         for k in range(k0, self._n_knots):
@@ -1081,10 +1032,13 @@ class SlamRunner:
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
                 self.backend.link_planes(keep.id, drop.id, fe.link_sigma, fe.link_sigma)
                 self.pmap.merge(keep.id, drop.id)
-                self.stats["planes_merged"] += 1
+                self.stats.planes_merged += 1
 
     # ------------------------------------------------------------------ results
-    def result(self, batch: bool = True) -> SlamResult:
+    def result(self, batch: bool = True, covariances: bool = True) -> SlamResult:
+        """The final estimates: after a batch solve over everything (``batch``, with the final
+        trims), else the current ones; with the planes' marginal covariances unless
+        ``covariances`` is off (they take a factorisation of the whole graph)."""
         t = _time.perf_counter()
         summary = None
         self.backend.fold_links()
@@ -1094,8 +1048,8 @@ class SlamRunner:
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
             for _ in range(be.final_trim_rounds if be.final_trim_sigmas > 0 else 0):
                 n_pts, n_blk = self.backend.trim_observations(be.final_trim_sigmas, be.final_trim_distance)
-                self.stats["trimmed_points"] += n_pts
-                self.stats["trimmed_blocks"] += n_blk
+                self.stats.trimmed_points += n_pts
+                self.stats.trimmed_blocks += n_blk
                 if not n_pts:
                     break
                 summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
@@ -1107,26 +1061,30 @@ class SlamRunner:
         for pid, n, d in zip(ids, normals, offsets, strict=True):
             self.pmap.set_estimate(int(pid), n, float(d))
         rows = self._segment_rows()
-        stats: dict[str, Any] = dict(self.stats)
-        stats["knots"] = self._n_knots
-        stats["planes"] = len(ids)
-        stats["edges"] = 0 if self.emap is None else len(self.emap.active())
-        stats["pool_dropped"] = self.pool.dropped
-        stats["singular_systems"] = list(self.backend.singular_systems)
-        if summary is not None:
-            stats["batch"] = {
-                "initial_error": summary.initial_error,
-                "final_error": summary.final_error,
-                "iterations": summary.iterations,
-                "seconds": summary.seconds,
-            }
-        stats["residuals"] = self.backend.residual_statistics()
+        stats = replace(
+            self.stats,
+            knots=self._n_knots,
+            planes=len(ids),
+            edges=0 if self.emap is None else len(self.emap.active()),
+            pool_dropped=self.pool.dropped,
+            singular_systems=list(self.backend.singular_systems),
+            batch=None if summary is None else BatchStats(summary.initial_error, summary.final_error,
+                                                          summary.iterations, summary.seconds),
+            residuals=self.backend.residual_statistics(),
+        )
+        cov: dict[int, FloatArray] = {}
+        for pid in map(int, ids) if covariances else ():
+            try:
+                cov[pid] = self.backend.plane_covariance(pid)
+            except (ValueError, RuntimeError):  # no marginal for this plane (an indeterminate system)
+                continue
         return SlamResult(
             knot_times=self.backend.knot_times(),
             T_world_body=poses,
             plane_ids=ids,
             plane_normals=normals,
             plane_offsets=offsets,
+            plane_covariances=cov,
             plane_map=self.pmap,
             scanner_names=self.scanner_names,
             segment_rows=rows,
