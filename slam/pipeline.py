@@ -30,8 +30,7 @@ from __future__ import annotations
 
 import time as _time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,8 +41,8 @@ from slam import params
 from slam.backend import Backend
 from slam.config import SlamConfig
 from slam.factors import RobustKernel
-from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, associate, world_segments
+from slam.frontend.blocks import ObservationBlocks
 from slam.frontend.edges import (
     EDGE_ID_BASE,
     Break,
@@ -59,7 +58,9 @@ from slam.frontend.edges import (
     steps_within,
     surface_end,
 )
+from slam.frontend.knots import KnotMirror
 from slam.frontend.observations import ScanSegments
+from slam.frontend.pending import PendingScan, ScanQueues
 from slam.frontend.plane_init import (
     NewPlane,
     PooledSegment,
@@ -91,31 +92,10 @@ from slam.frontend.scan_prep import (
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
-from slam.trajectory import kernels as tk
 from slam.trajectory.deskew import DeskewTable
 from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass
-class _Pending:
-    """A scan's segments waiting for (or done with) association."""
-
-    serial: int
-    segs: ScanSegments
-    t_end: float
-    plane_ids: NDArray[np.int64]
-    loose_ids: NDArray[np.int64] | None = None
-    # breaks matched to known edges by the tracking pre-association: body points, times, edge ids, sigmas
-    loose_edges: tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray] | None = None
-    # per wall segment, the scan-only part of the edge tests, asked by both the tracking
-    # pre-association and the observation: (segment, +-1) its recess beyond either end,
-    # (segment, 0) the steps inside it
-    edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
-    # the breaks found last with these plane ids and hosts (the tracking pre-association's are
-    # mostly the observation's: only their world placement changes with the tracked trajectory)
-    breaks_memo: tuple[bytes, dict[int, int], list[Break]] | None = None
 
 
 class SlamRunner:
@@ -148,19 +128,9 @@ class SlamRunner:
         self.imu_config = self.params.imu
         self.backend = Backend(self.params.backend)
         self.dt = dt
-        self.t0: float | None = None
         self._deskew: DeskewTable | None = None  # built at the first scan (the knots start there)
-        self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
-        self._V = np.zeros((1024, 3))  # ... and velocities (world frame, with an IMU)
-        self._bias = np.zeros(6)  # latest IMU bias estimate (accelerometer, gyroscope)
-        self._n_knots = 0
-        self._pending: list[_Pending] = []
-        self._recent: list[_Pending] = []  # ready scans within the tracking window
-        self._done: list[_Pending] = []  # associated scans still within reach of the pool
-        self._rows: list[tuple[NDArray[Any], ...]] = []  # compacted segment rows of older scans
-        self._serial = 0
-        self._odometer = 0.0
-        self._odo_at_knot: list[float] = []
+        self.knots = KnotMirror(dt)
+        self.queues = ScanQueues()
         self._timer = StageTimer()
         self.stats = RunStats(imu_used=int(imu is not None))
         self._since_update = 0
@@ -171,29 +141,13 @@ class SlamRunner:
         (``slam.trajectory.deskew``; unchanged without an IMU)."""
         return points_body if self._deskew is None else self._deskew.apply(points_body, times)
 
-    def _knot_time(self, k: int) -> float:
-        assert self.t0 is not None
-        return self.t0 + k * self.dt
-
-    def _grow(self) -> None:
-        if self._n_knots == self._T.shape[0]:
-            self._T = np.concatenate((self._T, np.zeros_like(self._T)))
-            self._V = np.concatenate((self._V, np.zeros_like(self._V)))
-
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
-        self._grow()
-        k = self._n_knots
-        self._T[k] = T
-        self._V[k] = 0.0 if v is None else v
-        self._n_knots += 1
-        if k > 0:
-            self._odometer += float(np.linalg.norm(T[:3, 3] - self._T[k - 1, :3, 3]))
-        self._odo_at_knot.append(self._odometer)
-        self.backend.add_pose(self._knot_time(k), T, velocity_world=None if self.imu is None else self._V[k])
+        k = self.knots.append(T, v)
+        self.backend.add_pose(self.knots.time(k), T, velocity_world=None if self.imu is None else self.knots.V[k])
         if self.imu is not None and k > 0:
-            a, g, dt = self.imu.interval(self._knot_time(k - 1), self._knot_time(k))
+            a, g, dt = self.imu.interval(self.knots.time(k - 1), self.knots.time(k))
             self.backend.add_imu(k - 1, a, g, dt)
-        if self.imu is not None and self._at_rest(self._knot_time(k), T[2, :3]):
+        if self.imu is not None and self._at_rest(self.knots.time(k), T[2, :3]):
             self.backend.add_velocity_prior(k, np.zeros(3), self.cfg.imu.zupt_sigma)
             self.stats.zero_velocity_updates += 1
         return k
@@ -225,25 +179,6 @@ class SlamRunner:
             T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
         return T
 
-    def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
-        """Knot interval index and fraction (m,) of each time (m,) on the current knots, clipped
-        to the first and the last interval."""
-        assert self.t0 is not None
-        return tk.uniform_fractions(self.t0, self.dt, self._n_knots, np.ascontiguousarray(times, dtype=np.float64))
-
-    def _pose_at(self, t: float) -> FloatArray:
-        """``T_world_body`` (4, 4) at time ``t`` with the current knots (compiled, one call)."""
-        assert self.t0 is not None
-        return tk.pose_uniform(self._T, self.t0, self.dt, self._n_knots, float(t))
-
-    def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
-        """Points (m, 3) body frame at their times (m,) -> world frame with the current knots:
-        one compiled pass, one rotation logarithm per run of equal knot intervals."""
-        assert self.t0 is not None
-        return tk.place_uniform(self._T, self.t0, self.dt, self._n_knots,
-                                np.ascontiguousarray(times, dtype=np.float64),
-                                np.ascontiguousarray(points_body, dtype=np.float64))
-
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:
         """Feed the next scanline (time order); knots are processed as soon as they are complete."""
@@ -255,8 +190,8 @@ class SlamRunner:
         complete."""
         t_start = _time.perf_counter()
         self.stats.scans += 1
-        if self.t0 is None:
-            self.t0 = scan.stamp
+        if self.knots.t0 is None:
+            self.knots.start(scan.stamp)
             # the table the runner's own preparer built for this stream, else (scans prepared in
             # another process) the same one built here
             own = self.preparer.t0 == scan.stamp
@@ -270,47 +205,39 @@ class SlamRunner:
         segs = scan.segs
         if segs is not None:
             self.stats.segments += segs.n_segments
-            self._pending.append(
-                _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64),
-                         edge_tests=scan.edge_tests)  # the scan is handed over: its tests are the pending's
-            )
-            self._serial += 1
+            self.queues.add(segs, scan.edge_tests)  # the scan is handed over: its tests are the queue's
         self._timer.add("frontend", t_start)
         # a knot is complete once no later scan can have beams before it
-        while self._knot_time(self._n_knots) + self._scan_span < scan.stamp:
+        while self.knots.time(self.knots.n) + self._scan_span < scan.stamp:
             self._process_knot()
 
     def finish(self) -> None:
         """Process the remaining knots (up to the last beam) and take a last iSAM2 step."""
-        last = max((p.t_end for p in self._pending), default=None)
+        last = self.queues.last_end()
         if last is not None:
-            while self._knot_time(self._n_knots - 1) < last:
+            while self.knots.time(self.knots.n - 1) < last:
                 self._process_knot()
         self._update()
 
     # ------------------------------------------------------------------ one knot
     def _process_knot(self) -> None:
         t_start = _time.perf_counter()
-        k_new = self._n_knots
-        t_new = self._knot_time(k_new)
+        k_new = self.knots.n
+        t_new = self.knots.time(k_new)
         v_pred = None
         if self.imu is not None and self.imu_config is not None:
             T_pred, v_pred = predict_navstate(
-                self.imu_config, self._T[k_new - 1], self._V[k_new - 1], self._bias, self.imu,
-                self._knot_time(k_new - 1), t_new,
+                self.imu_config, self.knots.T[k_new - 1], self.knots.V[k_new - 1], self.knots.bias, self.imu,
+                self.knots.time(k_new - 1), t_new,
             )
         elif k_new >= 2:
-            T_pred = predict_constant_velocity(self._T[k_new - 2], self._T[k_new - 1])
+            T_pred = predict_constant_velocity(self.knots.T[k_new - 2], self.knots.T[k_new - 1])
         else:
-            T_pred = self._T[k_new - 1].copy()
-        # mirror the prediction so that placing points can use it
-        self._grow()
-        self._T[k_new] = T_pred
-        self._n_knots += 1
-        ready = [p for p in self._pending if p.t_end <= t_new]
-        self._pending = [p for p in self._pending if p.t_end > t_new]
+            T_pred = self.knots.T[k_new - 1].copy()
+        self.knots.hold(T_pred)
+        ready = self.queues.take_ready(t_new)
         T_new = self._track(ready, k_new, T_pred)
-        self._n_knots -= 1
+        self.knots.release()
         t = self._timer.add("tracking", t_start)
         self._append_knot(T_new, v_pred)
         self._associate_and_observe(ready)
@@ -324,7 +251,7 @@ class SlamRunner:
             self._update()
             self._timer.add("backend", t)
 
-    def _world_summaries(self, ps: list[_Pending]) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+    def _world_summaries(self, ps: list[PendingScan]) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
         """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
         their end points (k, 2, 3) and the scanner's position at the scan's stamp (4,),
         homogeneous). One ``_place`` for all the scans: per point the same numbers as one call per
@@ -340,14 +267,14 @@ class SlamRunner:
             pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
             tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
             sizes += [2 * segs.n_segments, 2 * segs.n_segments]
-        w = np.split(self._place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
+        w = np.split(self.knots.place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
         return [
             (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
-             self._pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
+             self.knots.pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
             for i, p in enumerate(ps)
         ]
 
-    def _associate_scan(self, p: _Pending, gates: Gates,
+    def _associate_scan(self, p: PendingScan, gates: Gates,
                         summary: tuple[FloatArray, FloatArray, FloatArray]) -> NDArray[np.int64]:
         """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``
         (``_world_summaries``)."""
@@ -357,18 +284,16 @@ class SlamRunner:
         )
         fe = self.cfg.frontend
         children = self._host_map() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
-        ids = associate(ws, self.pmap, self._odometer, gates, children)
+        ids = associate(ws, self.pmap, self.knots.odometer, gates, children)
         ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
         return ids
 
-    def _track(self, ready: list[_Pending], k_new: int, T_pred: FloatArray) -> FloatArray:
+    def _track(self, ready: list[PendingScan], k_new: int, T_pred: FloatArray) -> FloatArray:
         """Refine the window of the last ``TRACK_WINDOW`` knots, the new one included, against the
         map (planes fixed): loose association, windowed Gauss-Newton, twice. Returns the new knot."""
-        self._recent.extend(ready)
         k0 = max(0, k_new - self.params.tracking.window)
-        t_lo = self._knot_time(k0)
-        self._recent = [p for p in self._recent if p.t_end >= t_lo]
-        if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not self._recent:
+        recent = self.queues.track(ready, self.knots.time(k0))
+        if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not recent:
             return T_pred
         hosts = self._host_map() if self.emap is not None and self.emap.edges else None
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
@@ -379,11 +304,11 @@ class SlamRunner:
             pts, kis, al, nrm, off, sig = [], [], [], [], [], []
             # the recent scans' loosely associated segments, both virtual points each (body
             # frame), gathered in one batch in the order of a loop over scans and segments
-            tracked = [p for p in self._recent if p.loose_ids is not None]
+            tracked = [p for p in recent if p.loose_ids is not None]
             ids = np.concatenate([p.loose_ids for p in tracked]) if tracked else np.empty(0, dtype=np.int64)
             sel = np.flatnonzero(ids >= 0)
             if sel.size:
-                idx, alpha = self._fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
+                idx, alpha = self.knots.fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
                 keep = np.flatnonzero(idx >= k0)
                 if keep.size:
                     # the associated planes' current estimates (world frame): normal, offset
@@ -398,11 +323,11 @@ class SlamRunner:
                     nrm.append(planes[pid, :3])
                     off.append(planes[pid, 3])
                     sig.append(np.repeat(np.concatenate([p.segs.virtual_sigma for p in tracked])[sel], 2)[keep])
-            for p in self._recent:
+            for p in recent:
                 if p.loose_edges is None:
                     continue
                 e_pts, e_t, e_ids, e_sig = p.loose_edges
-                idx, alpha = self._fractions(e_t)
+                idx, alpha = self.knots.fractions(e_t)
                 inside = idx >= k0
                 if not inside.any():
                     continue
@@ -416,7 +341,7 @@ class SlamRunner:
             if not pts:
                 break
             window = refine_window(
-                self._T[k0 : k_new + 1],
+                self.knots.T[k0 : k_new + 1],
                 np.concatenate(kis),
                 np.concatenate(al),
                 np.concatenate(pts),
@@ -429,13 +354,13 @@ class SlamRunner:
                 increment_sigmas=self.params.imu_motion.increment_sigmas if self.params.imu_motion else None,
                 degenerate_ratio=self.params.imu_motion.degenerate_ratio if self.params.imu_motion else None,
             )
-            self._T[k0 : k_new + 1] = window
-        return self._T[k_new].copy()
+            self.knots.T[k0 : k_new + 1] = window
+        return self.knots.T[k_new].copy()
 
-    def _associate_and_observe(self, ready: list[_Pending]) -> None:
+    def _associate_and_observe(self, ready: list[PendingScan]) -> None:
         fe = self.cfg.frontend
-        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
-        now = self._knot_time(self._n_knots - 1)
+        blocks = ObservationBlocks(self.knots, self.stats)
+        now = self.knots.time(self.knots.n - 1)
         hosts = self._host_map()
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
             ids = self._associate_scan(p, self.gates, summary)
@@ -446,21 +371,21 @@ class SlamRunner:
             associated = np.flatnonzero(ids >= 0)
             pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
             # every 8th point of the associated segments (extents), every 12th of the pooled ones
-            placed = self._place_segments(segs, np.concatenate((associated, pooled)),
+            placed = self.knots.place_segments(segs, np.concatenate((associated, pooled)),
                                           np.repeat([8, 12], [associated.size, pooled.size]))
             for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
                 pid = int(ids[j])
-                self._observe(segs, j, pid, blocks)
+                blocks.segment(segs, j, pid)
                 self.pmap.extend(pid, pts)
                 self.pmap.planes[pid].n_segments += 1
-                self.pmap.seen(pid, now, self._odometer)
+                self.pmap.seen(pid, now, self.knots.odometer)
             self.stats.associated += int((ids >= 0).sum())
             v_all, e_all = summary[0], summary[1]
             for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
                 v_world, e_world = v_all[j], e_all[j]
                 d = e_world[1] - e_world[0]
                 t_mid = float(segs.virtual_times[j].mean())
-                T_mid = self._pose_at(t_mid) @ self._T_body_scanner[segs.scanner]
+                T_mid = self.knots.pose_at(t_mid) @ self._T_body_scanner[segs.scanner]
                 scan_normal = T_mid[:3, 2]
                 self.pool.add(
                     PooledSegment(
@@ -476,8 +401,8 @@ class SlamRunner:
                         origin=T_mid[:3, 3].copy(),
                     )
                 )
-            self._done.append(p)
-        self._flush_blocks(blocks)
+            self.queues.done.append(p)
+        blocks.flush(self.backend)
 
     def _is_wall(self, hosts: dict[int, int]) -> Callable[[int], bool]:
         """Whether a (current) plane id is a wall and not a door or board tied to one."""
@@ -498,7 +423,7 @@ class SlamRunner:
         planes = self.pmap.planes
         return {c: h for c, h in self._resolved_hosts[1].items() if planes[c].n_segments <= planes[h].n_segments}
 
-    def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
+    def _scan_breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
         the world with the current trajectory."""
         assert self.emap is not None
@@ -514,11 +439,11 @@ class SlamRunner:
         """The breaks placed in the world with the current trajectory (the map is unchanged)."""
         if not breaks:
             return []
-        w = self._place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
+        w = self.knots.place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
         return [replace(b, point_world=x, u=float(along_wall(self.pmap.planes[b.host].normal) @ x))
                 for b, x in zip(breaks, w, strict=True)]
 
-    def _find_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
+    def _find_breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """:meth:`_scan_breaks` computed."""
         assert self.emap is not None
         ep = self.emap.params
@@ -528,7 +453,7 @@ class SlamRunner:
         walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
         if not pairs and not walls:
             return []
-        origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
+        origin = (self.knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
         out = self._recess_breaks(p, ids, walls, origin)
         if self.cfg.edges.inline:
             out += self._inline_breaks(p, ids, walls, origin)
@@ -540,7 +465,7 @@ class SlamRunner:
             ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
             if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
                 continue
-            w = self._place(
+            w = self.knots.place(
                 np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
                 np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
             )
@@ -575,7 +500,7 @@ class SlamRunner:
                 edge_scanner, spacing = got
                 T_bs = self._T_body_scanner[segs.scanner]
                 pt_body = T_bs[:3, :3] @ np.array([edge_scanner[0], edge_scanner[1], 0.0]) + T_bs[:3, 3]
-                x_world = self._place(pt_body[None, :], np.array([t]))[0]
+                x_world = self.knots.place(pt_body[None, :], np.array([t]))[0]
             elif ep.point == "midpoint":
                 x_world = 0.5 * (w[0] + w[1])
                 pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
@@ -591,7 +516,7 @@ class SlamRunner:
                              flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
         return out
 
-    def _recess_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
+    def _recess_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:
         """Breaks where a wall segment ends into unsegmented returns a door's recess behind it
         (``frontend.edges.recess_beyond``: a door seen obliquely is often left unsegmented); the
@@ -633,7 +558,7 @@ class SlamRunner:
                 i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
                 t = float(segs.times[i_end])
                 pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
-                w = self._place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
+                w = self.knots.place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
                 x_world = w[0]
                 if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
                     continue
@@ -645,7 +570,7 @@ class SlamRunner:
                                  flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
         return out
 
-    def _inline_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
+    def _inline_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:
         """Breaks at steps inside wall segments (``frontend.edges.steps_within``): a poster 5 mm
         proud, or a door 1 cm deep seen at a slant, is often left in its wall's segment, and it may
@@ -689,7 +614,7 @@ class SlamRunner:
                 i_k = int(segs.offsets[j]) + k
                 t = float(segs.times[i_k])
                 pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(3, t))
-                w = self._place(pts_body, np.full(3, t))
+                w = self.knots.place(pts_body, np.full(3, t))
                 x_world = w[0]
                 if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
                     continue
@@ -705,8 +630,8 @@ class SlamRunner:
                                  flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope)))
         return out
 
-    def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
-                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
+    def _observe_edges(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
+                       blocks: ObservationBlocks) -> None:
         """Each break of the scan observes its edge plane, or waits in the edge map's pending list."""
         assert self.emap is not None
         for brk in self._scan_breaks(p, ids, hosts):
@@ -714,11 +639,11 @@ class SlamRunner:
             if edge is None:
                 self.emap.pending.append(brk)
                 continue
-            self._observe_point(brk, edge.id, blocks)
+            blocks.point(brk, edge.id)
             edge.n_obs += 1
             edge.last_seen_time = now
 
-    def _loose_edges(self, p: _Pending, hosts: dict[int, int]) -> None:
+    def _loose_edges(self, p: PendingScan, hosts: dict[int, int]) -> None:
         """Breaks of a ready scan matched to known edges with the tracking gate (for the tracker)."""
         assert self.emap is not None and p.loose_ids is not None
         rows = []
@@ -734,12 +659,6 @@ class SlamRunner:
                 np.array([r[3] for r in rows]),
             )
 
-    def _observe_point(self, brk: Break, pid: int,
-                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        idx, alpha = self._fractions(np.array([brk.time]))
-        blocks.setdefault((int(idx[0]), pid), []).append((brk.point_body, alpha, np.array([brk.sigma])))
-        self.stats.edge_observations += 1
-
     def _create_edges(self, now: float) -> None:
         """New edge planes from clusters of pending breaks: vertical, tied perpendicular to the wall."""
         assert self.emap is not None
@@ -753,10 +672,10 @@ class SlamRunner:
             anchor = np.mean([b.point_world for b in members], axis=0)
             self.backend.add_plane(edge.id, n_e, -u, vertical=True, anchor=anchor)
             self.backend.add_perpendicular(host, edge.id, np.radians(self.cfg.edges.perpendicular_sigma_deg))
-            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+            blocks = ObservationBlocks(self.knots, self.stats)
             for b in members:
-                self._observe_point(b, edge.id, blocks)
-            self._flush_blocks(blocks)
+                blocks.point(b, edge.id)
+            blocks.flush(self.backend)
             edge.n_obs = len(members)
             self.stats.edges_created += 1
 
@@ -775,54 +694,16 @@ class SlamRunner:
             keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
             self.stats.edges_merged += 1
 
-    def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int | NDArray[np.int64]) -> list[FloatArray]:
-        """World points (world frame) of the segments ``js``: every ``max(1, n // per)``-th of a
-        segment's n points (``per`` one for all or one per segment), placed with one ``_place``
-        call for all of them (per point the same numbers as one call per segment)."""
-        if js.size == 0:
-            return []
-        pers = np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64)
-        sel, splits = fk.subsample_rows(np.ascontiguousarray(segs.offsets, dtype=np.int64),
-                                        np.ascontiguousarray(segs.n_points, dtype=np.int64),
-                                        np.ascontiguousarray(js, dtype=np.int64), pers)
-        placed = self._place(segs.points_body[sel], segs.times[sel])
-        return np.split(placed, splits)
-
-    def _observe(self, segs: ScanSegments, j: int, pid: int,
-                 blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        idx, alpha = self._fractions(segs.virtual_times[j])
-        for q in range(2):
-            blocks.setdefault((int(idx[q]), pid), []).append(
-                (segs.virtual_body[j, q], np.array([alpha[q]]), np.array([segs.virtual_sigma[j]]))
-            )
-
-    def _flush_blocks(self, blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        for (knot, pid), rows in blocks.items():
-            pts = np.array([r[0] for r in rows])
-            al = np.concatenate([r[1] for r in rows])
-            sg = np.concatenate([r[2] for r in rows])
-            self.backend.add_observations(knot, pid, pts, al, sg)
-            self.stats.observation_blocks += 1
-
-    def _compact(self, now: float) -> None:
-        """Drop the point data of scans the pool can no longer use, keeping their segment rows."""
-        horizon = now - self.pool.params.window - 1.0
-        n_old = 0
-        while n_old < len(self._done) and self._done[n_old].t_end < horizon:
-            n_old += 1
-        if n_old:
-            self._rows.append(self._rows_of(self._done[:n_old]))
-            del self._done[:n_old]
-
     def _create_planes(self, now: float) -> None:
-        self._compact(now)
+        # drop the point data of scans the pool can no longer use, keeping their segment rows
+        self.queues.compact(now - self.pool.params.window - 1.0)
         self.pool.expire(now)
         new = self.pool.create_planes()
         if not new:
             return
-        by_serial = {p.serial: p for p in self._done}
+        by_serial = self.queues.by_serial()
         fe = self.cfg.frontend
-        body_z = float(self._T[self._n_knots - 1, 2, 3])
+        body_z = float(self.knots.T[self.knots.n - 1, 2, 3])
         for plane in new:
             kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
             vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
@@ -841,7 +722,7 @@ class SlamRunner:
                 # along a corridor that tilt is the only thing "observing" the walking direction
                 plane.normal = self.pmap.planes[host].normal.copy()
                 plane.d = -float(np.mean(pts @ plane.normal))
-            pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
+            pl = self.pmap.add(plane.normal, plane.d, kind, now, self.knots.odometer)
             anchor = pts.mean(axis=0)
             self.backend.add_plane(
                 pl.id,
@@ -860,17 +741,17 @@ class SlamRunner:
                 if face is not None:
                     self.backend.add_parallel(face, pl.id, np.radians(fe.wall_faces_sigma_deg))
                     self.stats.wall_faces += 1
-            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+            blocks = ObservationBlocks(self.knots, self.stats)
             for m in plane.members:
                 rec = by_serial.get(m.ref[0])
                 if rec is None:
                     continue
                 j = m.ref[1]
                 rec.plane_ids[j] = pl.id
-                self._observe(rec.segs, j, pl.id, blocks)
+                blocks.segment(rec.segs, j, pl.id)
                 self.pmap.extend(pl.id, m.samples)
                 pl.n_segments += 1
-            self._flush_blocks(blocks)
+            blocks.flush(self.backend)
             self.stats.planes_created += 1
             self.stats.associated += len(plane.members)
             self._adopt_pooled(pl.id, by_serial)
@@ -914,7 +795,7 @@ class SlamRunner:
                 best = (w.n_segments, int(pid))
         return None if best is None else best[1]
 
-    def _constrained(self, plane: NewPlane, by_serial: dict[int, _Pending], kind: int, vertical: bool) -> bool:
+    def _constrained(self, plane: NewPlane, by_serial: dict[int, PendingScan], kind: int, vertical: bool) -> bool:
         """Whether the members' observations (virtual points, as the back end will see them) fix
         the new plane's tilt to ``MAX_TILT_SIGMA``, given its horizontality/verticality prior:
         a thin strip of points (a door frame seen edge-on) leaves the solver a nearly singular
@@ -927,18 +808,18 @@ class SlamRunner:
             if rec is None:
                 continue
             j = m.ref[1]
-            pts.append(self._place(rec.segs.virtual_body[j], rec.segs.virtual_times[j]))
+            pts.append(self.knots.place(rec.segs.virtual_body[j], rec.segs.virtual_times[j]))
             sig.append(np.repeat(rec.segs.virtual_sigma[j], 2))
         if len(pts) < 2:
             return False
         about = np.array([0.0, 0.0, 1.0]) if vertical else None
         return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < np.radians(self.cfg.frontend.max_tilt_sigma_deg)
 
-    def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
+    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan]) -> None:
         """Give a new plane the pooled segments that lie on it but were not among its seed group."""
         pl = self.pmap.planes[pid]
         taken = []
-        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        blocks = ObservationBlocks(self.knots, self.stats)
         for m in self.pool.items:
             if abs(float(m.direction @ pl.normal)) > np.sin(np.radians(2.0)):
                 continue
@@ -950,22 +831,22 @@ class SlamRunner:
             if rec is None:
                 continue
             rec.plane_ids[m.ref[1]] = pid
-            self._observe(rec.segs, m.ref[1], pid, blocks)
+            blocks.segment(rec.segs, m.ref[1], pid)
             self.pmap.extend(pid, m.samples)
             pl.n_segments += 1
             taken.append(m)
         if taken:
-            self._flush_blocks(blocks)
+            blocks.flush(self.backend)
             self.pool.remove(taken)
             self.stats.associated += len(taken)
 
     def _update(self) -> None:
         self._since_update = 0
-        if self._n_knots < 2:
+        if self.knots.n < 2:
             return
         be = self.cfg.backend
         if be.solver == "window":
-            first = self._n_knots - 1 - round(be.window_seconds / self.dt)
+            first = self.knots.n - 1 - round(be.window_seconds / self.dt)
             self.backend.window_optimize(first, be.window_iterations)
             self._after_update()
             return
@@ -986,14 +867,14 @@ class SlamRunner:
     def _after_update(self) -> None:
         self.stats.updates += 1
         # refresh the recent knots and the recently seen planes
-        k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
-        for k in range(k0, self._n_knots):
-            self._T[k] = self.backend.pose(k)
+        k0 = max(0, self.knots.n - 4 * self.cfg.backend.update_every)
+        for k in range(k0, self.knots.n):
+            self.knots.T[k] = self.backend.pose(k)
             if self.imu is not None:
-                self._V[k] = self.backend.velocity(k)
+                self.knots.V[k] = self.backend.velocity(k)
         if self.imu is not None:
-            self._bias = self.backend.bias(self._n_knots - 1)
-        now = self._knot_time(self._n_knots - 1)
+            self.knots.bias = self.backend.bias(self.knots.n - 1)
+        now = self.knots.time(self.knots.n - 1)
         for pl in self.pmap.active_planes():
             if now - pl.last_seen_time < 5.0:
                 n, d = self.backend.plane(pl.id)
@@ -1018,7 +899,7 @@ class SlamRunner:
                 if fe.merge_drift_over == "gap":
                     walked = self.pmap.unseen_between(a.id, b.id)
                 else:
-                    walked = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
+                    walked = max(0.0, self.knots.odometer - min(a.last_seen_odometer, b.last_seen_odometer))
                 tol = merge_tolerance(fe.merge_distance, rate, walked, self.pmap.coobserved(a.id, b.id),
                                       fe.merge_coobserved_max)
                 if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
@@ -1042,7 +923,7 @@ class SlamRunner:
         t = _time.perf_counter()
         summary = None
         self.backend.fold_links()
-        if batch and self._n_knots >= 2:
+        if batch and self.knots.n >= 2:
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
@@ -1060,10 +941,10 @@ class SlamRunner:
         ids, normals, offsets = ids[real], normals[real], offsets[real]
         for pid, n, d in zip(ids, normals, offsets, strict=True):
             self.pmap.set_estimate(int(pid), n, float(d))
-        rows = self._segment_rows()
+        rows = self.queues.segment_rows(self.pmap.resolve)
         stats = replace(
             self.stats,
-            knots=self._n_knots,
+            knots=self.knots.n,
             planes=len(ids),
             edges=0 if self.emap is None else len(self.emap.active()),
             pool_dropped=self.pool.dropped,
@@ -1092,34 +973,6 @@ class SlamRunner:
             timings=dict(self._timer.t),
             deskew=self._deskew,
         )
-
-    @staticmethod
-    def _rows_of(recs: list[_Pending]) -> tuple[NDArray[Any], ...]:
-        if not recs:
-            z = np.zeros(0, dtype=np.int64)
-            return z, z, np.zeros(0), z, z, z
-        return (
-            np.concatenate([np.full(r.segs.n_segments, r.segs.scanner) for r in recs]),
-            np.concatenate([np.full(r.segs.n_segments, r.segs.scan_index) for r in recs]),
-            np.concatenate([np.full(r.segs.n_segments, r.segs.stamp) for r in recs]),
-            np.concatenate([r.segs.first_beam for r in recs]),
-            np.concatenate([r.segs.last_beam for r in recs]),
-            np.concatenate([r.plane_ids for r in recs]),
-        )
-
-    def _segment_rows(self) -> dict[str, NDArray[Any]]:
-        parts = [*self._rows, self._rows_of(self._done + self._pending)]
-        scanner, scan_index, stamp, first, last, pid = (np.concatenate(c) for c in zip(*parts, strict=True))
-        resolved = np.array([self.pmap.resolve(int(i)) if i >= 0 else -1 for i in pid], dtype=np.int64)
-        order = np.lexsort((first, scan_index, scanner))
-        return {
-            "scanner": scanner[order],
-            "scan_index": scan_index[order],
-            "stamp": stamp[order],
-            "first_beam": first[order],
-            "last_beam": last[order],
-            "plane_id": resolved[order],
-        }
 
     def kind_name(self, pid: int) -> str:
         return KIND_NAMES[self.pmap.planes[pid].kind]
