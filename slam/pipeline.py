@@ -43,23 +43,11 @@ from slam.config import SlamConfig
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates, associate, world_segments
 from slam.frontend.blocks import ObservationBlocks
+from slam.frontend.edge_tracker import edge_feature
 from slam.frontend.edges import (
     EDGE_ID_BASE,
-    Break,
-    EdgeMap,
-    along_wall,
-    bracket_point,
-    break_pairs,
-    break_sigma,
-    is_flat,
-    recess_beyond,
-    steep_enough,
-    step_of,
-    steps_within,
-    surface_end,
 )
 from slam.frontend.knots import KnotMirror
-from slam.frontend.observations import ScanSegments
 from slam.frontend.pending import PendingScan, ScanQueues
 from slam.frontend.plane_init import (
     NewPlane,
@@ -84,15 +72,10 @@ from slam.frontend.scan_prep import (
     PreparedScan,
     ScanPreparer,
     knot_deskew,
-    next_to_segment,
-    segment_end,
-    segment_owner,
-    segment_returns,
 )
 from slam.frontend.tracking import predict_constant_velocity, refine_window
 from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
-from slam.trajectory.deskew import DeskewTable
 from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
@@ -116,11 +99,6 @@ class SlamRunner:
         self.loose = self.params.tracking_gates
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
         self.pool = SegmentPool(self.params.plane_init)
-        self.emap = (
-            EdgeMap(self.params.edges, self.pmap.resolve, generation=lambda: self.pmap.merges)
-            if self.params.edges is not None
-            else None
-        )
         self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
         # _host resolved through the merges, kept while no plane is merged or tied
         self._resolved_hosts: tuple[tuple[int, int], dict[int, int]] | None = None
@@ -128,19 +106,15 @@ class SlamRunner:
         self.imu_config = self.params.imu
         self.backend = Backend(self.params.backend)
         self.dt = dt
-        self._deskew: DeskewTable | None = None  # built at the first scan (the knots start there)
         self.knots = KnotMirror(dt)
         self.queues = ScanQueues()
         self._timer = StageTimer()
         self.stats = RunStats(imu_used=int(imu is not None))
+        self.edges = edge_feature(self.params.edges, self.pmap, self.knots, self._T_body_scanner, self._range_sigma,
+                                  self.backend, self.stats)
         self._since_update = 0
 
     # ------------------------------------------------------------------ trajectory mirror
-    def _deskewed(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
-        """Body points seen at ``times`` with the gyro's rotation between knots applied
-        (``slam.trajectory.deskew``; unchanged without an IMU)."""
-        return points_body if self._deskew is None else self._deskew.apply(points_body, times)
-
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
         k = self.knots.append(T, v)
         self.backend.add_pose(self.knots.time(k), T, velocity_world=None if self.imu is None else self.knots.V[k])
@@ -191,11 +165,10 @@ class SlamRunner:
         t_start = _time.perf_counter()
         self.stats.scans += 1
         if self.knots.t0 is None:
-            self.knots.start(scan.stamp)
-            # the table the runner's own preparer built for this stream, else (scans prepared in
-            # another process) the same one built here
+            # the deskew table the runner's own preparer built for this stream, else (scans
+            # prepared in another process) the same one built here
             own = self.preparer.t0 == scan.stamp
-            self._deskew = self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp)
+            self.knots.start(scan.stamp, self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp))
             self._append_knot(self._initial_pose(scan.stamp))
         self._timer.add_seconds("segmentation", scan.seconds_segmentation)
         self._timer.add_seconds("frontend", scan.seconds_lift)
@@ -243,8 +216,7 @@ class SlamRunner:
         self._associate_and_observe(ready)
         t = self._timer.add("association", t)
         self._create_planes(t_new)
-        if self.emap is not None:
-            self._create_edges(t_new)
+        self.edges.create(t_new)
         t = self._timer.add("plane_creation", t)
         self._since_update += 1
         if self._since_update >= self.cfg.backend.update_every:
@@ -295,11 +267,11 @@ class SlamRunner:
         recent = self.queues.track(ready, self.knots.time(k0))
         if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not recent:
             return T_pred
-        hosts = self._host_map() if self.emap is not None and self.emap.edges else None
+        hosts = self._host_map() if self.edges.tracks() else None
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
             p.loose_ids = self._associate_scan(p, self.loose, summary)
             if hosts is not None:
-                self._loose_edges(p, hosts)
+                self.edges.match_loose(p, hosts)
         for _ in range(1):
             pts, kis, al, nrm, off, sig = [], [], [], [], [], []
             # the recent scans' loosely associated segments, both virtual points each (body
@@ -323,21 +295,9 @@ class SlamRunner:
                     nrm.append(planes[pid, :3])
                     off.append(planes[pid, 3])
                     sig.append(np.repeat(np.concatenate([p.segs.virtual_sigma for p in tracked])[sel], 2)[keep])
-            for p in recent:
-                if p.loose_edges is None:
-                    continue
-                e_pts, e_t, e_ids, e_sig = p.loose_edges
-                idx, alpha = self.knots.fractions(e_t)
-                inside = idx >= k0
-                if not inside.any():
-                    continue
-                edges = [self.emap.edges[self.emap.root(int(i))] for i in e_ids[inside]] if self.emap else []
-                pts.append(e_pts[inside])
-                kis.append(idx[inside] - k0)
-                al.append(alpha[inside])
-                nrm.append(np.array([e.normal for e in edges]))
-                off.append(np.array([e.d for e in edges]))
-                sig.append(e_sig[inside])
+            for rows in self.edges.tracking_rows(recent, k0):
+                for acc, part in zip((pts, kis, al, nrm, off, sig), rows, strict=True):
+                    acc.append(part)
             if not pts:
                 break
             window = refine_window(
@@ -366,8 +326,7 @@ class SlamRunner:
             ids = self._associate_scan(p, self.gates, summary)
             p.plane_ids = ids
             segs = p.segs
-            if self.emap is not None:
-                self._observe_edges(p, ids, hosts, now, blocks)
+            self.edges.observe(p, ids, hosts, now, blocks)
             associated = np.flatnonzero(ids >= 0)
             pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
             # every 8th point of the associated segments (extents), every 12th of the pooled ones
@@ -422,277 +381,6 @@ class SlamRunner:
             self._resolved_hosts = (state, out)
         planes = self.pmap.planes
         return {c: h for c, h in self._resolved_hosts[1].items() if planes[c].n_segments <= planes[h].n_segments}
-
-    def _scan_breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
-        """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
-        the world with the current trajectory."""
-        assert self.emap is not None
-        memo = p.breaks_memo
-        ids_key = ids.tobytes()
-        if memo is not None and memo[0] == ids_key and memo[1] == hosts:
-            return self._replaced(memo[2])
-        out = self._find_breaks(p, ids, hosts)
-        p.breaks_memo = (ids_key, dict(hosts), out)
-        return out
-
-    def _replaced(self, breaks: list[Break]) -> list[Break]:
-        """The breaks placed in the world with the current trajectory (the map is unchanged)."""
-        if not breaks:
-            return []
-        w = self.knots.place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
-        return [replace(b, point_world=x, u=float(along_wall(self.pmap.planes[b.host].normal) @ x))
-                for b, x in zip(breaks, w, strict=True)]
-
-    def _find_breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
-        """:meth:`_scan_breaks` computed."""
-        assert self.emap is not None
-        ep = self.emap.params
-        segs = p.segs
-        pairs = break_pairs(segs.first_beam, segs.n_points, ids, self._is_wall(hosts), ep.max_skipped_points)
-        is_wall = self._is_wall(hosts)
-        walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
-        if not pairs and not walls:
-            return []
-        origin = (self.knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
-        out = self._recess_breaks(p, ids, walls, origin)
-        if self.cfg.edges.inline:
-            out += self._inline_breaks(p, ids, walls, origin)
-        for j_wall, j_other in pairs:
-            if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
-                continue
-            # boundary points: the end of the earlier segment and the start of the later one
-            lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
-            ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
-            if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
-                continue
-            w = self.knots.place(
-                np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
-                np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
-            )
-            wall = int(ids[j_wall])
-            n_wall = self.pmap.planes[wall].normal
-            if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall
-                d_wall = self.pmap.planes[wall].d
-                if abs(float(np.mean(w[4:6] @ n_wall)) + d_wall) > abs(float(np.mean(w[2:4] @ n_wall)) + d_wall):
-                    continue
-            s1, s2 = step_of(n_wall, w[4:6], w[2:4])
-            if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
-                continue
-            # the edge point is the end of the surface nearer the scanner (the wall for a door, the
-            # board for a board): beyond the edge the lower surface is shadowed or seen on the step's
-            # face, by an amount that depends on the view; the higher one ends at the edge either way
-            h_view = float(n_wall @ origin)
-            wall_higher = abs(h_view - float(np.mean(w[4:6] @ n_wall))) < abs(h_view - float(np.mean(w[2:4] @ n_wall)))
-            higher_is_lo = wall_higher == (j_wall == lo)
-            i_end, i_next, q = (ia, ia - 1, 0) if higher_is_lo else (ib, ib + 1, 1)
-            x_world = w[q]
-            pt_body, t = segs.points_body[i_end].copy(), float(segs.times[i_end])
-            spacing = float(np.linalg.norm(segs.points_body[i_end] - segs.points_body[i_next]))
-            if ep.point == "bracket":
-                j_high = lo if higher_is_lo else hi
-                k_end = int(segs.last_beam[lo]) if higher_is_lo else int(segs.first_beam[hi])
-                direction = 1 if higher_is_lo else -1
-                # half the step: a return on the lower surface stays off the higher one's line
-                tol = min(3.0 * self._range_sigma[segs.scanner], 0.5 * abs(0.5 * (s1 + s2)))
-                got = _bracket_end(segs, j_high, k_end, direction, tol)
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                T_bs = self._T_body_scanner[segs.scanner]
-                pt_body = T_bs[:3, :3] @ np.array([edge_scanner[0], edge_scanner[1], 0.0]) + T_bs[:3, 3]
-                x_world = self.knots.place(pt_body[None, :], np.array([t]))[0]
-            elif ep.point == "midpoint":
-                x_world = 0.5 * (w[0] + w[1])
-                pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
-                t = 0.5 * float(segs.times[ia] + segs.times[ib])
-                spacing = float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib]))
-            if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                continue
-            n_e = along_wall(n_wall)
-            side = 1 if float(n_e @ (w[2:4].mean(axis=0) - x_world)) > 0.0 else -1
-            step = 1 if s1 + s2 > 0.0 else -1
-            out.append(Break(wall, step, side, float(n_e @ x_world), pt_body, x_world, t,
-                             break_sigma(spacing, ep.sigma), p.serial,
-                             flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
-        return out
-
-    def _recess_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
-                       origin: FloatArray) -> list[Break]:
-        """Breaks where a wall segment ends into unsegmented returns a door's recess behind it
-        (``frontend.edges.recess_beyond``: a door seen obliquely is often left unsegmented); the
-        wall is the nearer surface, so its end is bracketed as for a segmented pair."""
-        assert self.emap is not None
-        ep = self.emap.params
-        segs = p.segs
-        owner: NDArray[np.int64] | None = None
-        T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        out = []
-        for j in walls:
-            if segs.n_points[j] < self.cfg.frontend.min_segment_points:
-                continue
-            wall = int(ids[j])
-            n_wall = self.pmap.planes[wall].normal
-            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-            for direction in (1, -1):
-                k_end = segment_end(segs, j, direction)
-                key = (j, direction)
-                if key not in p.edge_tests:  # a test kept (by the reader or before) passed this check
-                    if owner is None:
-                        owner = segment_owner(segs)
-                    if next_to_segment(owner, k_end, direction):  # the segment pairs handle that end
-                        continue
-                    p.edge_tests[key] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
-                                                      segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
-                found = p.edge_tests[key]
-                if found is None:
-                    continue
-                _, k_in, depth = found
-                got = _bracket_end(segs, j, k_end, direction, min(3.0 * sigma, 0.5 * depth))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
-                pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
-                                        [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
-                i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
-                t = float(segs.times[i_end])
-                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
-                w = self.knots.place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
-                x_world = w[0]
-                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                    continue
-                n_e = along_wall(n_wall)
-                side = 1 if float(n_e @ (w[1] - x_world)) > 0.0 else -1
-                step = 1 if float(n_wall @ (w[1] - x_world)) > 0.0 else -1
-                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
-                                 break_sigma(spacing, ep.sigma), p.serial,
-                                 flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
-        return out
-
-    def _inline_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
-                       origin: FloatArray) -> list[Break]:
-        """Breaks at steps inside wall segments (``frontend.edges.steps_within``): a poster 5 mm
-        proud, or a door 1 cm deep seen at a slant, is often left in its wall's segment, and it may
-        be the only mark along a corridor. The surface nearer the scanner is bracketed as for a
-        segmented pair, on the line through its own window of points."""
-        assert self.emap is not None
-        ep, ec = self.emap.params, self.cfg.edges
-        segs = p.segs
-        T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        W = ec.inline_window
-        out = []
-        for j in walls:
-            if segs.n_points[j] < 2 * W:
-                continue
-            if p.edge_tests.get((j, 0)) == []:  # asked before: no step
-                continue
-            beams, xy = segment_returns(segs, j)
-            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-            if (j, 0) not in p.edge_tests:
-                p.edge_tests[(j, 0)] = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)
-            steps = p.edge_tests[(j, 0)]
-            if not steps:
-                continue
-            wall = int(ids[j])
-            n_wall, d_wall = self.pmap.planes[wall].normal, self.pmap.planes[wall].d
-            normal2 = np.array([-u2[1], u2[0]])
-            toward_scanner = float(normal2 @ (-c2))  # the scanner's side of the line
-            for k, depth in steps:
-                left, right = xy[max(0, k + 1 - W) : k + 1], xy[k + 1 : k + 1 + W]
-                right_high = (depth > 0.0) == (toward_scanner > 0.0)
-                high = right if right_high else left
-                k_end, direction = (int(beams[k + 1]), -1) if right_high else (int(beams[k]), 1)
-                got = _bracket_on_line(segs, high.mean(axis=0), u2, k_end, direction,
-                                       min(3.0 * sigma, 0.5 * abs(depth)))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                pts_scanner = np.zeros((3, 3))
-                pts_scanner[:, :2] = (edge_scanner, left.mean(axis=0), right.mean(axis=0))
-                i_k = int(segs.offsets[j]) + k
-                t = float(segs.times[i_k])
-                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(3, t))
-                w = self.knots.place(pts_body, np.full(3, t))
-                x_world = w[0]
-                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                    continue
-                # of the two sides the one on the wall's plane is the wall, the other the step
-                on_wall = np.abs(w[1:] @ n_wall + d_wall)
-                other = w[2] if on_wall[0] <= on_wall[1] else w[1]
-                base = w[1] if on_wall[0] <= on_wall[1] else w[2]
-                n_e = along_wall(n_wall)
-                side = 1 if float(n_e @ (other - x_world)) > 0.0 else -1
-                step = 1 if float(n_wall @ (other - base)) > 0.0 else -1
-                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
-                                 break_sigma(spacing, ep.sigma), p.serial,
-                                 flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope)))
-        return out
-
-    def _observe_edges(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
-                       blocks: ObservationBlocks) -> None:
-        """Each break of the scan observes its edge plane, or waits in the edge map's pending list."""
-        assert self.emap is not None
-        for brk in self._scan_breaks(p, ids, hosts):
-            edge = self.emap.match(brk)
-            if edge is None:
-                self.emap.pending.append(brk)
-                continue
-            blocks.point(brk, edge.id)
-            edge.n_obs += 1
-            edge.last_seen_time = now
-
-    def _loose_edges(self, p: PendingScan, hosts: dict[int, int]) -> None:
-        """Breaks of a ready scan matched to known edges with the tracking gate (for the tracker)."""
-        assert self.emap is not None and p.loose_ids is not None
-        rows = []
-        for brk in self._scan_breaks(p, p.loose_ids, hosts):
-            edge = self.emap.match(brk, gate=self.cfg.edges.tracking_gate)
-            if edge is not None:
-                rows.append((brk.point_body, brk.time, edge.id, brk.sigma))
-        if rows:
-            p.loose_edges = (
-                np.array([r[0] for r in rows]),
-                np.array([r[1] for r in rows]),
-                np.array([r[2] for r in rows], dtype=np.int64),
-                np.array([r[3] for r in rows]),
-            )
-
-    def _create_edges(self, now: float) -> None:
-        """New edge planes from clusters of pending breaks: vertical, tied perpendicular to the wall."""
-        assert self.emap is not None
-        self.emap.expire(now)
-        for members, u in self.emap.cluster():
-            b0 = members[0]
-            host = self.pmap.resolve(b0.host)
-            n_e = along_wall(self.pmap.planes[host].normal)
-            z = [float(b.point_world[2]) for b in members]
-            edge = self.emap.add(host, b0.step, b0.side, n_e, u, now, (min(z), max(z)))
-            anchor = np.mean([b.point_world for b in members], axis=0)
-            self.backend.add_plane(edge.id, n_e, -u, vertical=True, anchor=anchor)
-            self.backend.add_perpendicular(host, edge.id, np.radians(self.cfg.edges.perpendicular_sigma_deg))
-            blocks = ObservationBlocks(self.knots, self.stats)
-            for b in members:
-                blocks.point(b, edge.id)
-            blocks.flush(self.backend)
-            edge.n_obs = len(members)
-            self.stats.edges_created += 1
-
-    def _refresh_edges(self, now: float) -> None:
-        """Copy the recently seen edges' estimates in and tie duplicated edges together."""
-        assert self.emap is not None
-        for e in self.emap.active():
-            if now - e.last_seen_time < 5.0:
-                e.normal, e.d = self.backend.plane(e.id)
-        sigma = self.cfg.edges.link_sigma
-        for keep, drop in self.emap.duplicates():
-            self.backend.link_planes(keep.id, drop.id, sigma, sigma)
-            drop.merged_into = keep.id
-            keep.z_range = (min(keep.z_range[0], drop.z_range[0]), max(keep.z_range[1], drop.z_range[1]))
-            keep.n_obs += drop.n_obs
-            keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
-            self.stats.edges_merged += 1
 
     def _create_planes(self, now: float) -> None:
         # drop the point data of scans the pool can no longer use, keeping their segment rows
@@ -880,8 +568,7 @@ class SlamRunner:
                 n, d = self.backend.plane(pl.id)
                 self.pmap.set_estimate(pl.id, n, d)
         self._merge_planes(now)
-        if self.emap is not None:
-            self._refresh_edges(now)
+        self.edges.refresh(now)
 
     def _merge_planes(self, now: float) -> None:
         fe = self.cfg.frontend
@@ -946,7 +633,7 @@ class SlamRunner:
             self.stats,
             knots=self.knots.n,
             planes=len(ids),
-            edges=0 if self.emap is None else len(self.emap.active()),
+            edges=self.edges.count(),
             pool_dropped=self.pool.dropped,
             singular_systems=list(self.backend.singular_systems),
             batch=None if summary is None else BatchStats(summary.initial_error, summary.final_error,
@@ -971,30 +658,11 @@ class SlamRunner:
             segment_rows=rows,
             stats=stats,
             timings=dict(self._timer.t),
-            deskew=self._deskew,
+            deskew=self.knots.deskew,
         )
 
     def kind_name(self, pid: int) -> str:
         return KIND_NAMES[self.pmap.planes[pid].kind]
-
-
-def _bracket_end(segs: ScanSegments, j: int, k_end: int, direction: int,
-                 tolerance: float) -> tuple[FloatArray, float] | None:
-    """The edge where segment ``j``'s surface ends at beam ``k_end`` (walking ``direction``)."""
-    return _bracket_on_line(segs, segs.line_centroid[j], segs.line_direction[j], k_end, direction, tolerance)
-
-
-def _bracket_on_line(segs: ScanSegments, c2: FloatArray, u2: FloatArray, k_end: int, direction: int,
-                     tolerance: float) -> tuple[FloatArray, float] | None:
-    """The edge where the surface on the 2D line (``c2``, ``u2``; scanner frame) ends at beam
-    ``k_end`` (walking ``direction``): the end walked over beams still on the line within
-    ``tolerance`` (``surface_end``), then bracketed with the next beam (``bracket_point``);
-    (point (2,) scanner frame, spacing) or None."""
-    k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid, c2, u2, tolerance)
-    k_next = k_end + direction
-    if not 0 <= k_next < segs.beam_angles.shape[0]:
-        return None
-    return bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]), c2, u2)
 
 
 def run_stream(

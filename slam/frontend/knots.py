@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from slam.frontend import kernels as fk
 from slam.frontend.observations import ScanSegments
 from slam.trajectory import kernels as tk
+from slam.trajectory.deskew import DeskewTable
 
 FloatArray = NDArray[np.float64]
 
@@ -27,15 +28,23 @@ class KnotMirror:
     def __init__(self, dt: float) -> None:
         self.dt = dt
         self.t0: float | None = None  # the first scan's stamp, set by :meth:`start`
+        self.deskew: DeskewTable | None = None
         self.T = np.zeros((1024, 4, 4))
         self.V = np.zeros((1024, 3))
         self.bias = np.zeros(6)
         self.n = 0
         self.odometer = 0.0
 
-    def start(self, t0: float) -> None:
-        """Put the grid's origin at ``t0`` (s)."""
+    def start(self, t0: float, deskew: DeskewTable | None) -> None:
+        """Put the grid's origin at ``t0`` (s), with the gyro's rotation between its knots
+        (``slam.trajectory.deskew``, None without it)."""
         self.t0 = t0
+        self.deskew = deskew
+
+    def deskewed(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
+        """Body points seen at ``times`` with the gyro's rotation between knots applied
+        (unchanged without it)."""
+        return points_body if self.deskew is None else self.deskew.apply(points_body, times)
 
     def time(self, k: int) -> float:
         """The time (s) of knot ``k``."""

@@ -15,13 +15,20 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 import segmentation
 from common.rig import Rig
 from segmentation import Scanline
 from slam.config import SlamConfig
-from slam.frontend.edges import EdgeParams, recess_beyond, steps_within
+from slam.frontend.edges import (
+    EdgeParams,
+    next_to_segment,
+    recess_beyond,
+    segment_end,
+    segment_owner,
+    segment_returns,
+    steps_within,
+)
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.imu_feed import ImuSamples
 from slam.params import edge_params
@@ -128,33 +135,6 @@ def scan_edge_tests(segs: ScanSegments, ep: EdgeParams, range_sigma: float) -> d
             _, xy = segment_returns(segs, j)
             out[(j, 0)] = steps_within(xy, c2, u2, range_sigma, W, ep.min_step, ep.max_step, ep.inline_z)
     return out
-
-
-def segment_owner(segs: ScanSegments) -> NDArray[np.int64]:
-    """Per beam of the scan, the segment whose beam range holds it (-1: none)."""
-    owner = np.full(segs.beam_angles.shape[0], -1, dtype=np.int64)
-    for j in range(segs.n_segments):
-        owner[segs.first_beam[j] : segs.last_beam[j] + 1] = j
-    return owner
-
-
-def segment_end(segs: ScanSegments, j: int, direction: int) -> int:
-    """The beam at segment ``j``'s end in ``direction`` (+1: its last beam, -1: its first)."""
-    return int(segs.last_beam[j]) if direction == 1 else int(segs.first_beam[j])
-
-
-def next_to_segment(owner: NDArray[np.int64], k_end: int, direction: int) -> bool:
-    """Whether another segment starts within three beams past beam ``k_end`` in ``direction``
-    (then the segment pairs, not the recess test, handle that end)."""
-    near = owner[max(0, min(k_end + direction, k_end + 3 * direction)): max(k_end + direction, k_end + 3 * direction) + 1]
-    return bool(np.any(near >= 0))
-
-
-def segment_returns(segs: ScanSegments, j: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Segment ``j``'s valid beams within its beam range and their returns (n, 2), scanner frame."""
-    beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
-    a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
-    return beams, np.column_stack((r * np.cos(a), r * np.sin(a)))
 
 
 def knot_deskew(cfg: SlamConfig, imu: ImuSamples | None, t0: float) -> DeskewTable | None:
