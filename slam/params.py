@@ -1,7 +1,7 @@
 """The one translation from the run configuration to the parameters of the SLAM's components.
 
 Every parameter has exactly one default, in the configuration model (``slam.config``, the YAML
-keys); the components' parameter records (``Gates``, ``PlaneInitParams``, ``EdgeParams``,
+keys); the components' parameter records (``Gates``, ``PlaneInitParams``, ``MapParams``, ``EdgeParams``,
 ``TrackingParams``, ``ImuMotionParams``, ``ImuConfig``, ``MotionPriorConfig``, ``BackendConfig``)
 take none of their own and are built here only: degrees become radians, sigmas become arrays,
 the knot interval turns the motion prior's accelerations into densities.
@@ -18,6 +18,7 @@ from slam.config import SlamConfig
 from slam.factors import RobustKernel
 from slam.frontend.association import Gates
 from slam.frontend.edges import EdgeParams
+from slam.frontend.map_builder import MapParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
 from slam.imu_feed import ImuMotionParams
@@ -98,6 +99,33 @@ def edge_params(cfg: SlamConfig) -> EdgeParams:
         inline_window=ec.inline_window,
         inline_z=ec.inline_z,
         min_segment_points=cfg.frontend.min_segment_points,
+    )
+
+
+def map_params(cfg: SlamConfig) -> MapParams:
+    """The plane life cycle: classification, ties to a host, merges (``frontend``)."""
+    fe = cfg.frontend
+    return MapParams(
+        min_segment_points=fe.min_segment_points,
+        vertical_tolerance=np.radians(fe.vertical_tolerance_deg),
+        vertical_walls=cfg.backend.vertical_walls,
+        min_support_oblique=fe.min_support_oblique,
+        max_tilt_sigma=np.radians(fe.max_tilt_sigma_deg),
+        extent_margin_cells=fe.extent_margin_cells,
+        host_min_segments=fe.host_min_segments,
+        parallel_max_angle=np.radians(fe.parallel_max_angle_deg),
+        parallel_max_offset=fe.parallel_max_offset,
+        parallel_sigma=np.radians(fe.parallel_sigma_deg),
+        wall_faces=fe.wall_faces,
+        wall_thickness=fe.wall_thickness,
+        wall_faces_sigma=np.radians(fe.wall_faces_sigma_deg),
+        merge_angle=np.radians(fe.merge_angle_deg),
+        merge_distance=fe.merge_distance,
+        merge_drift_over=fe.merge_drift_over,
+        merge_coobserved_max=fe.merge_coobserved_max,
+        drift_rate=fe.drift_rate,
+        drift_rate_vertical=fe.drift_rate_vertical,
+        link_sigma=fe.link_sigma,
     )
 
 
@@ -185,6 +213,7 @@ class Components:
     gates: Gates
     tracking_gates: Gates
     plane_init: PlaneInitParams
+    map: MapParams
     edges: EdgeParams | None
     tracking: TrackingParams
     imu: ImuConfig | None
@@ -198,6 +227,7 @@ def components(cfg: SlamConfig, with_imu: bool) -> Components:
         gates=gates(cfg),
         tracking_gates=tracking_gates(cfg),
         plane_init=plane_init_params(cfg),
+        map=map_params(cfg),
         edges=edge_params(cfg) if cfg.edges.use else None,
         tracking=tracking_params(cfg),
         imu=imu_config(cfg) if with_imu else None,

@@ -48,25 +48,14 @@ from slam.frontend.edges import (
     EDGE_ID_BASE,
 )
 from slam.frontend.knots import KnotMirror
+from slam.frontend.map_builder import MapBuilder
 from slam.frontend.pending import PendingScan, ScanQueues
 from slam.frontend.plane_init import (
-    NewPlane,
-    PooledSegment,
     SegmentPool,
-    on_plane,
-    tilt_sigma,
 )
 from slam.frontend.planemap import (
-    HORIZONTAL_KINDS,
-    KIND_CEILING,
-    KIND_FLOOR,
     KIND_NAMES,
-    KIND_OTHER,
-    KIND_WALL,
     PlaneMap,
-    classify,
-    is_other_face,
-    merge_tolerance,
 )
 from slam.frontend.scan_prep import (
     PreparedScan,
@@ -99,9 +88,6 @@ class SlamRunner:
         self.loose = self.params.tracking_gates
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
         self.pool = SegmentPool(self.params.plane_init)
-        self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
-        # _host resolved through the merges, kept while no plane is merged or tied
-        self._resolved_hosts: tuple[tuple[int, int], dict[int, int]] | None = None
         dt = 1.0 / cfg.trajectory.knot_rate
         self.imu_config = self.params.imu
         self.backend = Backend(self.params.backend)
@@ -110,6 +96,7 @@ class SlamRunner:
         self.queues = ScanQueues()
         self._timer = StageTimer()
         self.stats = RunStats(imu_used=int(imu is not None))
+        self.maps = MapBuilder(self.params.map, self.pmap, self.pool, self.knots, self.backend, self.stats)
         self.edges = edge_feature(self.params.edges, self.pmap, self.knots, self._T_body_scanner, self._range_sigma,
                                   self.backend, self.stats)
         self._since_update = 0
@@ -215,7 +202,9 @@ class SlamRunner:
         self._append_knot(T_new, v_pred)
         self._associate_and_observe(ready)
         t = self._timer.add("association", t)
-        self._create_planes(t_new)
+        # drop the point data of scans the pool can no longer use, keeping their segment rows
+        self.queues.compact(t_new - self.pool.params.window - 1.0)
+        self.maps.create_planes(t_new, self.queues)
         self.edges.create(t_new)
         t = self._timer.add("plane_creation", t)
         self._since_update += 1
@@ -255,7 +244,7 @@ class SlamRunner:
             v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
         )
         fe = self.cfg.frontend
-        children = self._host_map() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
+        children = self.maps.ties.children() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
         ids = associate(ws, self.pmap, self.knots.odometer, gates, children)
         ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
         return ids
@@ -267,7 +256,7 @@ class SlamRunner:
         recent = self.queues.track(ready, self.knots.time(k0))
         if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not recent:
             return T_pred
-        hosts = self._host_map() if self.edges.tracks() else None
+        hosts = self.maps.ties.children() if self.edges.tracks() else None
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
             p.loose_ids = self._associate_scan(p, self.loose, summary)
             if hosts is not None:
@@ -318,215 +307,17 @@ class SlamRunner:
         return self.knots.T[k_new].copy()
 
     def _associate_and_observe(self, ready: list[PendingScan]) -> None:
-        fe = self.cfg.frontend
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
-        hosts = self._host_map()
+        hosts = self.maps.ties.children()
         for p, summary in zip(ready, self._world_summaries(ready), strict=True):
             ids = self._associate_scan(p, self.gates, summary)
             p.plane_ids = ids
             segs = p.segs
             self.edges.observe(p, ids, hosts, now, blocks)
-            associated = np.flatnonzero(ids >= 0)
-            pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
-            # every 8th point of the associated segments (extents), every 12th of the pooled ones
-            placed = self.knots.place_segments(segs, np.concatenate((associated, pooled)),
-                                          np.repeat([8, 12], [associated.size, pooled.size]))
-            for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
-                pid = int(ids[j])
-                blocks.segment(segs, j, pid)
-                self.pmap.extend(pid, pts)
-                self.pmap.planes[pid].n_segments += 1
-                self.pmap.seen(pid, now, self.knots.odometer)
-            self.stats.associated += int((ids >= 0).sum())
-            v_all, e_all = summary[0], summary[1]
-            for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
-                v_world, e_world = v_all[j], e_all[j]
-                d = e_world[1] - e_world[0]
-                t_mid = float(segs.virtual_times[j].mean())
-                T_mid = self.knots.pose_at(t_mid) @ self._T_body_scanner[segs.scanner]
-                scan_normal = T_mid[:3, 2]
-                self.pool.add(
-                    PooledSegment(
-                        ref=(p.serial, int(j)),
-                        time=t_mid,
-                        scan_serial=p.serial,
-                        centroid=v_world.mean(axis=0),
-                        direction=d / max(float(np.linalg.norm(d)), 1e-9),
-                        endpoints=e_world,
-                        samples=samples,
-                        line=v_world,
-                        scan_normal=scan_normal,
-                        origin=T_mid[:3, 3].copy(),
-                    )
-                )
+            self.maps.observe(p, ids, summary[0], summary[1], self._T_body_scanner[segs.scanner], now, blocks)
             self.queues.done.append(p)
         blocks.flush(self.backend)
-
-    def _is_wall(self, hosts: dict[int, int]) -> Callable[[int], bool]:
-        """Whether a (current) plane id is a wall and not a door or board tied to one."""
-        return lambda pid: self.pmap.planes[pid].kind == KIND_WALL and pid not in hosts
-
-    def _host_map(self) -> dict[int, int]:
-        """Current (merged) plane id -> its current host wall id, for the tied doors and boards.
-        Merges can fold a door into the plane its wall was merged with and the other way round;
-        of two planes tied either way the one with more segments is the wall (never a child)."""
-        state = (self.pmap.merges, len(self._host))
-        if self._resolved_hosts is None or self._resolved_hosts[0] != state:
-            out = {}
-            for child, host in self._host.items():
-                c, h = self.pmap.resolve(child), self.pmap.resolve(host)
-                if c != h:
-                    out[c] = h
-            self._resolved_hosts = (state, out)
-        planes = self.pmap.planes
-        return {c: h for c, h in self._resolved_hosts[1].items() if planes[c].n_segments <= planes[h].n_segments}
-
-    def _create_planes(self, now: float) -> None:
-        # drop the point data of scans the pool can no longer use, keeping their segment rows
-        self.queues.compact(now - self.pool.params.window - 1.0)
-        self.pool.expire(now)
-        new = self.pool.create_planes()
-        if not new:
-            return
-        by_serial = self.queues.by_serial()
-        fe = self.cfg.frontend
-        body_z = float(self.knots.T[self.knots.n - 1, 2, 3])
-        for plane in new:
-            kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
-            vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
-            if kind == KIND_OTHER and len(plane.members) < fe.min_support_oblique:
-                self.stats.planes_rejected += 1
-                self.stats.planes_rejected_oblique += 1
-                continue
-            if not self._constrained(plane, by_serial, kind, vertical):
-                self.stats.planes_rejected += 1
-                continue
-            pts = np.vstack([m.samples for m in plane.members])
-            host = self._host_of(plane, pts)
-            if host is not None:
-                # a door set into its wall or a board on it: parallel to the wall by construction;
-                # fitted alone, a patch a metre wide gets its heading wrong by up to a degree, and
-                # along a corridor that tilt is the only thing "observing" the walking direction
-                plane.normal = self.pmap.planes[host].normal.copy()
-                plane.d = -float(np.mean(pts @ plane.normal))
-            pl = self.pmap.add(plane.normal, plane.d, kind, now, self.knots.odometer)
-            anchor = pts.mean(axis=0)
-            self.backend.add_plane(
-                pl.id,
-                plane.normal,
-                plane.d,
-                horizontal=kind in (KIND_FLOOR, KIND_CEILING),
-                vertical=vertical,
-                anchor=anchor,
-            )
-            if host is not None:
-                self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
-                self._host[pl.id] = host
-                self.stats.planes_parallel += 1
-            elif kind == KIND_WALL and fe.wall_faces:
-                face = self._other_face_of(plane.normal, pts)
-                if face is not None:
-                    self.backend.add_parallel(face, pl.id, np.radians(fe.wall_faces_sigma_deg))
-                    self.stats.wall_faces += 1
-            blocks = ObservationBlocks(self.knots, self.stats)
-            for m in plane.members:
-                rec = by_serial.get(m.ref[0])
-                if rec is None:
-                    continue
-                j = m.ref[1]
-                rec.plane_ids[j] = pl.id
-                blocks.segment(rec.segs, j, pl.id)
-                self.pmap.extend(pl.id, m.samples)
-                pl.n_segments += 1
-            blocks.flush(self.backend)
-            self.stats.planes_created += 1
-            self.stats.associated += len(plane.members)
-            self._adopt_pooled(pl.id, by_serial)
-
-    def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
-        """The established plane a new one (its members' points ``pts``, world frame) lies on,
-        parallel and a few centimetres off (a door in its wall, a board on it), or None.
-        Established: ``HOST_MIN_SEGMENTS`` segments."""
-        fe = self.cfg.frontend
-        cos_max = np.cos(np.radians(fe.parallel_max_angle_deg))
-        best: tuple[float, int] | None = None
-        for pid in self.pmap.active_ids():
-            h = self.pmap.planes[int(pid)]
-            if h.n_segments < self.cfg.frontend.host_min_segments or float(h.normal @ plane.normal) < cos_max:
-                continue
-            off = float(np.max(np.abs(pts @ h.normal + h.d)))
-            if off > fe.parallel_max_offset:
-                continue
-            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
-                continue
-            if best is None or off < best[0]:
-                best = (off, int(pid))
-        return None if best is None else best[1]
-
-    def _other_face_of(self, normal: FloatArray, pts: FloatArray) -> int | None:
-        """The established wall whose other face a new wall (``normal``, its members' points
-        ``pts``, world frame) is: facing the opposite way, its points ``wall_thickness`` behind the
-        wall's face and over its extent; the one with the most segments, or None."""
-        fe = self.cfg.frontend
-        cos_min = np.cos(np.radians(fe.parallel_max_angle_deg))
-        best: tuple[int, int] | None = None
-        for pid in self.pmap.active_ids():
-            w = self.pmap.planes[int(pid)]
-            if w.kind != KIND_WALL or w.n_segments < self.cfg.frontend.host_min_segments:
-                continue
-            if not is_other_face(w.normal, w.d, normal, pts, cos_min, fe.wall_thickness):
-                continue
-            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
-                continue
-            if best is None or w.n_segments > best[0]:
-                best = (w.n_segments, int(pid))
-        return None if best is None else best[1]
-
-    def _constrained(self, plane: NewPlane, by_serial: dict[int, PendingScan], kind: int, vertical: bool) -> bool:
-        """Whether the members' observations (virtual points, as the back end will see them) fix
-        the new plane's tilt to ``MAX_TILT_SIGMA``, given its horizontality/verticality prior:
-        a thin strip of points (a door frame seen edge-on) leaves the solver a nearly singular
-        plane, which makes iSAM2 fail."""
-        if kind in (KIND_FLOOR, KIND_CEILING):
-            return True  # both tilts held by the horizontality prior
-        pts, sig = [], []
-        for m in plane.members:
-            rec = by_serial.get(m.ref[0])
-            if rec is None:
-                continue
-            j = m.ref[1]
-            pts.append(self.knots.place(rec.segs.virtual_body[j], rec.segs.virtual_times[j]))
-            sig.append(np.repeat(rec.segs.virtual_sigma[j], 2))
-        if len(pts) < 2:
-            return False
-        about = np.array([0.0, 0.0, 1.0]) if vertical else None
-        return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < np.radians(self.cfg.frontend.max_tilt_sigma_deg)
-
-    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan]) -> None:
-        """Give a new plane the pooled segments that lie on it but were not among its seed group."""
-        pl = self.pmap.planes[pid]
-        taken = []
-        blocks = ObservationBlocks(self.knots, self.stats)
-        for m in self.pool.items:
-            if abs(float(m.direction @ pl.normal)) > np.sin(np.radians(2.0)):
-                continue
-            if not on_plane(m, pl.normal, pl.d, self.pool.params):
-                continue
-            if not self.pmap.overlaps(pid, m.samples, self.gates.extent_margin_cells):
-                continue
-            rec = by_serial.get(m.ref[0])
-            if rec is None:
-                continue
-            rec.plane_ids[m.ref[1]] = pid
-            blocks.segment(rec.segs, m.ref[1], pid)
-            self.pmap.extend(pid, m.samples)
-            pl.n_segments += 1
-            taken.append(m)
-        if taken:
-            blocks.flush(self.backend)
-            self.pool.remove(taken)
-            self.stats.associated += len(taken)
 
     def _update(self) -> None:
         self._since_update = 0
@@ -563,44 +354,9 @@ class SlamRunner:
         if self.imu is not None:
             self.knots.bias = self.backend.bias(self.knots.n - 1)
         now = self.knots.time(self.knots.n - 1)
-        for pl in self.pmap.active_planes():
-            if now - pl.last_seen_time < 5.0:
-                n, d = self.backend.plane(pl.id)
-                self.pmap.set_estimate(pl.id, n, d)
-        self._merge_planes(now)
+        self.maps.refresh(now)
+        self.maps.merge(now)
         self.edges.refresh(now)
-
-    def _merge_planes(self, now: float) -> None:
-        fe = self.cfg.frontend
-        recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
-        cos_max = np.cos(np.radians(fe.merge_angle_deg))
-        for a in recent:
-            if not a.active:
-                continue
-            for b in list(self.pmap.active_planes()):  # a snapshot: merges below change the list
-                if b.id == a.id or not b.active or not a.active:
-                    continue
-                if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall
-                    continue
-                rate = fe.drift_rate_vertical if a.kind in HORIZONTAL_KINDS else fe.drift_rate
-                if fe.merge_drift_over == "gap":
-                    walked = self.pmap.unseen_between(a.id, b.id)
-                else:
-                    walked = max(0.0, self.knots.odometer - min(a.last_seen_odometer, b.last_seen_odometer))
-                tol = merge_tolerance(fe.merge_distance, rate, walked, self.pmap.coobserved(a.id, b.id),
-                                      fe.merge_coobserved_max)
-                if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
-                    continue
-                # the offset difference over the smaller plane's extent (where both are seen), so
-                # that a tilted plane (a door fitted with a bit of its wall) does not merge on the
-                # strength of its centre alone
-                small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
-                if self.pmap.max_distance_over(small.id, big.id) > tol:
-                    continue
-                keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
-                self.backend.link_planes(keep.id, drop.id, fe.link_sigma, fe.link_sigma)
-                self.pmap.merge(keep.id, drop.id)
-                self.stats.planes_merged += 1
 
     # ------------------------------------------------------------------ results
     def result(self, batch: bool = True, covariances: bool = True) -> SlamResult:

@@ -295,22 +295,29 @@ def test_steps_within_find_a_5_mm_poster_inside_a_wall_segment() -> None:
         assert k + 1 >= 12 and near.shape[0] - k - 1 >= 12
 
 
-def test_host_map_never_makes_the_bigger_tied_plane_a_door() -> None:
+def test_host_ties_never_make_the_bigger_tied_plane_a_door() -> None:
     """Merges can tie a wall and its door either way round (wall 0 -> door 1 via a merged child
-    and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count."""
-    from common.rig import resolve_rig
-    from slam.config import SlamConfig
-    from slam.frontend.planemap import KIND_WALL
-    from slam.pipeline import SlamRunner
+    and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count; a
+    wall's other face is a tie but no child."""
+    from slam.frontend.edge_finder import wall_test
+    from slam.frontend.map_builder import HostTies, TieKind
+    from slam.frontend.planemap import KIND_WALL, PlaneMap
 
-    runner = SlamRunner(resolve_rig("itc_backpack"), SlamConfig())
+    pmap = PlaneMap(cell_size=0.25)
     n = np.array([0.0, 1.0, 0.0])
-    wall = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
-    door = runner.pmap.add(n, -4.99, KIND_WALL, 0.0, 0.0)
-    other = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
-    wall.n_segments, door.n_segments, other.n_segments = 900, 60, 10
-    runner.pmap.merge(wall.id, other.id)  # a plane once tied to the door is now the wall
-    runner._host = {door.id: wall.id, other.id: door.id}
-    hosts = runner._host_map()
+    wall = pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    door = pmap.add(n, -4.99, KIND_WALL, 0.0, 0.0)
+    other = pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    face = pmap.add(-n, 5.2, KIND_WALL, 0.0, 0.0)
+    wall.n_segments, door.n_segments, other.n_segments, face.n_segments = 900, 60, 10, 80
+    ties = HostTies(pmap)
+    ties.tie(door.id, wall.id, TieKind.DOOR)
+    ties.tie(other.id, door.id, TieKind.BOARD)
+    ties.tie(face.id, wall.id, TieKind.FACE)
+    assert ties.children() == {door.id: wall.id, other.id: door.id}
+    pmap.merge(wall.id, other.id)  # a plane once tied to the door is now the wall
+    hosts = ties.children()
     assert hosts == {door.id: wall.id}
-    assert runner._is_wall(hosts)(wall.id) and not runner._is_wall(hosts)(door.id)
+    assert wall_test(pmap, hosts)(wall.id) and not wall_test(pmap, hosts)(door.id)
+    assert wall_test(pmap, hosts)(face.id) and ties.kind_of(face.id) is TieKind.FACE
+    assert ties.kind_of(wall.id) is None

@@ -80,7 +80,7 @@ def test_every_config_key_has_a_default(model: type[BaseModel]) -> None:
 
 def test_params_builds_every_component() -> None:
     names = {c.__name__ for c in _component_classes()}
-    assert {"Components", "Gates", "PlaneInitParams", "EdgeParams", "TrackingParams", "ImuMotionParams",
+    assert {"Components", "Gates", "PlaneInitParams", "MapParams", "EdgeParams", "TrackingParams", "ImuMotionParams",
             "BackendConfig", "MotionPriorConfig", "ImuConfig", "RobustKernel"} <= names
 
 

@@ -407,5 +407,5 @@ def test_an_oblique_plane_needs_more_support(rig: Any, monkeypatch: pytest.Monke
         cfg = SlamConfig.model_validate({"frontend": {"min_support_oblique": support}})
         runner = SlamRunner(rig, cfg)
         monkeypatch.setattr(runner.pool, "create_planes", lambda: [NewPlane(n, -2.0 * n[1], members, 0.001)])
-        runner._create_planes(0.0)
+        runner.maps.create_planes(0.0, runner.queues)
         assert runner.stats.planes_rejected_oblique == rejected
