@@ -62,10 +62,9 @@ from slam.frontend.scan_prep import (
     ScanPreparer,
     knot_deskew,
 )
-from slam.frontend.tracking import predict_constant_velocity, refine_window
-from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
+from slam.frontend.tracking import refine_window
+from slam.imu_feed import ImuSamples, motion_model
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
-from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
 
@@ -76,7 +75,6 @@ class SlamRunner:
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
         self.cfg = cfg
         self.imu = imu
-        self._imu_rate = 1.0 / float(np.median(np.diff(imu.times))) if imu is not None else 0.0
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
         self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
@@ -89,7 +87,6 @@ class SlamRunner:
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
         self.pool = SegmentPool(self.params.plane_init)
         dt = 1.0 / cfg.trajectory.knot_rate
-        self.imu_config = self.params.imu
         self.backend = Backend(self.params.backend)
         self.dt = dt
         self.knots = KnotMirror(dt)
@@ -97,6 +94,7 @@ class SlamRunner:
         self._timer = StageTimer()
         self.stats = RunStats(imu_used=int(imu is not None))
         self.maps = MapBuilder(self.params.map, self.pmap, self.pool, self.knots, self.backend, self.stats)
+        self.motion = motion_model(imu, self.params.imu, self.params.imu_motion, self.backend)
         self.edges = edge_feature(self.params.edges, self.pmap, self.knots, self._T_body_scanner, self._range_sigma,
                                   self.backend, self.stats)
         self._since_update = 0
@@ -104,41 +102,9 @@ class SlamRunner:
     # ------------------------------------------------------------------ trajectory mirror
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
         k = self.knots.append(T, v)
-        self.backend.add_pose(self.knots.time(k), T, velocity_world=None if self.imu is None else self.knots.V[k])
-        if self.imu is not None and k > 0:
-            a, g, dt = self.imu.interval(self.knots.time(k - 1), self.knots.time(k))
-            self.backend.add_imu(k - 1, a, g, dt)
-        if self.imu is not None and self._at_rest(self.knots.time(k), T[2, :3]):
-            self.backend.add_velocity_prior(k, np.zeros(3), self.cfg.imu.zupt_sigma)
-            self.stats.zero_velocity_updates += 1
+        self.backend.add_pose(self.knots.time(k), T, velocity_world=self.motion.velocity(self.knots, k))
+        self.stats.zero_velocity_updates += self.motion.add_factors(self.knots, k)
         return k
-
-    def _at_rest(self, t: float, up_body: FloatArray) -> bool:
-        """Whether the IMU says the operator stands still at ``t``; ``up_body`` is world z in the
-        body frame from the current pose estimate (the knot's third rotation row)."""
-        ic = self.cfg.imu
-        if self.imu is None or not ic.zupt:
-            return False
-        root_rate = np.sqrt(self._imu_rate)  # densities -> per-sample noise
-        return is_stationary(self.imu, t, ic.zupt_window, ic.accel_noise * root_rate, ic.gyro_noise * root_rate,
-                             ic.gravity, ic.zupt_threshold, up_body)
-
-    def _initial_pose(self, t0: float) -> FloatArray:
-        """The first knot: the origin, levelled by the mean specific force of the IMU's first
-        0.2 s when there is one (world z up along gravity), heading zero either way."""
-        T = np.eye(4)
-        if self.imu is None:
-            return T
-        near = (self.imu.times >= t0 - 0.1) & (self.imu.times <= t0 + 0.1)
-        if not near.any():
-            return T
-        f = self.imu.accel[near].mean(axis=0)
-        u = f / max(float(np.linalg.norm(f)), 1e-9)
-        axis = np.cross(u, [0.0, 0.0, 1.0])
-        s, c = float(np.linalg.norm(axis)), float(u[2])
-        if s > 1e-12:
-            T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
-        return T
 
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:
@@ -156,7 +122,7 @@ class SlamRunner:
             # prepared in another process) the same one built here
             own = self.preparer.t0 == scan.stamp
             self.knots.start(scan.stamp, self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp))
-            self._append_knot(self._initial_pose(scan.stamp))
+            self._append_knot(self.motion.initial_pose(scan.stamp))
         self._timer.add_seconds("segmentation", scan.seconds_segmentation)
         self._timer.add_seconds("frontend", scan.seconds_lift)
         if scan.skipped:
@@ -184,16 +150,7 @@ class SlamRunner:
         t_start = _time.perf_counter()
         k_new = self.knots.n
         t_new = self.knots.time(k_new)
-        v_pred = None
-        if self.imu is not None and self.imu_config is not None:
-            T_pred, v_pred = predict_navstate(
-                self.imu_config, self.knots.T[k_new - 1], self.knots.V[k_new - 1], self.knots.bias, self.imu,
-                self.knots.time(k_new - 1), t_new,
-            )
-        elif k_new >= 2:
-            T_pred = predict_constant_velocity(self.knots.T[k_new - 2], self.knots.T[k_new - 1])
-        else:
-            T_pred = self.knots.T[k_new - 1].copy()
+        T_pred, v_pred = self.motion.predict(self.knots)
         self.knots.hold(T_pred)
         ready = self.queues.take_ready(t_new)
         T_new = self._track(ready, k_new, T_pred)
@@ -300,8 +257,8 @@ class SlamRunner:
                 self.params.tracking.first_prior_sigmas,
                 self.params.tracking.twist_sigmas,
                 iterations=self.params.tracking.iterations,
-                increment_sigmas=self.params.imu_motion.increment_sigmas if self.params.imu_motion else None,
-                degenerate_ratio=self.params.imu_motion.degenerate_ratio if self.params.imu_motion else None,
+                increment_sigmas=self.motion.increment_sigmas,
+                degenerate_ratio=self.motion.degenerate_ratio,
             )
             self.knots.T[k0 : k_new + 1] = window
         return self.knots.T[k_new].copy()
@@ -349,10 +306,7 @@ class SlamRunner:
         k0 = max(0, self.knots.n - 4 * self.cfg.backend.update_every)
         for k in range(k0, self.knots.n):
             self.knots.T[k] = self.backend.pose(k)
-            if self.imu is not None:
-                self.knots.V[k] = self.backend.velocity(k)
-        if self.imu is not None:
-            self.knots.bias = self.backend.bias(self.knots.n - 1)
+        self.motion.refresh(self.knots, k0)  # velocities and bias with an IMU
         now = self.knots.time(self.knots.n - 1)
         self.maps.refresh(now)
         self.maps.merge(now)
