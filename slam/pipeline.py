@@ -29,7 +29,6 @@ trajectory and planes.
 from __future__ import annotations
 
 import time as _time
-from collections.abc import Callable, Iterable
 from dataclasses import replace
 
 import numpy as np
@@ -41,7 +40,7 @@ from slam import params
 from slam.backend import Backend
 from slam.config import SlamConfig
 from slam.factors import RobustKernel
-from slam.frontend.association import Gates, associate, world_segments
+from slam.frontend.association import ScanAssociator
 from slam.frontend.blocks import ObservationBlocks
 from slam.frontend.edge_tracker import edge_feature
 from slam.frontend.edges import (
@@ -62,7 +61,7 @@ from slam.frontend.scan_prep import (
     ScanPreparer,
     knot_deskew,
 )
-from slam.frontend.tracking import refine_window
+from slam.frontend.window_tracker import WindowTracker
 from slam.imu_feed import ImuSamples, motion_model
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
 
@@ -83,7 +82,6 @@ class SlamRunner:
         self.preparer = ScanPreparer(rig, cfg, imu)
         self.params = params.components(cfg, with_imu=imu is not None)
         self.gates = self.params.gates
-        self.loose = self.params.tracking_gates
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
         self.pool = SegmentPool(self.params.plane_init)
         dt = 1.0 / cfg.trajectory.knot_rate
@@ -97,6 +95,10 @@ class SlamRunner:
         self.motion = motion_model(imu, self.params.imu, self.params.imu_motion, self.backend)
         self.edges = edge_feature(self.params.edges, self.pmap, self.knots, self._T_body_scanner, self._range_sigma,
                                   self.backend, self.stats)
+        self.associator = ScanAssociator(self.pmap, self.knots, self._T_body_scanner, cfg.frontend.point_sigma,
+                                         cfg.frontend.min_segment_points, self.maps.ties.children)
+        self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
+                                     self.queues, self.associator, self.edges, self.motion, self.maps.ties.children)
         self._since_update = 0
 
     # ------------------------------------------------------------------ trajectory mirror
@@ -153,7 +155,7 @@ class SlamRunner:
         T_pred, v_pred = self.motion.predict(self.knots)
         self.knots.hold(T_pred)
         ready = self.queues.take_ready(t_new)
-        T_new = self._track(ready, k_new, T_pred)
+        T_new = self.tracker.track(ready, k_new, T_pred)
         self.knots.release()
         t = self._timer.add("tracking", t_start)
         self._append_knot(T_new, v_pred)
@@ -169,106 +171,12 @@ class SlamRunner:
             self._update()
             self._timer.add("backend", t)
 
-    def _world_summaries(self, ps: list[PendingScan]) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
-        """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
-        their end points (k, 2, 3) and the scanner's position at the scan's stamp (4,),
-        homogeneous). One ``_place`` for all the scans: per point the same numbers as one call per
-        scan (``_place``'s arithmetic is element by element for two points or more, and a scan has
-        four at least). The stamps' poses stay one ``_pose_at`` each: for a single pose numpy
-        takes another (matrix-vector) route through ``exp_coefficients``, with other last bits."""
-        if not ps:
-            return []
-        pts, tms, sizes = [], [], []
-        for p in ps:
-            segs = p.segs
-            ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
-            pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
-            tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
-            sizes += [2 * segs.n_segments, 2 * segs.n_segments]
-        w = np.split(self.knots.place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
-        return [
-            (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
-             self.knots.pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
-            for i, p in enumerate(ps)
-        ]
-
-    def _associate_scan(self, p: PendingScan, gates: Gates,
-                        summary: tuple[FloatArray, FloatArray, FloatArray]) -> NDArray[np.int64]:
-        """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``
-        (``_world_summaries``)."""
-        v_world, e_world, origin = summary
-        ws = world_segments(
-            v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
-        )
-        fe = self.cfg.frontend
-        children = self.maps.ties.children() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
-        ids = associate(ws, self.pmap, self.knots.odometer, gates, children)
-        ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
-        return ids
-
-    def _track(self, ready: list[PendingScan], k_new: int, T_pred: FloatArray) -> FloatArray:
-        """Refine the window of the last ``TRACK_WINDOW`` knots, the new one included, against the
-        map (planes fixed): loose association, windowed Gauss-Newton, twice. Returns the new knot."""
-        k0 = max(0, k_new - self.params.tracking.window)
-        recent = self.queues.track(ready, self.knots.time(k0))
-        if k_new < 1 or self.params.tracking.iterations == 0 or len(self.pmap) == 0 or not recent:
-            return T_pred
-        hosts = self.maps.ties.children() if self.edges.tracks() else None
-        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
-            p.loose_ids = self._associate_scan(p, self.loose, summary)
-            if hosts is not None:
-                self.edges.match_loose(p, hosts)
-        for _ in range(1):
-            pts, kis, al, nrm, off, sig = [], [], [], [], [], []
-            # the recent scans' loosely associated segments, both virtual points each (body
-            # frame), gathered in one batch in the order of a loop over scans and segments
-            tracked = [p for p in recent if p.loose_ids is not None]
-            ids = np.concatenate([p.loose_ids for p in tracked]) if tracked else np.empty(0, dtype=np.int64)
-            sel = np.flatnonzero(ids >= 0)
-            if sel.size:
-                idx, alpha = self.knots.fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
-                keep = np.flatnonzero(idx >= k0)
-                if keep.size:
-                    # the associated planes' current estimates (world frame): normal, offset
-                    pid = np.repeat(ids[sel], 2)[keep]
-                    used = np.unique(pid)
-                    planes = np.array([[*self.pmap.planes[j].normal.tolist(), self.pmap.planes[j].d]
-                                       for j in used.tolist()])
-                    pid = np.searchsorted(used, pid)
-                    pts.append(np.concatenate([p.segs.virtual_body for p in tracked])[sel].reshape(-1, 3)[keep])
-                    kis.append(idx[keep] - k0)
-                    al.append(alpha[keep])
-                    nrm.append(planes[pid, :3])
-                    off.append(planes[pid, 3])
-                    sig.append(np.repeat(np.concatenate([p.segs.virtual_sigma for p in tracked])[sel], 2)[keep])
-            for rows in self.edges.tracking_rows(recent, k0):
-                for acc, part in zip((pts, kis, al, nrm, off, sig), rows, strict=True):
-                    acc.append(part)
-            if not pts:
-                break
-            window = refine_window(
-                self.knots.T[k0 : k_new + 1],
-                np.concatenate(kis),
-                np.concatenate(al),
-                np.concatenate(pts),
-                np.concatenate(nrm),
-                np.concatenate(off),
-                np.maximum(np.concatenate(sig), 0.001),
-                self.params.tracking.first_prior_sigmas,
-                self.params.tracking.twist_sigmas,
-                iterations=self.params.tracking.iterations,
-                increment_sigmas=self.motion.increment_sigmas,
-                degenerate_ratio=self.motion.degenerate_ratio,
-            )
-            self.knots.T[k0 : k_new + 1] = window
-        return self.knots.T[k_new].copy()
-
     def _associate_and_observe(self, ready: list[PendingScan]) -> None:
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
-        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
-            ids = self._associate_scan(p, self.gates, summary)
+        for p, summary in zip(ready, self.associator.summaries(ready), strict=True):
+            ids = self.associator.associate(p, self.gates, summary)
             p.plane_ids = ids
             segs = p.segs
             self.edges.observe(p, ids, hosts, now, blocks)
@@ -373,19 +281,3 @@ class SlamRunner:
 
     def kind_name(self, pid: int) -> str:
         return KIND_NAMES[self.pmap.planes[pid].kind]
-
-
-def run_stream(
-    scans: Iterable[Scanline],
-    rig: Rig,
-    cfg: SlamConfig,
-    progress: Callable[[float], None] | None = None,
-) -> SlamResult:
-    """Run SLAM over a time-ordered stream of scanlines; ``progress(t)`` is called with scan stamps."""
-    runner = SlamRunner(rig, cfg)
-    for line in scans:
-        runner.add_scan(line)
-        if progress is not None:
-            progress(line.stamp)
-    runner.finish()
-    return runner.result(batch=cfg.backend.final_batch)
