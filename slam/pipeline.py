@@ -1,29 +1,29 @@
-"""The SLAM pipeline: scans in, trajectory and planes out.
+"""The SLAM pipeline: scans in, trajectory and planes out (the orchestration).
 
-Per scan: segment with the configured segmenter, lift the segments into the
-body frame at their beams' times (``frontend.observations``). Knots of the
-trajectory lie on a fixed grid at ``knot_rate`` (the reference scanner's scan
-rate); knot ``k+1`` is processed once every segment whose beams end before
-``t_{k+1}`` has arrived:
+Per scan: segment with the configured segmenter, lift the segments into the body frame at their
+beams' times and run the scan-only edge tests (``frontend.scan_prep``, possibly ahead in another
+process). Knots of the trajectory lie on a fixed grid at ``knot_rate``
+(``frontend.knots.KnotMirror``); knot ``k+1`` is processed once every segment whose beams end
+before ``t_{k+1}`` has arrived (``frontend.pending``):
 
-1. predict ``T_world_body(t_{k+1})`` by constant velocity;
-2. place the ready segments in the world with the current trajectory
-   (deskewed: every point at its own beam time), associate them with loose
-   gates and refine the new knot by Gauss-Newton against the fixed planes
-   (``frontend.tracking``);
-3. associate again with the tight gates (``frontend.association``): each
-   associated segment becomes observations of its plane in the back end
-   (two moment-matched virtual points, each in its own knot interval);
-4. unassociated segments wait in a pool from which new planes are created
-   (``frontend.plane_init``); planes that converge onto the same surface are
-   merged (this is also how a loop closes: after the walk returns, segments
-   associate with the old planes again through gates that grow with the
-   distance walked since a plane was last seen, and duplicates merge);
-5. every ``update_every`` knots the back end takes an iSAM2 step and the
-   front end copies the new estimates in.
+1. predict ``T_world_body(t_{k+1})`` with the motion model (``frontend.motion_model``: constant
+   velocity, or the IMU with ``slam.imu_feed.ImuMotion``);
+2. place the ready segments in the world with the current trajectory (deskewed: every point at
+   its own beam time), associate them with loose gates and refine the newest knots by
+   Gauss-Newton against the fixed planes (``frontend.window_tracker``);
+3. associate again with the tight gates (``frontend.association``): each associated segment
+   becomes observations of its plane in the back end (two moment-matched virtual points, each in
+   its own knot interval; ``frontend.blocks``), each door/board break of its edge plane
+   (``frontend.edge_tracker``, when edges are on);
+4. unassociated segments wait in a pool from which new planes are created; planes that converge
+   onto the same surface are merged (``frontend.map_builder``; this is also how a loop closes:
+   after the walk returns, segments associate with the old planes again through gates that grow
+   with the distance walked since a plane was last seen, and duplicates merge);
+5. every ``update_every`` knots the back end takes a step (a window solve or iSAM2) and the front
+   end copies the new estimates in.
 
-At the end a batch solve over everything gives the final
-trajectory and planes.
+At the end a batch solve over everything gives the final trajectory and planes
+(``slam.result.SlamResult``). Every component's parameters come from ``slam.params``.
 """
 
 from __future__ import annotations
@@ -43,24 +43,13 @@ from slam.factors import RobustKernel
 from slam.frontend.association import ScanAssociator
 from slam.frontend.blocks import ObservationBlocks
 from slam.frontend.edge_tracker import edge_feature
-from slam.frontend.edges import (
-    EDGE_ID_BASE,
-)
+from slam.frontend.edges import EDGE_ID_BASE
 from slam.frontend.knots import KnotMirror
 from slam.frontend.map_builder import MapBuilder
 from slam.frontend.pending import PendingScan, ScanQueues
-from slam.frontend.plane_init import (
-    SegmentPool,
-)
-from slam.frontend.planemap import (
-    KIND_NAMES,
-    PlaneMap,
-)
-from slam.frontend.scan_prep import (
-    PreparedScan,
-    ScanPreparer,
-    knot_deskew,
-)
+from slam.frontend.plane_init import SegmentPool
+from slam.frontend.planemap import KIND_NAMES, PlaneMap
+from slam.frontend.scan_prep import PreparedScan, ScanPreparer, knot_deskew
 from slam.frontend.window_tracker import WindowTracker
 from slam.imu_feed import ImuSamples, motion_model
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
@@ -69,40 +58,46 @@ FloatArray = NDArray[np.float64]
 
 
 class SlamRunner:
-    """Online front end + incremental back end over a time-ordered stream of scanlines."""
+    """Online front end + incremental back end over a time-ordered stream of scanlines, with
+    the IMU's samples (``imu``, body frame) when there are any."""
 
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
         self.cfg = cfg
         self.imu = imu
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
-        self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
-        self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
+        range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        self._T_body_scanner = T_body_scanner
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
         self.preparer = ScanPreparer(rig, cfg, imu)
-        self.params = params.components(cfg, with_imu=imu is not None)
+        with_imu = imu is not None
+        self.params = params.components(cfg, with_imu)
         self.gates = self.params.gates
+        self.dt = 1.0 / cfg.trajectory.knot_rate
+        self.backend = Backend(self.params.backend)
+        self.stats = RunStats(imu_used=int(with_imu))
+        self._timer = StageTimer()
+        self.knots = KnotMirror(self.dt)
+        self.queues = ScanQueues()
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
         self.pool = SegmentPool(self.params.plane_init)
-        dt = 1.0 / cfg.trajectory.knot_rate
-        self.backend = Backend(self.params.backend)
-        self.dt = dt
-        self.knots = KnotMirror(dt)
-        self.queues = ScanQueues()
-        self._timer = StageTimer()
-        self.stats = RunStats(imu_used=int(imu is not None))
         self.maps = MapBuilder(self.params.map, self.pmap, self.pool, self.knots, self.backend, self.stats)
+        # the optional features: the IMU's motion model or constant velocity, edges or none
         self.motion = motion_model(imu, self.params.imu, self.params.imu_motion, self.backend)
-        self.edges = edge_feature(self.params.edges, self.pmap, self.knots, self._T_body_scanner, self._range_sigma,
-                                  self.backend, self.stats)
-        self.associator = ScanAssociator(self.pmap, self.knots, self._T_body_scanner, cfg.frontend.point_sigma,
-                                         cfg.frontend.min_segment_points, self.maps.ties.children)
+        self.edges = edge_feature(self.params.edges, self.pmap, self.knots, T_body_scanner, range_sigma, self.backend,
+                                  self.stats)
+        children = self.maps.ties.children
+        self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
+                                         cfg.frontend.min_segment_points, children)
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
-                                     self.queues, self.associator, self.edges, self.motion, self.maps.ties.children)
+                                     self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
 
-    # ------------------------------------------------------------------ trajectory mirror
+    # ------------------------------------------------------------------ knots
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
+        """Add the next knot (pose, velocity) to the mirror and the back end, with what the
+        motion model adds about it."""
         k = self.knots.append(T, v)
         self.backend.add_pose(self.knots.time(k), T, velocity_world=self.motion.velocity(self.knots, k))
         self.stats.zero_velocity_updates += self.motion.add_factors(self.knots, k)
@@ -140,7 +135,7 @@ class SlamRunner:
             self._process_knot()
 
     def finish(self) -> None:
-        """Process the remaining knots (up to the last beam) and take a last iSAM2 step."""
+        """Process the remaining knots (up to the last beam) and take a last back-end step."""
         last = self.queues.last_end()
         if last is not None:
             while self.knots.time(self.knots.n - 1) < last:
@@ -172,6 +167,8 @@ class SlamRunner:
             self._timer.add("backend", t)
 
     def _associate_and_observe(self, ready: list[PendingScan]) -> None:
+        """Associate the ready scans with the tight gates; their segments and breaks observe the
+        map (the rest goes to the pool)."""
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
@@ -280,4 +277,5 @@ class SlamRunner:
         )
 
     def kind_name(self, pid: int) -> str:
+        """The kind (wall, floor, ceiling, other) of map plane ``pid``."""
         return KIND_NAMES[self.pmap.planes[pid].kind]
