@@ -1,4 +1,5 @@
-"""IMU samples for the pipeline: slicing them into knot intervals and predicting the next knot.
+"""IMU samples for the pipeline: slicing them into knot intervals, predicting the next knot, and
+the front end's IMU motion model (:class:`ImuMotion`, the IMU feature of ``slam.pipeline``).
 
 The IMU frame is the body frame (the simulator's ``/imu`` and the usual backpack set-up; a
 different ``frame_id`` is an input error). An interval ``[t_a, t_b)`` is cut at the sample

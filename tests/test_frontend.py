@@ -6,6 +6,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+import pytest
 
 from slam.config import SlamConfig
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
@@ -331,3 +332,74 @@ def test_the_wall_hypothesis_takes_level_scan_planes_only() -> None:
     planes = wall.create_planes()
     assert len(planes) == 1 and planes[0].vertical_hypothesis
     np.testing.assert_allclose(np.abs(planes[0].normal), [np.sqrt(0.5), np.sqrt(0.5), 0.0], atol=1e-3)
+
+
+def _scan(scan_index: int, stamp: float, first: list[int], t_end: float) -> Any:
+    """A stand-in for ``ScanSegments`` with what the queues read (scanner 0, beams from ``stamp`` to ``t_end``)."""
+    from types import SimpleNamespace
+
+    k = len(first)
+    return SimpleNamespace(scanner=0, scan_index=scan_index, stamp=stamp, n_segments=k,
+                           first_beam=np.array(first), last_beam=np.array(first) + 5,
+                           times=np.linspace(stamp, t_end, 2))
+
+
+def test_scan_queues_hand_scans_on_and_keep_their_rows() -> None:
+    """Pending scans become ready once their last beam is past; compacted scans keep their
+    segment rows, reported sorted with plane ids resolved through the merges."""
+    from slam.frontend.pending import ScanQueues
+
+    q = ScanQueues()
+    q.add(_scan(1, 0.1, [50, 10], 0.2), {})
+    q.add(_scan(0, 0.0, [30], 0.35), {(0, 1): None})
+    assert q.last_end() == 0.35
+    ready = q.take_ready(0.3)
+    assert [p.serial for p in ready] == [0] and [p.serial for p in q.pending] == [1]
+    assert q.pending[0].edge_tests == {(0, 1): None}
+    ready[0].plane_ids[:] = (7, -1)
+    q.done.extend(ready)
+    assert q.track(ready, 0.15) == ready and q.track([], 0.25) == []
+    q.compact(horizon=0.25)
+    assert q.done == [] and q.by_serial() == {}
+    rows = q.segment_rows(lambda pid: {7: 3}.get(pid, pid))
+    np.testing.assert_array_equal(rows["scan_index"], [0, 1, 1])
+    np.testing.assert_array_equal(rows["first_beam"], [30, 10, 50])
+    np.testing.assert_array_equal(rows["plane_id"], [-1, -1, 3])
+
+
+def test_knot_mirror_grows_holds_a_prediction_and_walks() -> None:
+    from slam.frontend.knots import KnotMirror
+
+    m = KnotMirror(0.05)
+    m.start(10.0, None)
+    for k in range(1100):  # past the first allocation
+        T = np.eye(4)
+        T[0, 3] = 0.01 * k
+        assert m.append(T) == k
+    assert m.n == 1100 and m.time(1100) == pytest.approx(65.0)
+    assert m.odometer == pytest.approx(10.99)
+    np.testing.assert_array_equal(m.V[:1100], 0.0)
+    T_pred = np.eye(4)
+    T_pred[0, 3] = 11.0
+    m.hold(T_pred)
+    assert m.n == 1101 and m.pose_at(m.time(1100))[0, 3] == pytest.approx(11.0)
+    m.release()
+    assert m.n == 1100 and m.odometer == pytest.approx(10.99)
+    np.testing.assert_allclose(m.place(np.zeros((2, 3)), np.array([10.0, 10.025])), [[0, 0, 0], [0.005, 0, 0]],
+                               atol=1e-12)
+    pts = np.ones((3, 3))
+    assert m.deskewed(pts, np.zeros(3)) is pts  # no deskew table
+
+
+def test_optional_features_share_their_interfaces() -> None:
+    """The runner holds either object of each pair without asking which."""
+    from slam.frontend.edge_tracker import EdgeTracker, NoEdges
+    from slam.frontend.motion_model import ConstantVelocity
+    from slam.imu_feed import ImuMotion
+
+    def public(cls: type) -> set[str]:
+        return {n for n in dir(cls) if not n.startswith("_") and callable(getattr(cls, n))}
+
+    assert public(EdgeTracker) == public(NoEdges)
+    assert public(ImuMotion) == public(ConstantVelocity)
+    assert {"predict", "initial_pose", "add_factors", "refresh", "velocity"} <= public(ConstantVelocity)
