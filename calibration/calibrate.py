@@ -143,10 +143,10 @@ def motion_prior_of(cfg: SlamConfig) -> MotionPriorConfig:
 def loosened_slam_config(cfg: SlamConfig, rot: float, trans: float) -> SlamConfig:
     """``cfg`` with the front end's gates opened for a rig whose extrinsics may be off by ``rot``
     [rad] and ``trans`` [m] (1 sigma): never tighter than ``cfg``. The angle and lever-arm tests
-    get ``rot``, the pose test ``trans``; coplanarity (plane creation) and merging tolerate what a
-    wrong extrinsic does to a segment 2 m away, so that one surface seen by several scanners
-    stays one plane; the tracking gates keep their absolute width (they are a multiple of the
-    tight ones)."""
+    get ``rot``, the pose test ``trans``, the endpoint cap 3 ``trans`` more (a wrong extrinsic moves
+    a segment's ends); coplanarity (plane creation) and merging tolerate what a wrong extrinsic
+    does to a segment 2 m away, so that one surface seen by several scanners stays one plane; the
+    tracking gates keep their absolute width (they are a multiple of the tight ones)."""
     fe = cfg.frontend
     rot_deg = math.degrees(rot)
     spread = trans + 2.0 * rot
@@ -155,6 +155,7 @@ def loosened_slam_config(cfg: SlamConfig, rot: float, trans: float) -> SlamConfi
         "sigma_rotation_deg": max(fe.sigma_rotation_deg, rot_deg),
         "sigma_lever_deg": max(fe.sigma_lever_deg, rot_deg),
         "sigma_pose": max(fe.sigma_pose, trans),
+        "max_endpoint_distance": fe.max_endpoint_distance + 3.0 * trans,
         "coplanar_distance": max(fe.coplanar_distance, spread),
         "merge_distance": max(fe.merge_distance, spread),
         "merge_angle_deg": max(fe.merge_angle_deg, 2.0 * rot_deg),
@@ -180,16 +181,10 @@ def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
         rot, trans = uncertainty
         cfg = loosened_slam_config(cfg, rot, trans)
     runner = SlamRunner(rig, cfg)
-    if loose:
-        assert uncertainty is not None
-        # the endpoint cap is not a configuration key: a wrong extrinsic moves a segment's ends
-        cap = runner.gates.max_endpoint_distance + 3.0 * uncertainty[1]
-        runner.gates = replace(runner.gates, max_endpoint_distance=cap)
-        runner.loose = runner.gates.loosened(cfg.frontend.tracking_loosen)
     for line in scans:
         runner.add_scan(line)
     runner.finish()
-    return runner.result(batch=False)
+    return runner.result(batch=False, covariances=False)
 
 
 def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamConfig,

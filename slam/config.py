@@ -69,13 +69,44 @@ class FrontEndConfig(StrictModel):
     drift_rate_vertical: float = Field(
         0.0003, ge=0, description="the same for floors and ceilings: height drifts far less than the walls' "
         "offsets (floors and ceilings are in view all the time, gravity levels the rig)")
+    max_endpoint_distance: float = Field(
+        0.05, gt=0, description="m, hard cap on either endpoint's distance from a plane for association (grown by "
+        "3 sigma of the drift and of the rotation's lever arm)")
+    max_extra_cells: int = Field(8, ge=0, description="cap of the extent margin's growth with the drift (cells)")
+    max_drift_sigma: float = Field(0.05, gt=0, description="m, cap of the drift-grown offset uncertainty")
+    association_chi2: float = Field(
+        9.21, gt=0, description="gate of the combined angle and distance test (9.21: chi-square, 2 dof, 99 %)")
     tracking_loosen: float = Field(8.0, ge=1, description="gate factor of the tracking (pre-)association")
     tracking_iterations: int = Field(3, ge=0)
+    tracking_window: int = Field(6, ge=1, description="knot intervals refined together by tracking")
+    tracking_first_prior_deg: float = Field(
+        0.2, gt=0, description="deg, sigma holding the rotation of the tracking window's oldest knot")
+    tracking_first_prior_position: float = Field(
+        0.01, gt=0, description="m, sigma holding the position of the tracking window's oldest knot")
+    tracking_twist_sigma_rotation: float = Field(
+        0.006, gt=0, description="rad, sigma of the body twist's change per knot interval in tracking (rotation)")
+    tracking_twist_sigma_position: float = Field(
+        0.002, gt=0, description="m, the same for the translation")
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
     extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
     min_support: int = Field(6, ge=2, description="segments a new plane needs")
     min_scans: int = Field(4, ge=2, description="distinct scans among a new plane's segments")
-    min_spread: float = Field(0.04, gt=0)
+    min_spread: float = Field(0.04, gt=0, description="m, second principal standard deviation of a new plane's points")
+    coplanar_angle_deg: float = Field(2.0, gt=0, description="deg, a new plane's members' directions lie within this of it")
+    seed_min_angle_deg: float = Field(10.0, gt=0, description="deg, the two segments seeding a plane: least angle between them")
+    seed_min_separation: float = Field(0.05, gt=0, description="m, ... or least distance between them when parallel")
+    seed_neighbourhood: float = Field(3.0, gt=0, description="m, a new plane's members lie within this of its seed")
+    seed_max_partners: int = Field(4, ge=1, description="seed pairs tried per seed segment (nearest first)")
+    min_scan_plane_angle_deg: float = Field(
+        15.0, gt=0, description="deg, a plane this close to a member's scan plane is that scan plane, not a surface")
+    horizontal_tolerance_deg: float = Field(
+        3.0, gt=0, description="deg, a segment this close to horizontal counts as horizontal (wall hypothesis)")
+    max_level_scan_tilt_deg: float = Field(
+        30.0, gt=0, description="deg, the wall hypothesis takes segments of scan planes this close to level only: a "
+        "tilted scanner's level line lies as well on a floor or table top")
+    max_tilt_sigma_deg: float = Field(
+        1.0, gt=0, description="deg, a new plane's worst tilt must be observed this well by its members (a thin strip, "
+        "a door frame seen edge-on, leaves the solver a nearly singular plane)")
     min_support_oblique: int = Field(
         40, ge=2, description="segments a new plane needs that is neither a wall nor a floor/ceiling (beyond "
         "vertical_tolerance_deg): a real slope is seen by tens of scanlines a second, while a fit across a wall "
@@ -88,6 +119,9 @@ class FrontEndConfig(StrictModel):
     pool_window: float = Field(1.0, gt=0, description="s an unassociated segment waits for a plane")
     min_segment_points: int = Field(10, ge=2)
     merge_angle_deg: float = Field(1.5, gt=0)
+    host_min_segments: int = Field(
+        50, ge=1, description="segments of an established plane before new planes are tied to it (parallel_* and "
+        "wall_faces)")
     parallel_max_offset: float = Field(
         0.05, ge=0, description="m, a new plane this close to an established one and within parallel_max_angle_deg "
         "of it is tied parallel to it (doors, boards); 0 = never")
@@ -167,6 +201,11 @@ class EdgeSection(StrictModel):
     min_height_span: float = Field(
         0.15, ge=0, description="m, a new edge's breaks span this in height (vertical edges), unless all come "
         "from nearly horizontal scanlines")
+    height_margin: float = Field(
+        0.1, ge=0, description="m, a break (unless flat) matches an edge within this of the heights the edge was made from")
+    flat_slope: float = Field(
+        0.3, ge=0, description="a scanline whose vertical slope across the wall is below this is flat: it can only "
+        "cross a vertical edge")
     perpendicular_sigma_deg: float = Field(0.02, gt=0, description="sigma of the edge plane's tie across its wall")
     inline: bool = Field(True, description="also find steps inside wall segments (a poster 5 mm proud is left "
                          "in its wall's segment)")
@@ -189,10 +228,27 @@ class BackEndConfig(StrictModel):
     horizontal_prior_deg: float = Field(0.01, gt=0, description="sigma keeping floors/ceilings horizontal")
     vertical_prior_deg: float = Field(0.05, gt=0, description="sigma keeping walls vertical")
     vertical_walls: bool = True
+    datum: Literal["pose", "position_yaw"] = Field(
+        "position_yaw", description="prior on the first knot: the whole pose, or its position and heading only (the "
+        "horizontal planes' priors level the map)")
+    datum_sigma: float = Field(1e-6, gt=0, description="rad and m, sigma of the datum prior")
+    datum_tilt_sigma: float = Field(
+        0.1, gt=0, description="rad, sigma on the first knot's roll and pitch with position_yaw: loose, yet finite so "
+        "that the system stays well conditioned")
+    initial_velocity_sigmas: tuple[float, float] = Field(
+        (3.0, 3.0), description="rad/s and m/s, the weak prior on the first interval's motion")
+    plane_relinearize_factor: float = Field(
+        10.0, gt=0, description="iSAM2: relinearisation threshold of planes, a multiple of relinearize_threshold")
+    lm_max_iterations: int = Field(50, ge=1, description="Levenberg-Marquardt iterations per stage of a batch solve")
+    lm_relative_tolerance: float = Field(1e-4, gt=0, description="a batch stage stops below this relative error decrease")
+    robust_schedule: tuple[float, ...] = Field(
+        (30.0, 10.0, 3.0), description="kernel-width multipliers of the graduated stages before the nominal one")
     update_every: int = Field(20, ge=1, description="knots between back-end updates (window solves or iSAM2 steps)")
     relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
     relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
     isam2_iterations: int = Field(1, ge=1, description="iSAM2 steps per update (more: nearer the optimum, slower)")
+    isam2_fallback_iterations: int = Field(
+        5, ge=1, description="batch iterations over the whole graph when an iSAM2 step fails even after a rebuild")
     solver: Literal["isam2", "window"] = Field(
         "window", description="incremental estimation: a fixed-lag window solved to convergence, older blocks held "
         "in exact per-plane summaries (cost per solve bounded), or iSAM2 (cost grows with the walk)")
@@ -231,7 +287,14 @@ class ImuSection(StrictModel):
     integration_sigma: float = Field(
         2e-3, gt=0,
         description="position integration noise (m/sqrt(s)): the knots' linear interpolation misses ~0.5 mm of the gait bob")
+    velocity_prior_sigma: float = Field(1.0, gt=0, description="m/s, sigma of the prior on the first knot's velocity")
     motion_prior: bool = Field(False, description="keep the constant-velocity prior beside the IMU factors")
+    increment_sigma_deg: float = Field(
+        0.05, gt=0, description="deg, tracking with an IMU: the rotation of one knot interval against the IMU-predicted one")
+    increment_sigma_position: float = Field(0.001, gt=0, description="m, the same for the translation")
+    degenerate_angle_deg: float = Field(
+        3.0, gt=0, description="deg, tracking with an IMU: a translation direction observed only by planes within this "
+        "of parallel to it is left to the IMU")
     zupt: bool = Field(True, description="zero-velocity updates where the IMU says the operator stands still")
     zupt_window: float = Field(0.5, gt=0, description="s of samples the stance test looks at")
     zupt_threshold: float = Field(8.0, gt=0, description="stance test threshold (6 +- 0.35 at rest over 0.5 s at 200 Hz)")

@@ -1,4 +1,5 @@
-"""IMU samples for the pipeline: slicing them into knot intervals and predicting the next knot.
+"""IMU samples for the pipeline: slicing them into knot intervals, predicting the next knot, and
+the front end's IMU motion model (:class:`ImuMotion`, the IMU feature of ``slam.pipeline``).
 
 The IMU frame is the body frame (the simulator's ``/imu`` and the usual backpack set-up; a
 different ``frame_id`` is an input error). An interval ``[t_a, t_b)`` is cut at the sample
@@ -24,11 +25,35 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend.knots import KnotMirror
+from slam.frontend.motion_model import ConstantVelocity, MotionModel
+from slam.frontend.ports import ImuSink
 from slam.motion import ImuConfig, preintegrate
+from slam.trajectory.interpolation import so3_exp
 
 FloatArray = NDArray[np.float64]
 
 MAX_GAP = 0.05  # s: a longer hole in the IMU stream inside a knot interval is an input error
+
+
+@dataclass(frozen=True, eq=False)
+class ImuMotionParams:
+    """The front end's use of the IMU (``slam.params.imu_motion_params``): zero-velocity updates
+    (``zupt``: the stance test over ``zupt_window`` s below ``zupt_threshold`` with the
+    white-noise densities ``accel_noise``/``gyro_noise`` and ``gravity``, a prior of
+    ``zupt_sigma`` m/s), and tracking against the IMU's prediction: ``increment_sigmas`` (6,: rad,
+    m) on each knot interval's relative pose, translation directions whose information is below
+    ``degenerate_ratio`` of the largest left to the IMU."""
+
+    zupt: bool
+    zupt_window: float
+    zupt_threshold: float
+    zupt_sigma: float
+    accel_noise: float
+    gyro_noise: float
+    gravity: float
+    increment_sigmas: FloatArray
+    degenerate_ratio: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,3 +154,86 @@ def is_stationary(samples: ImuSamples, t: float, window: float, accel_sigma: flo
     ``threshold``)."""
     s = shoe_statistic(samples, t - 0.5 * window, t + 0.5 * window, accel_sigma, gyro_sigma, gravity, up_body)
     return bool(s < threshold)
+
+
+class ImuMotion:
+    """The front end's use of an IMU (``samples``, body frame): the next knot predicted by
+    integrating it from the last one with the latest bias (``config``: its noise), its
+    intervals and zero-velocity updates added to the back end (``sink``), the back end's
+    velocities and bias mirrored, the first knot levelled (``params``)."""
+
+    def __init__(self, samples: ImuSamples, config: ImuConfig, params: ImuMotionParams, sink: ImuSink) -> None:
+        self.samples = samples
+        self.config = config
+        self.params = params
+        self._sink = sink
+        self._rate = 1.0 / float(np.median(np.diff(samples.times)))  # Hz, for the stance test's noise
+
+    @property
+    def increment_sigmas(self) -> FloatArray | None:
+        return self.params.increment_sigmas
+
+    @property
+    def degenerate_ratio(self) -> float | None:
+        return self.params.degenerate_ratio
+
+    def initial_pose(self, t0: float) -> FloatArray:
+        """The origin levelled by the mean specific force of the samples within 0.1 s of ``t0``
+        (world z up along gravity), heading zero."""
+        T = np.eye(4)
+        near = (self.samples.times >= t0 - 0.1) & (self.samples.times <= t0 + 0.1)
+        if not near.any():
+            return T
+        f = self.samples.accel[near].mean(axis=0)
+        u = f / max(float(np.linalg.norm(f)), 1e-9)
+        axis = np.cross(u, [0.0, 0.0, 1.0])
+        s, c = float(np.linalg.norm(axis)), float(u[2])
+        if s > 1e-12:
+            T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
+        return T
+
+    def predict(self, knots: KnotMirror) -> tuple[FloatArray, FloatArray | None]:
+        k = knots.n
+        return predict_navstate(self.config, knots.T[k - 1], knots.V[k - 1], knots.bias, self.samples,
+                                knots.time(k - 1), knots.time(k))
+
+    def velocity(self, knots: KnotMirror, k: int) -> FloatArray | None:
+        return knots.V[k]
+
+    def add_factors(self, knots: KnotMirror, k: int) -> int:
+        """The interval before knot ``k`` as preintegrated samples; a zero-velocity prior on the
+        knot where the IMU says the operator stands still (returns 1 then, else 0)."""
+        if k > 0:
+            a, g, dt = self.samples.interval(knots.time(k - 1), knots.time(k))
+            self._sink.add_imu(k - 1, a, g, dt)
+        if self._at_rest(knots.time(k), knots.T[k][2, :3]):
+            self._sink.add_velocity_prior(k, np.zeros(3), self.params.zupt_sigma)
+            return 1
+        return 0
+
+    def _at_rest(self, t: float, up_body: FloatArray) -> bool:
+        """Whether the IMU says the operator stands still at ``t``; ``up_body`` is world z in the
+        body frame from the current pose estimate (the knot's third rotation row)."""
+        p = self.params
+        if not p.zupt:
+            return False
+        root_rate = np.sqrt(self._rate)  # densities -> per-sample noise
+        return is_stationary(self.samples, t, p.zupt_window, p.accel_noise * root_rate, p.gyro_noise * root_rate,
+                             p.gravity, p.zupt_threshold, up_body)
+
+    def refresh(self, knots: KnotMirror, k0: int) -> None:
+        """Velocities of knots ``k0`` on and the last knot's bias from the back end."""
+        for k in range(k0, knots.n):
+            knots.V[k] = self._sink.velocity(k)
+        knots.bias = self._sink.bias(knots.n - 1)
+
+
+def motion_model(samples: ImuSamples | None, config: ImuConfig | None, params: ImuMotionParams | None,
+                 sink: ImuSink) -> MotionModel:
+    """:class:`ImuMotion` with IMU samples (and their ``config``/``params``), else
+    ``ConstantVelocity``."""
+    if samples is None:
+        return ConstantVelocity()
+    if config is None or params is None:
+        raise ValueError("imu: samples given without the IMU's configuration")
+    return ImuMotion(samples, config, params, sink)

@@ -1,388 +1,106 @@
-"""The SLAM pipeline: scans in, trajectory and planes out.
+"""The SLAM pipeline: scans in, trajectory and planes out (the orchestration).
 
-Per scan: segment with the configured segmenter, lift the segments into the
-body frame at their beams' times (``frontend.observations``). Knots of the
-trajectory lie on a fixed grid at ``knot_rate`` (the reference scanner's scan
-rate); knot ``k+1`` is processed once every segment whose beams end before
-``t_{k+1}`` has arrived:
+Per scan: segment with the configured segmenter, lift the segments into the body frame at their
+beams' times and run the scan-only edge tests (``frontend.scan_prep``, possibly ahead in another
+process). Knots of the trajectory lie on a fixed grid at ``knot_rate``
+(``frontend.knots.KnotMirror``); knot ``k+1`` is processed once every segment whose beams end
+before ``t_{k+1}`` has arrived (``frontend.pending``):
 
-1. predict ``T_world_body(t_{k+1})`` by constant velocity;
-2. place the ready segments in the world with the current trajectory
-   (deskewed: every point at its own beam time), associate them with loose
-   gates and refine the new knot by Gauss-Newton against the fixed planes
-   (``frontend.tracking``);
-3. associate again with the tight gates (``frontend.association``): each
-   associated segment becomes observations of its plane in the back end
-   (two moment-matched virtual points, each in its own knot interval);
-4. unassociated segments wait in a pool from which new planes are created
-   (``frontend.plane_init``); planes that converge onto the same surface are
-   merged (this is also how a loop closes: after the walk returns, segments
-   associate with the old planes again through gates that grow with the
-   distance walked since a plane was last seen, and duplicates merge);
-5. every ``update_every`` knots the back end takes an iSAM2 step and the
-   front end copies the new estimates in.
+1. predict ``T_world_body(t_{k+1})`` with the motion model (``frontend.motion_model``: constant
+   velocity, or the IMU with ``slam.imu_feed.ImuMotion``);
+2. place the ready segments in the world with the current trajectory (deskewed: every point at
+   its own beam time), associate them with loose gates and refine the newest knots by
+   Gauss-Newton against the fixed planes (``frontend.window_tracker``);
+3. associate again with the tight gates (``frontend.association``): each associated segment
+   becomes observations of its plane in the back end (two moment-matched virtual points, each in
+   its own knot interval; ``frontend.blocks``), each door/board break of its edge plane
+   (``frontend.edge_tracker``, when edges are on);
+4. unassociated segments wait in a pool from which new planes are created; planes that converge
+   onto the same surface are merged (``frontend.map_builder``; this is also how a loop closes:
+   after the walk returns, segments associate with the old planes again through gates that grow
+   with the distance walked since a plane was last seen, and duplicates merge);
+5. every ``update_every`` knots the back end takes a step (a window solve or iSAM2) and the front
+   end copies the new estimates in.
 
-At the end a batch solve over everything gives the final
-trajectory and planes.
+At the end a batch solve over everything gives the final trajectory and planes
+(``slam.result.SlamResult``). Every component's parameters come from ``slam.params``.
 """
 
 from __future__ import annotations
 
 import time as _time
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from common.rig import Rig
 from segmentation import Scanline
-from slam.backend import Backend, BackendConfig, RobustKernel
+from slam import params
+from slam.backend import Backend, RobustKernel
 from slam.config import SlamConfig
-from slam.frontend import kernels as fk
-from slam.frontend.association import Gates, associate, world_segments
-from slam.frontend.edges import (
-    EDGE_ID_BASE,
-    Break,
-    EdgeMap,
-    EdgeParams,
-    along_wall,
-    bracket_point,
-    break_pairs,
-    break_sigma,
-    is_flat,
-    recess_beyond,
-    steep_enough,
-    step_of,
-    steps_within,
-    surface_end,
-)
-from slam.frontend.observations import ScanSegments
-from slam.frontend.plane_init import (
-    NewPlane,
-    PlaneInitParams,
-    PooledSegment,
-    SegmentPool,
-    on_plane,
-    tilt_sigma,
-)
-from slam.frontend.planemap import (
-    HORIZONTAL_KINDS,
-    KIND_CEILING,
-    KIND_FLOOR,
-    KIND_NAMES,
-    KIND_OTHER,
-    KIND_WALL,
-    PlaneMap,
-    classify,
-    is_other_face,
-    merge_tolerance,
-)
-from slam.frontend.tracking import predict_constant_velocity, refine_window
-from slam.imu_feed import ImuSamples, is_stationary, predict_navstate
-from slam.motion import ImuConfig, MotionPriorConfig
-from slam.scan_prep import (
-    PreparedScan,
-    ScanPreparer,
-    knot_deskew,
-    next_to_segment,
-    segment_end,
-    segment_owner,
-    segment_returns,
-)
-from slam.trajectory import kernels as tk
-from slam.trajectory.deskew import DeskewTable
-from slam.trajectory.interpolation import so3_exp
+from slam.frontend.association import ScanAssociator
+from slam.frontend.blocks import ObservationBlocks
+from slam.frontend.edge_tracker import edge_feature
+from slam.frontend.edges import EDGE_ID_BASE
+from slam.frontend.knots import KnotMirror
+from slam.frontend.map_builder import MapBuilder
+from slam.frontend.pending import PendingScan, ScanQueues
+from slam.frontend.plane_init import SegmentPool
+from slam.frontend.planemap import KIND_NAMES, PlaneMap
+from slam.frontend.scan_prep import PreparedScan, ScanPreparer, knot_deskew
+from slam.frontend.window_tracker import WindowTracker
+from slam.imu_feed import ImuSamples, motion_model
+from slam.result import BatchStats, RunStats, SlamResult, StageTimer
 
 FloatArray = NDArray[np.float64]
 
-TRACK_WINDOW = 6  # knot intervals refined together by tracking
-FIRST_PRIOR_SIGMAS = np.array([np.radians(0.2)] * 3 + [0.01] * 3)  # oldest knot of the window
-MAX_TILT_SIGMA = np.radians(1.0)  # a new plane's worst tilt must be observed at least this well
-CV_SIGMAS = np.array([0.006] * 3 + [0.002] * 3)  # change of the body twist per knot interval (rad, m)
-# translation directions observed by planes within ~3 deg of parallel only are left to the IMU
-DEGENERATE_RATIO = float(np.sin(np.radians(3.0)) ** 2)
-HOST_MIN_SEGMENTS = 50  # segments of a plane before new planes are tied parallel to it
-# with an IMU: relative pose of one knot interval against the IMU-predicted one (rad, m)
-IMU_INCREMENT_SIGMAS = np.array([np.radians(0.05)] * 3 + [0.001] * 3)
-
-
-@dataclass
-class _Pending:
-    """A scan's segments waiting for (or done with) association."""
-
-    serial: int
-    segs: ScanSegments
-    t_end: float
-    plane_ids: NDArray[np.int64]
-    loose_ids: NDArray[np.int64] | None = None
-    # breaks matched to known edges by the tracking pre-association: body points, times, edge ids, sigmas
-    loose_edges: tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray] | None = None
-    # per wall segment, the scan-only part of the edge tests, asked by both the tracking
-    # pre-association and the observation: (segment, +-1) its recess beyond either end,
-    # (segment, 0) the steps inside it
-    edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
-    # the breaks found last with these plane ids and hosts (the tracking pre-association's are
-    # mostly the observation's: only their world placement changes with the tracked trajectory)
-    breaks_memo: tuple[bytes, dict[int, int], list[Break]] | None = None
-
-
-@dataclass
-class SlamResult:
-    """Final estimates and bookkeeping of a run (world frame)."""
-
-    knot_times: FloatArray
-    T_world_body: FloatArray
-    plane_ids: NDArray[np.int64]
-    plane_normals: FloatArray
-    plane_offsets: FloatArray
-    plane_map: PlaneMap
-    scanner_names: list[str]
-    segment_rows: dict[str, NDArray[Any]]
-    stats: dict[str, Any]
-    timings: dict[str, float]
-    plane_covariances: dict[int, FloatArray] = field(default_factory=dict)
-    deskew: DeskewTable | None = None  # the gyro's rotation between knots (``slam.trajectory.deskew``), applied to body points
-
-
-class _Timer:
-    def __init__(self) -> None:
-        self.t: dict[str, float] = {}
-
-    def add(self, name: str, since: float) -> float:
-        now = _time.perf_counter()
-        self.t[name] = self.t.get(name, 0.0) + now - since
-        return now
-
 
 class SlamRunner:
-    """Online front end + incremental back end over a time-ordered stream of scanlines."""
+    """Online front end + incremental back end over a time-ordered stream of scanlines, with
+    the IMU's samples (``imu``, body frame) when there are any."""
 
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
         self.cfg = cfg
         self.imu = imu
-        self._imu_rate = 1.0 / float(np.median(np.diff(imu.times))) if imu is not None else 0.0
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
-        self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
-        self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
+        range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        self._T_body_scanner = T_body_scanner
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
         self.preparer = ScanPreparer(rig, cfg, imu)
-        fe, be = cfg.frontend, cfg.backend
-        self.gates = Gates(
-            sigma_pose=fe.sigma_pose,
-            sigma_rotation=np.radians(fe.sigma_rotation_deg),
-            sigma_lever=np.radians(fe.sigma_lever_deg),
-            drift_rate=fe.drift_rate,
-            drift_rate_vertical=fe.drift_rate_vertical,
-            extent_margin_cells=fe.extent_margin_cells,
-            child_margin_cells=fe.child_margin_cells,
-            child_host_normal=fe.child_host_normal,
-        )
-        self.loose = self.gates.loosened(fe.tracking_loosen)
-        self.pmap = PlaneMap(cell_size=fe.extent_cell)
-        self.pool = SegmentPool(
-            PlaneInitParams(
-                min_support=fe.min_support,
-                min_scans=fe.min_scans,
-                min_spread=fe.min_spread,
-                coplanar_distance=fe.coplanar_distance,
-                sample_distance=fe.coplanar_distance + 3.0 * fe.point_sigma,
-                window=fe.pool_window,
-                vertical_walls=cfg.backend.vertical_walls,
-            )
-        )
-        ec = cfg.edges
-        self.emap = (
-            EdgeMap(
-                EdgeParams(
-                    max_gap=ec.max_gap,
-                    min_incidence_deg=ec.min_incidence_deg,
-                    sigma=ec.sigma,
-                    cluster_width=ec.cluster_width,
-                    min_points=ec.min_points,
-                    min_scans=ec.min_scans,
-                    gate=ec.gate,
-                    window=ec.window,
-                    merge_distance=ec.merge_distance,
-                    min_step=ec.min_step,
-                    max_step=ec.max_step,
-                    step_tolerance=ec.step_tolerance,
-                    max_skipped_points=ec.max_skipped_points,
-                    min_height_span=ec.min_height_span,
-                    point=ec.point,
-                ),
-                self.pmap.resolve,
-                generation=lambda: self.pmap.merges,
-            )
-            if ec.use
-            else None
-        )
-        self._host: dict[int, int] = {}  # plane id -> the wall it is tied parallel to (door, board)
-        # _host resolved through the merges, kept while no plane is merged or tied
-        self._resolved_hosts: tuple[tuple[int, int], dict[int, int]] | None = None
-        dt = 1.0 / cfg.trajectory.knot_rate
-        ic = cfg.imu
-        self.imu_config = (
-            ImuConfig(
-                accel_noise_density=ic.accel_noise,
-                gyro_noise_density=ic.gyro_noise,
-                accel_bias_rw=ic.accel_bias_walk,
-                gyro_bias_rw=ic.gyro_bias_walk,
-                bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
-                gravity=ic.gravity,
-                integration_sigma=ic.integration_sigma,
-                velocity_prior_sigma=1.0,
-                T_body_imu=None,
-            )
-            if imu is not None
-            else None
-        )
-        self.backend = Backend(
-            BackendConfig(
-                kernel=RobustKernel(be.robust, be.robust_k),
-                motion=MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt),
-                initial_velocity_sigmas=(3.0, 3.0),
-                datum="position_yaw",
-                datum_sigma=1e-6,
-                datum_tilt_sigma=0.1,
-                relinearize_threshold=be.relinearize_threshold,
-                relinearize_skip=be.relinearize_skip,
-                plane_relinearize_factor=10.0,
-                lm_max_iterations=50,
-                lm_relative_tolerance=1e-4,
-                robust_schedule=(30.0, 10.0, 3.0),
-                horizontal_sigma=np.radians(be.horizontal_prior_deg),
-                vertical_sigma=np.radians(be.vertical_prior_deg),
-                imu=self.imu_config,
-                use_motion_prior=imu is None or ic.motion_prior,
-                coalesce_blocks=be.solver == "window",
-                solver=be.solver,
-                window_knots=round(be.window_seconds / dt),
-                window_iterations=be.window_iterations,
-                isam2_iterations=be.isam2_iterations,
-                isam2_fallback_iterations=5,
-            )
-        )
-        self.dt = dt
-        self.t0: float | None = None
-        self._deskew: DeskewTable | None = None  # built at the first scan (the knots start there)
-        self._T = np.zeros((1024, 4, 4))  # front-end mirror of the knot poses
-        self._V = np.zeros((1024, 3))  # ... and velocities (world frame, with an IMU)
-        self._bias = np.zeros(6)  # latest IMU bias estimate (accelerometer, gyroscope)
-        self._n_knots = 0
-        self._pending: list[_Pending] = []
-        self._recent: list[_Pending] = []  # ready scans within the tracking window
-        self._done: list[_Pending] = []  # associated scans still within reach of the pool
-        self._rows: list[tuple[NDArray[Any], ...]] = []  # compacted segment rows of older scans
-        self._serial = 0
-        self._odometer = 0.0
-        self._odo_at_knot: list[float] = []
-        self._timer = _Timer()
-        self.stats: dict[str, int] = {
-            "scans": 0,
-            "segments": 0,
-            "associated": 0,
-            "planes_created": 0,
-            "planes_merged": 0,
-            "observation_blocks": 0,
-            "updates": 0,
-            "skipped_scans": 0,
-            "planes_rejected": 0,
-            "planes_rejected_oblique": 0,
-            "planes_parallel": 0,
-            "wall_faces": 0,
-            "isam2_rebuilds": 0,
-            "isam2_fallbacks": 0,
-            "imu_used": int(imu is not None),
-            "zero_velocity_updates": 0,
-            "edges_created": 0,
-            "edges_merged": 0,
-            "edge_observations": 0,
-            "trimmed_points": 0,
-            "trimmed_blocks": 0,
-        }
+        with_imu = imu is not None
+        self.params = params.components(cfg, with_imu)
+        self.gates = self.params.gates
+        self.dt = 1.0 / cfg.trajectory.knot_rate
+        self.backend = Backend(self.params.backend)
+        self.stats = RunStats(imu_used=int(with_imu))
+        self._timer = StageTimer()
+        self.knots = KnotMirror(self.dt)
+        self.queues = ScanQueues()
+        self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
+        self.pool = SegmentPool(self.params.plane_init)
+        self.maps = MapBuilder(self.params.map, self.pmap, self.pool, self.knots, self.backend, self.stats)
+        # the optional features: the IMU's motion model or constant velocity, edges or none
+        self.motion = motion_model(imu, self.params.imu, self.params.imu_motion, self.backend)
+        self.edges = edge_feature(self.params.edges, self.pmap, self.knots, T_body_scanner, range_sigma, self.backend,
+                                  self.stats)
+        children = self.maps.ties.children
+        self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
+                                         cfg.frontend.min_segment_points, children)
+        self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
+                                     self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
 
-    # ------------------------------------------------------------------ trajectory mirror
-    def _deskewed(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
-        """Body points seen at ``times`` with the gyro's rotation between knots applied
-        (``slam.trajectory.deskew``; unchanged without an IMU)."""
-        return points_body if self._deskew is None else self._deskew.apply(points_body, times)
-
-    def _knot_time(self, k: int) -> float:
-        assert self.t0 is not None
-        return self.t0 + k * self.dt
-
-    def _grow(self) -> None:
-        if self._n_knots == self._T.shape[0]:
-            self._T = np.concatenate((self._T, np.zeros_like(self._T)))
-            self._V = np.concatenate((self._V, np.zeros_like(self._V)))
-
+    # ------------------------------------------------------------------ knots
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
-        self._grow()
-        k = self._n_knots
-        self._T[k] = T
-        self._V[k] = 0.0 if v is None else v
-        self._n_knots += 1
-        if k > 0:
-            self._odometer += float(np.linalg.norm(T[:3, 3] - self._T[k - 1, :3, 3]))
-        self._odo_at_knot.append(self._odometer)
-        self.backend.add_pose(self._knot_time(k), T, velocity_world=None if self.imu is None else self._V[k])
-        if self.imu is not None and k > 0:
-            a, g, dt = self.imu.interval(self._knot_time(k - 1), self._knot_time(k))
-            self.backend.add_imu(k - 1, a, g, dt)
-        if self.imu is not None and self._at_rest(self._knot_time(k), T[2, :3]):
-            self.backend.add_velocity_prior(k, np.zeros(3), self.cfg.imu.zupt_sigma)
-            self.stats["zero_velocity_updates"] += 1
+        """Add the next knot (pose, velocity) to the mirror and the back end, with what the
+        motion model adds about it."""
+        k = self.knots.append(T, v)
+        self.backend.add_pose(self.knots.time(k), T, velocity_world=self.motion.velocity(self.knots, k))
+        self.stats.zero_velocity_updates += self.motion.add_factors(self.knots, k)
         return k
-
-    def _at_rest(self, t: float, up_body: FloatArray) -> bool:
-        """Whether the IMU says the operator stands still at ``t``; ``up_body`` is world z in the
-        body frame from the current pose estimate (the knot's third rotation row)."""
-        ic = self.cfg.imu
-        if self.imu is None or not ic.zupt:
-            return False
-        root_rate = np.sqrt(self._imu_rate)  # densities -> per-sample noise
-        return is_stationary(self.imu, t, ic.zupt_window, ic.accel_noise * root_rate, ic.gyro_noise * root_rate,
-                             ic.gravity, ic.zupt_threshold, up_body)
-
-    def _initial_pose(self, t0: float) -> FloatArray:
-        """The first knot: the origin, levelled by the mean specific force of the IMU's first
-        0.2 s when there is one (world z up along gravity), heading zero either way."""
-        T = np.eye(4)
-        if self.imu is None:
-            return T
-        near = (self.imu.times >= t0 - 0.1) & (self.imu.times <= t0 + 0.1)
-        if not near.any():
-            return T
-        f = self.imu.accel[near].mean(axis=0)
-        u = f / max(float(np.linalg.norm(f)), 1e-9)
-        axis = np.cross(u, [0.0, 0.0, 1.0])
-        s, c = float(np.linalg.norm(axis)), float(u[2])
-        if s > 1e-12:
-            T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
-        return T
-
-    def _fractions(self, times: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
-        """Knot interval index and fraction (m,) of each time (m,) on the current knots, clipped
-        to the first and the last interval."""
-        assert self.t0 is not None
-        return tk.uniform_fractions(self.t0, self.dt, self._n_knots, np.ascontiguousarray(times, dtype=np.float64))
-
-    def _pose_at(self, t: float) -> FloatArray:
-        """``T_world_body`` (4, 4) at time ``t`` with the current knots (compiled, one call)."""
-        assert self.t0 is not None
-        return tk.pose_uniform(self._T, self.t0, self.dt, self._n_knots, float(t))
-
-    def _place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
-        """Points (m, 3) body frame at their times (m,) -> world frame with the current knots:
-        one compiled pass, one rotation logarithm per run of equal knot intervals."""
-        assert self.t0 is not None
-        return tk.place_uniform(self._T, self.t0, self.dt, self._n_knots,
-                                np.ascontiguousarray(times, dtype=np.float64),
-                                np.ascontiguousarray(points_body, dtype=np.float64))
 
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:
@@ -394,785 +112,111 @@ class SlamRunner:
         possibly in another process, ``slam.prefetch``); knots are processed as soon as they are
         complete."""
         t_start = _time.perf_counter()
-        self.stats["scans"] += 1
-        if self.t0 is None:
-            self.t0 = scan.stamp
-            # the table the runner's own preparer built for this stream, else (scans prepared in
-            # another process) the same one built here
+        self.stats.scans += 1
+        if self.knots.t0 is None:
+            # the deskew table the runner's own preparer built for this stream, else (scans
+            # prepared in another process) the same one built here
             own = self.preparer.t0 == scan.stamp
-            self._deskew = self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp)
-            self._append_knot(self._initial_pose(scan.stamp))
-        self._timer.t["segmentation"] = self._timer.t.get("segmentation", 0.0) + scan.seconds_segmentation
-        self._timer.t["frontend"] = self._timer.t.get("frontend", 0.0) + scan.seconds_lift
+            self.knots.start(scan.stamp, self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp))
+            self._append_knot(self.motion.initial_pose(scan.stamp))
+        self._timer.add_seconds("segmentation", scan.seconds_segmentation)
+        self._timer.add_seconds("frontend", scan.seconds_lift)
         if scan.skipped:
-            self.stats["skipped_scans"] += 1
+            self.stats.skipped_scans += 1
             return
         segs = scan.segs
         if segs is not None:
-            self.stats["segments"] += segs.n_segments
-            self._pending.append(
-                _Pending(self._serial, segs, float(segs.times.max()), np.full(segs.n_segments, -1, dtype=np.int64),
-                         edge_tests=scan.edge_tests)  # the scan is handed over: its tests are the pending's
-            )
-            self._serial += 1
+            self.stats.segments += segs.n_segments
+            self.queues.add(segs, scan.edge_tests)  # the scan is handed over: its tests are the queue's
         self._timer.add("frontend", t_start)
         # a knot is complete once no later scan can have beams before it
-        while self._knot_time(self._n_knots) + self._scan_span < scan.stamp:
+        while self.knots.time(self.knots.n) + self._scan_span < scan.stamp:
             self._process_knot()
 
     def finish(self) -> None:
-        """Process the remaining knots (up to the last beam) and take a last iSAM2 step."""
-        last = max((p.t_end for p in self._pending), default=None)
+        """Process the remaining knots (up to the last beam) and take a last back-end step."""
+        last = self.queues.last_end()
         if last is not None:
-            while self._knot_time(self._n_knots - 1) < last:
+            while self.knots.time(self.knots.n - 1) < last:
                 self._process_knot()
         self._update()
 
     # ------------------------------------------------------------------ one knot
     def _process_knot(self) -> None:
         t_start = _time.perf_counter()
-        k_new = self._n_knots
-        t_new = self._knot_time(k_new)
-        v_pred = None
-        if self.imu is not None and self.imu_config is not None:
-            T_pred, v_pred = predict_navstate(
-                self.imu_config, self._T[k_new - 1], self._V[k_new - 1], self._bias, self.imu,
-                self._knot_time(k_new - 1), t_new,
-            )
-        elif k_new >= 2:
-            T_pred = predict_constant_velocity(self._T[k_new - 2], self._T[k_new - 1])
-        else:
-            T_pred = self._T[k_new - 1].copy()
-        # mirror the prediction so that placing points can use it
-        self._grow()
-        self._T[k_new] = T_pred
-        self._n_knots += 1
-        ready = [p for p in self._pending if p.t_end <= t_new]
-        self._pending = [p for p in self._pending if p.t_end > t_new]
-        T_new = self._track(ready, k_new, T_pred)
-        self._n_knots -= 1
+        k_new = self.knots.n
+        t_new = self.knots.time(k_new)
+        T_pred, v_pred = self.motion.predict(self.knots)
+        self.knots.hold(T_pred)
+        ready = self.queues.take_ready(t_new)
+        T_new = self.tracker.track(ready, k_new, T_pred)
+        self.knots.release()
         t = self._timer.add("tracking", t_start)
         self._append_knot(T_new, v_pred)
         self._associate_and_observe(ready)
         t = self._timer.add("association", t)
-        self._create_planes(t_new)
-        if self.emap is not None:
-            self._create_edges(t_new)
+        # drop the point data of scans the pool can no longer use, keeping their segment rows
+        self.queues.compact(t_new - self.pool.params.window - 1.0)
+        self.maps.create_planes(t_new, self.queues)
+        self.edges.create(t_new)
         t = self._timer.add("plane_creation", t)
         self._since_update += 1
         if self._since_update >= self.cfg.backend.update_every:
             self._update()
             self._timer.add("backend", t)
 
-    def _world_summaries(self, ps: list[_Pending]) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
-        """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
-        their end points (k, 2, 3) and the scanner's position at the scan's stamp (4,),
-        homogeneous). One ``_place`` for all the scans: per point the same numbers as one call per
-        scan (``_place``'s arithmetic is element by element for two points or more, and a scan has
-        four at least). The stamps' poses stay one ``_pose_at`` each: for a single pose numpy
-        takes another (matrix-vector) route through ``exp_coefficients``, with other last bits."""
-        if not ps:
-            return []
-        pts, tms, sizes = [], [], []
-        for p in ps:
-            segs = p.segs
-            ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
-            pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
-            tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
-            sizes += [2 * segs.n_segments, 2 * segs.n_segments]
-        w = np.split(self._place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
-        return [
-            (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
-             self._pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
-            for i, p in enumerate(ps)
-        ]
-
-    def _associate_scan(self, p: _Pending, gates: Gates,
-                        summary: tuple[FloatArray, FloatArray, FloatArray]) -> NDArray[np.int64]:
-        """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``
-        (``_world_summaries``)."""
-        v_world, e_world, origin = summary
-        ws = world_segments(
-            v_world, e_world, p.segs.virtual_sigma, self.cfg.frontend.point_sigma, p.segs.n_points, origin[:3]
-        )
-        fe = self.cfg.frontend
-        children = self._host_map() if (fe.child_margin_cells >= 0 or fe.child_host_normal) else None
-        ids = associate(ws, self.pmap, self._odometer, gates, children)
-        ids[p.segs.n_points < self.cfg.frontend.min_segment_points] = -1
-        return ids
-
-    def _track(self, ready: list[_Pending], k_new: int, T_pred: FloatArray) -> FloatArray:
-        """Refine the window of the last ``TRACK_WINDOW`` knots, the new one included, against the
-        map (planes fixed): loose association, windowed Gauss-Newton, twice. Returns the new knot."""
-        fe = self.cfg.frontend
-        self._recent.extend(ready)
-        k0 = max(0, k_new - TRACK_WINDOW)
-        t_lo = self._knot_time(k0)
-        self._recent = [p for p in self._recent if p.t_end >= t_lo]
-        if k_new < 1 or fe.tracking_iterations == 0 or len(self.pmap) == 0 or not self._recent:
-            return T_pred
-        hosts = self._host_map() if self.emap is not None and self.emap.edges else None
-        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
-            p.loose_ids = self._associate_scan(p, self.loose, summary)
-            if hosts is not None:
-                self._loose_edges(p, hosts)
-        for _ in range(1):
-            pts, kis, al, nrm, off, sig = [], [], [], [], [], []
-            # the recent scans' loosely associated segments, both virtual points each (body
-            # frame), gathered in one batch in the order of a loop over scans and segments
-            tracked = [p for p in self._recent if p.loose_ids is not None]
-            ids = np.concatenate([p.loose_ids for p in tracked]) if tracked else np.empty(0, dtype=np.int64)
-            sel = np.flatnonzero(ids >= 0)
-            if sel.size:
-                idx, alpha = self._fractions(np.concatenate([p.segs.virtual_times for p in tracked])[sel].ravel())
-                keep = np.flatnonzero(idx >= k0)
-                if keep.size:
-                    # the associated planes' current estimates (world frame): normal, offset
-                    pid = np.repeat(ids[sel], 2)[keep]
-                    used = np.unique(pid)
-                    planes = np.array([[*self.pmap.planes[j].normal.tolist(), self.pmap.planes[j].d]
-                                       for j in used.tolist()])
-                    pid = np.searchsorted(used, pid)
-                    pts.append(np.concatenate([p.segs.virtual_body for p in tracked])[sel].reshape(-1, 3)[keep])
-                    kis.append(idx[keep] - k0)
-                    al.append(alpha[keep])
-                    nrm.append(planes[pid, :3])
-                    off.append(planes[pid, 3])
-                    sig.append(np.repeat(np.concatenate([p.segs.virtual_sigma for p in tracked])[sel], 2)[keep])
-            for p in self._recent:
-                if p.loose_edges is None:
-                    continue
-                e_pts, e_t, e_ids, e_sig = p.loose_edges
-                idx, alpha = self._fractions(e_t)
-                inside = idx >= k0
-                if not inside.any():
-                    continue
-                edges = [self.emap.edges[self.emap.root(int(i))] for i in e_ids[inside]] if self.emap else []
-                pts.append(e_pts[inside])
-                kis.append(idx[inside] - k0)
-                al.append(alpha[inside])
-                nrm.append(np.array([e.normal for e in edges]))
-                off.append(np.array([e.d for e in edges]))
-                sig.append(e_sig[inside])
-            if not pts:
-                break
-            window = refine_window(
-                self._T[k0 : k_new + 1],
-                np.concatenate(kis),
-                np.concatenate(al),
-                np.concatenate(pts),
-                np.concatenate(nrm),
-                np.concatenate(off),
-                np.maximum(np.concatenate(sig), 0.001),
-                FIRST_PRIOR_SIGMAS,
-                CV_SIGMAS,
-                iterations=fe.tracking_iterations,
-                increment_sigmas=IMU_INCREMENT_SIGMAS if self.imu is not None else None,
-                degenerate_ratio=DEGENERATE_RATIO if self.imu is not None else None,
-            )
-            self._T[k0 : k_new + 1] = window
-        return self._T[k_new].copy()
-
-    def _associate_and_observe(self, ready: list[_Pending]) -> None:
-        fe = self.cfg.frontend
-        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
-        now = self._knot_time(self._n_knots - 1)
-        hosts = self._host_map()
-        for p, summary in zip(ready, self._world_summaries(ready), strict=True):
-            ids = self._associate_scan(p, self.gates, summary)
+    def _associate_and_observe(self, ready: list[PendingScan]) -> None:
+        """Associate the ready scans with the tight gates; their segments and breaks observe the
+        map (the rest goes to the pool)."""
+        blocks = ObservationBlocks(self.knots, self.stats)
+        now = self.knots.time(self.knots.n - 1)
+        hosts = self.maps.ties.children()
+        for p, summary in zip(ready, self.associator.summaries(ready), strict=True):
+            ids = self.associator.associate(p, self.gates, summary)
             p.plane_ids = ids
             segs = p.segs
-            if self.emap is not None:
-                self._observe_edges(p, ids, hosts, now, blocks)
-            associated = np.flatnonzero(ids >= 0)
-            pooled = np.flatnonzero((ids < 0) & (segs.n_points >= fe.min_segment_points))
-            # every 8th point of the associated segments (extents), every 12th of the pooled ones
-            placed = self._place_segments(segs, np.concatenate((associated, pooled)),
-                                          np.repeat([8, 12], [associated.size, pooled.size]))
-            for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
-                pid = int(ids[j])
-                self._observe(segs, j, pid, blocks)
-                self.pmap.extend(pid, pts)
-                self.pmap.planes[pid].n_segments += 1
-                self.pmap.seen(pid, now, self._odometer)
-            self.stats["associated"] += int((ids >= 0).sum())
-            v_all, e_all = summary[0], summary[1]
-            for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
-                v_world, e_world = v_all[j], e_all[j]
-                d = e_world[1] - e_world[0]
-                t_mid = float(segs.virtual_times[j].mean())
-                T_mid = self._pose_at(t_mid) @ self._T_body_scanner[segs.scanner]
-                scan_normal = T_mid[:3, 2]
-                self.pool.add(
-                    PooledSegment(
-                        ref=(p.serial, int(j)),
-                        time=t_mid,
-                        scan_serial=p.serial,
-                        centroid=v_world.mean(axis=0),
-                        direction=d / max(float(np.linalg.norm(d)), 1e-9),
-                        endpoints=e_world,
-                        samples=samples,
-                        line=v_world,
-                        scan_normal=scan_normal,
-                        origin=T_mid[:3, 3].copy(),
-                    )
-                )
-            self._done.append(p)
-        self._flush_blocks(blocks)
-
-    def _is_wall(self, hosts: dict[int, int]) -> Callable[[int], bool]:
-        """Whether a (current) plane id is a wall and not a door or board tied to one."""
-        return lambda pid: self.pmap.planes[pid].kind == KIND_WALL and pid not in hosts
-
-    def _host_map(self) -> dict[int, int]:
-        """Current (merged) plane id -> its current host wall id, for the tied doors and boards.
-        Merges can fold a door into the plane its wall was merged with and the other way round;
-        of two planes tied either way the one with more segments is the wall (never a child)."""
-        state = (self.pmap.merges, len(self._host))
-        if self._resolved_hosts is None or self._resolved_hosts[0] != state:
-            out = {}
-            for child, host in self._host.items():
-                c, h = self.pmap.resolve(child), self.pmap.resolve(host)
-                if c != h:
-                    out[c] = h
-            self._resolved_hosts = (state, out)
-        planes = self.pmap.planes
-        return {c: h for c, h in self._resolved_hosts[1].items() if planes[c].n_segments <= planes[h].n_segments}
-
-    def _scan_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
-        """Break points of one scan between a wall and a step in it (``frontend.edges``), placed in
-        the world with the current trajectory."""
-        assert self.emap is not None
-        memo = p.breaks_memo
-        ids_key = ids.tobytes()
-        if memo is not None and memo[0] == ids_key and memo[1] == hosts:
-            return self._replaced(memo[2])
-        out = self._find_breaks(p, ids, hosts)
-        p.breaks_memo = (ids_key, dict(hosts), out)
-        return out
-
-    def _replaced(self, breaks: list[Break]) -> list[Break]:
-        """The breaks placed in the world with the current trajectory (the map is unchanged)."""
-        if not breaks:
-            return []
-        w = self._place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
-        return [replace(b, point_world=x, u=float(along_wall(self.pmap.planes[b.host].normal) @ x))
-                for b, x in zip(breaks, w, strict=True)]
-
-    def _find_breaks(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
-        """:meth:`_scan_breaks` computed."""
-        assert self.emap is not None
-        ep = self.emap.params
-        segs = p.segs
-        pairs = break_pairs(segs.first_beam, segs.n_points, ids, self._is_wall(hosts), ep.max_skipped_points)
-        is_wall = self._is_wall(hosts)
-        walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
-        if not pairs and not walls:
-            return []
-        origin = (self._pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
-        out = self._recess_breaks(p, ids, walls, origin)
-        if self.cfg.edges.inline:
-            out += self._inline_breaks(p, ids, walls, origin)
-        for j_wall, j_other in pairs:
-            if segs.n_points[j_other] < self.cfg.frontend.min_segment_points:
-                continue
-            # boundary points: the end of the earlier segment and the start of the later one
-            lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
-            ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
-            if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
-                continue
-            w = self._place(
-                np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
-                np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
-            )
-            wall = int(ids[j_wall])
-            n_wall = self.pmap.planes[wall].normal
-            if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall
-                d_wall = self.pmap.planes[wall].d
-                if abs(float(np.mean(w[4:6] @ n_wall)) + d_wall) > abs(float(np.mean(w[2:4] @ n_wall)) + d_wall):
-                    continue
-            s1, s2 = step_of(n_wall, w[4:6], w[2:4])
-            if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
-                continue
-            # the edge point is the end of the surface nearer the scanner (the wall for a door, the
-            # board for a board): beyond the edge the lower surface is shadowed or seen on the step's
-            # face, by an amount that depends on the view; the higher one ends at the edge either way
-            h_view = float(n_wall @ origin)
-            wall_higher = abs(h_view - float(np.mean(w[4:6] @ n_wall))) < abs(h_view - float(np.mean(w[2:4] @ n_wall)))
-            higher_is_lo = wall_higher == (j_wall == lo)
-            i_end, i_next, q = (ia, ia - 1, 0) if higher_is_lo else (ib, ib + 1, 1)
-            x_world = w[q]
-            pt_body, t = segs.points_body[i_end].copy(), float(segs.times[i_end])
-            spacing = float(np.linalg.norm(segs.points_body[i_end] - segs.points_body[i_next]))
-            if ep.point == "bracket":
-                j_high = lo if higher_is_lo else hi
-                k_end = int(segs.last_beam[lo]) if higher_is_lo else int(segs.first_beam[hi])
-                direction = 1 if higher_is_lo else -1
-                # half the step: a return on the lower surface stays off the higher one's line
-                tol = min(3.0 * self._range_sigma[segs.scanner], 0.5 * abs(0.5 * (s1 + s2)))
-                got = _bracket_end(segs, j_high, k_end, direction, tol)
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                T_bs = self._T_body_scanner[segs.scanner]
-                pt_body = T_bs[:3, :3] @ np.array([edge_scanner[0], edge_scanner[1], 0.0]) + T_bs[:3, 3]
-                x_world = self._place(pt_body[None, :], np.array([t]))[0]
-            elif ep.point == "midpoint":
-                x_world = 0.5 * (w[0] + w[1])
-                pt_body = 0.5 * (segs.points_body[ia] + segs.points_body[ib])
-                t = 0.5 * float(segs.times[ia] + segs.times[ib])
-                spacing = float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib]))
-            if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                continue
-            n_e = along_wall(n_wall)
-            side = 1 if float(n_e @ (w[2:4].mean(axis=0) - x_world)) > 0.0 else -1
-            step = 1 if s1 + s2 > 0.0 else -1
-            out.append(Break(wall, step, side, float(n_e @ x_world), pt_body, x_world, t,
-                             break_sigma(spacing, ep.sigma), p.serial,
-                             flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
-        return out
-
-    def _recess_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
-                       origin: FloatArray) -> list[Break]:
-        """Breaks where a wall segment ends into unsegmented returns a door's recess behind it
-        (``frontend.edges.recess_beyond``: a door seen obliquely is often left unsegmented); the
-        wall is the nearer surface, so its end is bracketed as for a segmented pair."""
-        assert self.emap is not None
-        ep = self.emap.params
-        segs = p.segs
-        owner: NDArray[np.int64] | None = None
-        T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        out = []
-        for j in walls:
-            if segs.n_points[j] < self.cfg.frontend.min_segment_points:
-                continue
-            wall = int(ids[j])
-            n_wall = self.pmap.planes[wall].normal
-            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-            for direction in (1, -1):
-                k_end = segment_end(segs, j, direction)
-                key = (j, direction)
-                if key not in p.edge_tests:  # a test kept (by the reader or before) passed this check
-                    if owner is None:
-                        owner = segment_owner(segs)
-                    if next_to_segment(owner, k_end, direction):  # the segment pairs handle that end
-                        continue
-                    p.edge_tests[key] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
-                                                      segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
-                found = p.edge_tests[key]
-                if found is None:
-                    continue
-                _, k_in, depth = found
-                got = _bracket_end(segs, j, k_end, direction, min(3.0 * sigma, 0.5 * depth))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
-                pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
-                                        [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
-                i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
-                t = float(segs.times[i_end])
-                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
-                w = self._place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
-                x_world = w[0]
-                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                    continue
-                n_e = along_wall(n_wall)
-                side = 1 if float(n_e @ (w[1] - x_world)) > 0.0 else -1
-                step = 1 if float(n_wall @ (w[1] - x_world)) > 0.0 else -1
-                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
-                                 break_sigma(spacing, ep.sigma), p.serial,
-                                 flat=is_flat(w[3] - w[2], n_wall, ep.flat_slope)))
-        return out
-
-    def _inline_breaks(self, p: _Pending, ids: NDArray[np.int64], walls: list[int],
-                       origin: FloatArray) -> list[Break]:
-        """Breaks at steps inside wall segments (``frontend.edges.steps_within``): a poster 5 mm
-        proud, or a door 1 cm deep seen at a slant, is often left in its wall's segment, and it may
-        be the only mark along a corridor. The surface nearer the scanner is bracketed as for a
-        segmented pair, on the line through its own window of points."""
-        assert self.emap is not None
-        ep, ec = self.emap.params, self.cfg.edges
-        segs = p.segs
-        T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        W = ec.inline_window
-        out = []
-        for j in walls:
-            if segs.n_points[j] < 2 * W:
-                continue
-            if p.edge_tests.get((j, 0)) == []:  # asked before: no step
-                continue
-            beams, xy = segment_returns(segs, j)
-            c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-            if (j, 0) not in p.edge_tests:
-                p.edge_tests[(j, 0)] = steps_within(xy, c2, u2, sigma, W, ep.min_step, ep.max_step, ec.inline_z)
-            steps = p.edge_tests[(j, 0)]
-            if not steps:
-                continue
-            wall = int(ids[j])
-            n_wall, d_wall = self.pmap.planes[wall].normal, self.pmap.planes[wall].d
-            normal2 = np.array([-u2[1], u2[0]])
-            toward_scanner = float(normal2 @ (-c2))  # the scanner's side of the line
-            for k, depth in steps:
-                left, right = xy[max(0, k + 1 - W) : k + 1], xy[k + 1 : k + 1 + W]
-                right_high = (depth > 0.0) == (toward_scanner > 0.0)
-                high = right if right_high else left
-                k_end, direction = (int(beams[k + 1]), -1) if right_high else (int(beams[k]), 1)
-                got = _bracket_on_line(segs, high.mean(axis=0), u2, k_end, direction,
-                                       min(3.0 * sigma, 0.5 * abs(depth)))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                pts_scanner = np.zeros((3, 3))
-                pts_scanner[:, :2] = (edge_scanner, left.mean(axis=0), right.mean(axis=0))
-                i_k = int(segs.offsets[j]) + k
-                t = float(segs.times[i_k])
-                pts_body = self._deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(3, t))
-                w = self._place(pts_body, np.full(3, t))
-                x_world = w[0]
-                if not steep_enough(origin, x_world, n_wall, ep.min_incidence_deg):
-                    continue
-                # of the two sides the one on the wall's plane is the wall, the other the step
-                on_wall = np.abs(w[1:] @ n_wall + d_wall)
-                other = w[2] if on_wall[0] <= on_wall[1] else w[1]
-                base = w[1] if on_wall[0] <= on_wall[1] else w[2]
-                n_e = along_wall(n_wall)
-                side = 1 if float(n_e @ (other - x_world)) > 0.0 else -1
-                step = 1 if float(n_wall @ (other - base)) > 0.0 else -1
-                out.append(Break(wall, step, side, float(n_e @ x_world), pts_body[0], x_world, t,
-                                 break_sigma(spacing, ep.sigma), p.serial,
-                                 flat=is_flat(w[2] - w[1], n_wall, ep.flat_slope)))
-        return out
-
-    def _observe_edges(self, p: _Pending, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
-                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        """Each break of the scan observes its edge plane, or waits in the edge map's pending list."""
-        assert self.emap is not None
-        for brk in self._scan_breaks(p, ids, hosts):
-            edge = self.emap.match(brk)
-            if edge is None:
-                self.emap.pending.append(brk)
-                continue
-            self._observe_point(brk, edge.id, blocks)
-            edge.n_obs += 1
-            edge.last_seen_time = now
-
-    def _loose_edges(self, p: _Pending, hosts: dict[int, int]) -> None:
-        """Breaks of a ready scan matched to known edges with the tracking gate (for the tracker)."""
-        assert self.emap is not None and p.loose_ids is not None
-        rows = []
-        for brk in self._scan_breaks(p, p.loose_ids, hosts):
-            edge = self.emap.match(brk, gate=self.cfg.edges.tracking_gate)
-            if edge is not None:
-                rows.append((brk.point_body, brk.time, edge.id, brk.sigma))
-        if rows:
-            p.loose_edges = (
-                np.array([r[0] for r in rows]),
-                np.array([r[1] for r in rows]),
-                np.array([r[2] for r in rows], dtype=np.int64),
-                np.array([r[3] for r in rows]),
-            )
-
-    def _observe_point(self, brk: Break, pid: int,
-                       blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        idx, alpha = self._fractions(np.array([brk.time]))
-        blocks.setdefault((int(idx[0]), pid), []).append((brk.point_body, alpha, np.array([brk.sigma])))
-        self.stats["edge_observations"] += 1
-
-    def _create_edges(self, now: float) -> None:
-        """New edge planes from clusters of pending breaks: vertical, tied perpendicular to the wall."""
-        assert self.emap is not None
-        self.emap.expire(now)
-        for members, u in self.emap.cluster():
-            b0 = members[0]
-            host = self.pmap.resolve(b0.host)
-            n_e = along_wall(self.pmap.planes[host].normal)
-            z = [float(b.point_world[2]) for b in members]
-            edge = self.emap.add(host, b0.step, b0.side, n_e, u, now, (min(z), max(z)))
-            anchor = np.mean([b.point_world for b in members], axis=0)
-            self.backend.add_plane(edge.id, n_e, -u, vertical=True, anchor=anchor)
-            self.backend.add_perpendicular(host, edge.id, np.radians(self.cfg.edges.perpendicular_sigma_deg))
-            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
-            for b in members:
-                self._observe_point(b, edge.id, blocks)
-            self._flush_blocks(blocks)
-            edge.n_obs = len(members)
-            self.stats["edges_created"] += 1
-
-    def _refresh_edges(self, now: float) -> None:
-        """Copy the recently seen edges' estimates in and tie duplicated edges together."""
-        assert self.emap is not None
-        for e in self.emap.active():
-            if now - e.last_seen_time < 5.0:
-                e.normal, e.d = self.backend.plane(e.id)
-        sigma = self.cfg.edges.link_sigma
-        for keep, drop in self.emap.duplicates():
-            self.backend.link_planes(keep.id, drop.id, sigma, sigma)
-            drop.merged_into = keep.id
-            keep.z_range = (min(keep.z_range[0], drop.z_range[0]), max(keep.z_range[1], drop.z_range[1]))
-            keep.n_obs += drop.n_obs
-            keep.last_seen_time = max(keep.last_seen_time, drop.last_seen_time)
-            self.stats["edges_merged"] += 1
-
-    def _place_segments(self, segs: ScanSegments, js: NDArray[np.int64], per: int | NDArray[np.int64]) -> list[FloatArray]:
-        """World points (world frame) of the segments ``js``: every ``max(1, n // per)``-th of a
-        segment's n points (``per`` one for all or one per segment), placed with one ``_place``
-        call for all of them (per point the same numbers as one call per segment)."""
-        if js.size == 0:
-            return []
-        pers = np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64)
-        sel, splits = fk.subsample_rows(np.ascontiguousarray(segs.offsets, dtype=np.int64),
-                                        np.ascontiguousarray(segs.n_points, dtype=np.int64),
-                                        np.ascontiguousarray(js, dtype=np.int64), pers)
-        placed = self._place(segs.points_body[sel], segs.times[sel])
-        return np.split(placed, splits)
-
-    def _observe(self, segs: ScanSegments, j: int, pid: int,
-                 blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        idx, alpha = self._fractions(segs.virtual_times[j])
-        for q in range(2):
-            blocks.setdefault((int(idx[q]), pid), []).append(
-                (segs.virtual_body[j, q], np.array([alpha[q]]), np.array([segs.virtual_sigma[j]]))
-            )
-
-    def _flush_blocks(self, blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]]) -> None:
-        for (knot, pid), rows in blocks.items():
-            pts = np.array([r[0] for r in rows])
-            al = np.concatenate([r[1] for r in rows])
-            sg = np.concatenate([r[2] for r in rows])
-            self.backend.add_observations(knot, pid, pts, al, sg)
-            self.stats["observation_blocks"] += 1
-
-    def _compact(self, now: float) -> None:
-        """Drop the point data of scans the pool can no longer use, keeping their segment rows."""
-        horizon = now - self.pool.params.window - 1.0
-        n_old = 0
-        while n_old < len(self._done) and self._done[n_old].t_end < horizon:
-            n_old += 1
-        if n_old:
-            self._rows.append(self._rows_of(self._done[:n_old]))
-            del self._done[:n_old]
-
-    def _create_planes(self, now: float) -> None:
-        self._compact(now)
-        self.pool.expire(now)
-        new = self.pool.create_planes()
-        if not new:
-            return
-        by_serial = {p.serial: p for p in self._done}
-        fe = self.cfg.frontend
-        body_z = float(self._T[self._n_knots - 1, 2, 3])
-        for plane in new:
-            kind = classify(plane.normal, plane.d, body_z, np.radians(fe.vertical_tolerance_deg))
-            vertical = plane.vertical_hypothesis or (self.cfg.backend.vertical_walls and kind == KIND_WALL)
-            if kind == KIND_OTHER and len(plane.members) < fe.min_support_oblique:
-                self.stats["planes_rejected"] += 1
-                self.stats["planes_rejected_oblique"] += 1
-                continue
-            if not self._constrained(plane, by_serial, kind, vertical):
-                self.stats["planes_rejected"] += 1
-                continue
-            pts = np.vstack([m.samples for m in plane.members])
-            host = self._host_of(plane, pts)
-            if host is not None:
-                # a door set into its wall or a board on it: parallel to the wall by construction;
-                # fitted alone, a patch a metre wide gets its heading wrong by up to a degree, and
-                # along a corridor that tilt is the only thing "observing" the walking direction
-                plane.normal = self.pmap.planes[host].normal.copy()
-                plane.d = -float(np.mean(pts @ plane.normal))
-            pl = self.pmap.add(plane.normal, plane.d, kind, now, self._odometer)
-            anchor = pts.mean(axis=0)
-            self.backend.add_plane(
-                pl.id,
-                plane.normal,
-                plane.d,
-                horizontal=kind in (KIND_FLOOR, KIND_CEILING),
-                vertical=vertical,
-                anchor=anchor,
-            )
-            if host is not None:
-                self.backend.add_parallel(host, pl.id, np.radians(fe.parallel_sigma_deg))
-                self._host[pl.id] = host
-                self.stats["planes_parallel"] += 1
-            elif kind == KIND_WALL and fe.wall_faces:
-                face = self._other_face_of(plane.normal, pts)
-                if face is not None:
-                    self.backend.add_parallel(face, pl.id, np.radians(fe.wall_faces_sigma_deg))
-                    self.stats["wall_faces"] += 1
-            blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
-            for m in plane.members:
-                rec = by_serial.get(m.ref[0])
-                if rec is None:
-                    continue
-                j = m.ref[1]
-                rec.plane_ids[j] = pl.id
-                self._observe(rec.segs, j, pl.id, blocks)
-                self.pmap.extend(pl.id, m.samples)
-                pl.n_segments += 1
-            self._flush_blocks(blocks)
-            self.stats["planes_created"] += 1
-            self.stats["associated"] += len(plane.members)
-            self._adopt_pooled(pl.id, by_serial)
-
-    def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
-        """The established plane a new one (its members' points ``pts``, world frame) lies on,
-        parallel and a few centimetres off (a door in its wall, a board on it), or None.
-        Established: ``HOST_MIN_SEGMENTS`` segments."""
-        fe = self.cfg.frontend
-        cos_max = np.cos(np.radians(fe.parallel_max_angle_deg))
-        best: tuple[float, int] | None = None
-        for pid in self.pmap.active_ids():
-            h = self.pmap.planes[int(pid)]
-            if h.n_segments < HOST_MIN_SEGMENTS or float(h.normal @ plane.normal) < cos_max:
-                continue
-            off = float(np.max(np.abs(pts @ h.normal + h.d)))
-            if off > fe.parallel_max_offset:
-                continue
-            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
-                continue
-            if best is None or off < best[0]:
-                best = (off, int(pid))
-        return None if best is None else best[1]
-
-    def _other_face_of(self, normal: FloatArray, pts: FloatArray) -> int | None:
-        """The established wall whose other face a new wall (``normal``, its members' points
-        ``pts``, world frame) is: facing the opposite way, its points ``wall_thickness`` behind the
-        wall's face and over its extent; the one with the most segments, or None."""
-        fe = self.cfg.frontend
-        cos_min = np.cos(np.radians(fe.parallel_max_angle_deg))
-        best: tuple[int, int] | None = None
-        for pid in self.pmap.active_ids():
-            w = self.pmap.planes[int(pid)]
-            if w.kind != KIND_WALL or w.n_segments < HOST_MIN_SEGMENTS:
-                continue
-            if not is_other_face(w.normal, w.d, normal, pts, cos_min, fe.wall_thickness):
-                continue
-            if not self.pmap.overlaps(int(pid), pts, self.gates.extent_margin_cells):
-                continue
-            if best is None or w.n_segments > best[0]:
-                best = (w.n_segments, int(pid))
-        return None if best is None else best[1]
-
-    def _constrained(self, plane: NewPlane, by_serial: dict[int, _Pending], kind: int, vertical: bool) -> bool:
-        """Whether the members' observations (virtual points, as the back end will see them) fix
-        the new plane's tilt to ``MAX_TILT_SIGMA``, given its horizontality/verticality prior:
-        a thin strip of points (a door frame seen edge-on) leaves the solver a nearly singular
-        plane, which makes iSAM2 fail."""
-        if kind in (KIND_FLOOR, KIND_CEILING):
-            return True  # both tilts held by the horizontality prior
-        pts, sig = [], []
-        for m in plane.members:
-            rec = by_serial.get(m.ref[0])
-            if rec is None:
-                continue
-            j = m.ref[1]
-            pts.append(self._place(rec.segs.virtual_body[j], rec.segs.virtual_times[j]))
-            sig.append(np.repeat(rec.segs.virtual_sigma[j], 2))
-        if len(pts) < 2:
-            return False
-        about = np.array([0.0, 0.0, 1.0]) if vertical else None
-        return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < MAX_TILT_SIGMA
-
-    def _adopt_pooled(self, pid: int, by_serial: dict[int, _Pending]) -> None:
-        """Give a new plane the pooled segments that lie on it but were not among its seed group."""
-        pl = self.pmap.planes[pid]
-        taken = []
-        blocks: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
-        for m in self.pool.items:
-            if abs(float(m.direction @ pl.normal)) > np.sin(np.radians(2.0)):
-                continue
-            if not on_plane(m, pl.normal, pl.d, self.pool.params):
-                continue
-            if not self.pmap.overlaps(pid, m.samples, self.gates.extent_margin_cells):
-                continue
-            rec = by_serial.get(m.ref[0])
-            if rec is None:
-                continue
-            rec.plane_ids[m.ref[1]] = pid
-            self._observe(rec.segs, m.ref[1], pid, blocks)
-            self.pmap.extend(pid, m.samples)
-            pl.n_segments += 1
-            taken.append(m)
-        if taken:
-            self._flush_blocks(blocks)
-            self.pool.remove(taken)
-            self.stats["associated"] += len(taken)
+            self.edges.observe(p, ids, hosts, now, blocks)
+            self.maps.observe(p, ids, summary[0], summary[1], self._T_body_scanner[segs.scanner], now, blocks)
+            self.queues.done.append(p)
+        blocks.flush(self.backend)
 
     def _update(self) -> None:
         self._since_update = 0
         report = self.backend.step()
         if not report.solved:
             return
-        self.stats["isam2_rebuilds"] += report.rebuilds
-        self.stats["isam2_fallbacks"] += report.fallbacks
+        self.stats.isam2_rebuilds += report.rebuilds
+        self.stats.isam2_fallbacks += report.fallbacks
         self._after_update()
 
     def _after_update(self) -> None:
-        self.stats["updates"] += 1
+        self.stats.updates += 1
         # refresh the recent knots and the recently seen planes
-        k0 = max(0, self._n_knots - 4 * self.cfg.backend.update_every)
-        for k in range(k0, self._n_knots):
-            self._T[k] = self.backend.pose(k)
-            if self.imu is not None:
-                self._V[k] = self.backend.velocity(k)
-        if self.imu is not None:
-            self._bias = self.backend.bias(self._n_knots - 1)
-        now = self._knot_time(self._n_knots - 1)
-        for pl in self.pmap.active_planes():
-            if now - pl.last_seen_time < 5.0:
-                n, d = self.backend.plane(pl.id)
-                self.pmap.set_estimate(pl.id, n, d)
-        self._merge_planes(now)
-        if self.emap is not None:
-            self._refresh_edges(now)
-
-    def _merge_planes(self, now: float) -> None:
-        fe = self.cfg.frontend
-        recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
-        cos_max = np.cos(np.radians(fe.merge_angle_deg))
-        for a in recent:
-            if not a.active:
-                continue
-            for b in list(self.pmap.active_planes()):  # a snapshot: merges below change the list
-                if b.id == a.id or not b.active or not a.active:
-                    continue
-                if float(a.normal @ b.normal) < cos_max:  # same facing only: not the two faces of a wall
-                    continue
-                rate = fe.drift_rate_vertical if a.kind in HORIZONTAL_KINDS else fe.drift_rate
-                if fe.merge_drift_over == "gap":
-                    walked = self.pmap.unseen_between(a.id, b.id)
-                else:
-                    walked = max(0.0, self._odometer - min(a.last_seen_odometer, b.last_seen_odometer))
-                tol = merge_tolerance(fe.merge_distance, rate, walked, self.pmap.coobserved(a.id, b.id),
-                                      fe.merge_coobserved_max)
-                if not self.pmap.extents_touch(a.id, b.id, self.gates.extent_margin_cells):
-                    continue
-                # the offset difference over the smaller plane's extent (where both are seen), so
-                # that a tilted plane (a door fitted with a bit of its wall) does not merge on the
-                # strength of its centre alone
-                small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
-                if self.pmap.max_distance_over(small.id, big.id) > tol:
-                    continue
-                keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
-                self.backend.link_planes(keep.id, drop.id, fe.link_sigma, fe.link_sigma)
-                self.pmap.merge(keep.id, drop.id)
-                self.stats["planes_merged"] += 1
+        k0 = max(0, self.knots.n - 4 * self.cfg.backend.update_every)
+        for k in range(k0, self.knots.n):
+            self.knots.T[k] = self.backend.pose(k)
+        self.motion.refresh(self.knots, k0)  # velocities and bias with an IMU
+        now = self.knots.time(self.knots.n - 1)
+        self.maps.refresh(now)
+        self.maps.merge(now)
+        self.edges.refresh(now)
 
     # ------------------------------------------------------------------ results
-    def result(self, batch: bool = True) -> SlamResult:
+    def result(self, batch: bool = True, covariances: bool = True) -> SlamResult:
+        """The final estimates: after a batch solve over everything (``batch``, with the final
+        trims), else the current ones; with the planes' marginal covariances unless
+        ``covariances`` is off (they take a factorisation of the whole graph)."""
         t = _time.perf_counter()
         summary = None
         self.backend.fold_links()
-        if batch and self._n_knots >= 2:
+        if batch and self.knots.n >= 2:
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
             for _ in range(be.final_trim_rounds if be.final_trim_sigmas > 0 else 0):
                 n_pts, n_blk = self.backend.trim_observations(be.final_trim_sigmas, be.final_trim_distance)
-                self.stats["trimmed_points"] += n_pts
-                self.stats["trimmed_blocks"] += n_blk
+                self.stats.trimmed_points += n_pts
+                self.stats.trimmed_blocks += n_blk
                 if not n_pts:
                     break
                 summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
@@ -1183,97 +227,39 @@ class SlamRunner:
         ids, normals, offsets = ids[real], normals[real], offsets[real]
         for pid, n, d in zip(ids, normals, offsets, strict=True):
             self.pmap.set_estimate(int(pid), n, float(d))
-        rows = self._segment_rows()
-        stats: dict[str, Any] = dict(self.stats)
-        stats["knots"] = self._n_knots
-        stats["planes"] = len(ids)
-        stats["edges"] = 0 if self.emap is None else len(self.emap.active())
-        stats["pool_dropped"] = self.pool.dropped
-        stats["singular_systems"] = list(self.backend.singular_systems)
-        if summary is not None:
-            stats["batch"] = {
-                "initial_error": summary.initial_error,
-                "final_error": summary.final_error,
-                "iterations": summary.iterations,
-                "seconds": summary.seconds,
-            }
-        stats["residuals"] = self.backend.residual_statistics()
+        rows = self.queues.segment_rows(self.pmap.resolve)
+        stats = replace(
+            self.stats,
+            knots=self.knots.n,
+            planes=len(ids),
+            edges=self.edges.count(),
+            pool_dropped=self.pool.dropped,
+            singular_systems=list(self.backend.singular_systems),
+            batch=None if summary is None else BatchStats(summary.initial_error, summary.final_error,
+                                                          summary.iterations, summary.seconds),
+            residuals=self.backend.residual_statistics(),
+        )
+        cov: dict[int, FloatArray] = {}
+        for pid in map(int, ids) if covariances else ():
+            try:
+                cov[pid] = self.backend.plane_covariance(pid)
+            except (ValueError, RuntimeError):  # no marginal for this plane (an indeterminate system)
+                continue
         return SlamResult(
             knot_times=self.backend.knot_times(),
             T_world_body=poses,
             plane_ids=ids,
             plane_normals=normals,
             plane_offsets=offsets,
+            plane_covariances=cov,
             plane_map=self.pmap,
             scanner_names=self.scanner_names,
             segment_rows=rows,
             stats=stats,
             timings=dict(self._timer.t),
-            deskew=self._deskew,
+            deskew=self.knots.deskew,
         )
-
-    @staticmethod
-    def _rows_of(recs: list[_Pending]) -> tuple[NDArray[Any], ...]:
-        if not recs:
-            z = np.zeros(0, dtype=np.int64)
-            return z, z, np.zeros(0), z, z, z
-        return (
-            np.concatenate([np.full(r.segs.n_segments, r.segs.scanner) for r in recs]),
-            np.concatenate([np.full(r.segs.n_segments, r.segs.scan_index) for r in recs]),
-            np.concatenate([np.full(r.segs.n_segments, r.segs.stamp) for r in recs]),
-            np.concatenate([r.segs.first_beam for r in recs]),
-            np.concatenate([r.segs.last_beam for r in recs]),
-            np.concatenate([r.plane_ids for r in recs]),
-        )
-
-    def _segment_rows(self) -> dict[str, NDArray[Any]]:
-        parts = [*self._rows, self._rows_of(self._done + self._pending)]
-        scanner, scan_index, stamp, first, last, pid = (np.concatenate(c) for c in zip(*parts, strict=True))
-        resolved = np.array([self.pmap.resolve(int(i)) if i >= 0 else -1 for i in pid], dtype=np.int64)
-        order = np.lexsort((first, scan_index, scanner))
-        return {
-            "scanner": scanner[order],
-            "scan_index": scan_index[order],
-            "stamp": stamp[order],
-            "first_beam": first[order],
-            "last_beam": last[order],
-            "plane_id": resolved[order],
-        }
 
     def kind_name(self, pid: int) -> str:
+        """The kind (wall, floor, ceiling, other) of map plane ``pid``."""
         return KIND_NAMES[self.pmap.planes[pid].kind]
-
-
-def _bracket_end(segs: ScanSegments, j: int, k_end: int, direction: int,
-                 tolerance: float) -> tuple[FloatArray, float] | None:
-    """The edge where segment ``j``'s surface ends at beam ``k_end`` (walking ``direction``)."""
-    return _bracket_on_line(segs, segs.line_centroid[j], segs.line_direction[j], k_end, direction, tolerance)
-
-
-def _bracket_on_line(segs: ScanSegments, c2: FloatArray, u2: FloatArray, k_end: int, direction: int,
-                     tolerance: float) -> tuple[FloatArray, float] | None:
-    """The edge where the surface on the 2D line (``c2``, ``u2``; scanner frame) ends at beam
-    ``k_end`` (walking ``direction``): the end walked over beams still on the line within
-    ``tolerance`` (``surface_end``), then bracketed with the next beam (``bracket_point``);
-    (point (2,) scanner frame, spacing) or None."""
-    k_end = surface_end(k_end, direction, segs.beam_angles, segs.beam_ranges, segs.beam_valid, c2, u2, tolerance)
-    k_next = k_end + direction
-    if not 0 <= k_next < segs.beam_angles.shape[0]:
-        return None
-    return bracket_point(float(segs.beam_angles[k_end]), float(segs.beam_angles[k_next]), c2, u2)
-
-
-def run_stream(
-    scans: Iterable[Scanline],
-    rig: Rig,
-    cfg: SlamConfig,
-    progress: Callable[[float], None] | None = None,
-) -> SlamResult:
-    """Run SLAM over a time-ordered stream of scanlines; ``progress(t)`` is called with scan stamps."""
-    runner = SlamRunner(rig, cfg)
-    for line in scans:
-        runner.add_scan(line)
-        if progress is not None:
-            progress(line.stamp)
-    runner.finish()
-    return runner.result(batch=cfg.backend.final_batch)

@@ -1,7 +1,7 @@
 """Scans read and prepared ahead of the front end, in a second process.
 
 The front end and the back end run in one process; reading the bag, segmenting every scan and
-lifting its segments into the body frame (``slam.scan_prep``) depend on the scans alone, so a
+lifting its segments into the body frame (``slam.frontend.scan_prep``) depend on the scans alone, so a
 reader process does them while the estimator works on the scans before, and hands over
 ``PreparedScan`` records in chunks through a bounded queue (memory stays bounded: the reader is
 at most ``max_chunks`` chunks ahead). The records are the same, bit for bit, as those prepared in
@@ -22,9 +22,9 @@ from typing import Any
 
 from common.rig import Rig
 from slam.config import SlamConfig
+from slam.frontend.scan_prep import PreparedScan, ScanPreparer
 from slam.imu_feed import ImuSamples
 from slam.io.source import BagSource, StreamIndex
-from slam.scan_prep import PreparedScan, ScanPreparer
 
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
 _DONE = "done"

@@ -285,7 +285,9 @@ def test_loosened_slam_config_opens_the_gates_and_never_tightens() -> None:
     assert wide.coplanar_distance > fe.coplanar_distance and wide.merge_distance > fe.merge_distance
     assert 1.0 <= wide.tracking_loosen < fe.tracking_loosen  # tracking gates keep their absolute width
     tiny = loosened_slam_config(cfg, np.radians(0.01), 0.0001).frontend
-    assert tiny.model_dump() == {**fe.model_dump(), "tracking_loosen": fe.tracking_loosen}
+    assert tiny.model_dump() == {**fe.model_dump(), "tracking_loosen": fe.tracking_loosen,
+                                 "max_endpoint_distance": fe.max_endpoint_distance + 3.0 * 0.0001}
+    assert wide.max_endpoint_distance == pytest.approx(fe.max_endpoint_distance + 0.15)  # a wrong extrinsic moves the ends
     assert is_loosened(cfg, np.radians(3.0), 0.05) and not is_loosened(cfg, np.radians(0.01), 0.0001)
 
 

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 
+from slam.config import SlamConfig
 from slam.frontend.edges import (
     EDGE_ID_BASE,
     Break,
@@ -21,8 +25,14 @@ from slam.frontend.edges import (
     steps_within,
     surface_end,
 )
+from slam.params import edge_params
 
 WALL_N = np.array([0.0, 1.0, 0.0])  # a wall y = 0 facing +y; along it: x
+
+
+def _params(**changes: Any) -> EdgeParams:
+    """The default configuration's edge parameters with ``changes``."""
+    return replace(edge_params(SlamConfig()), **changes)
 
 
 def _break(u: float, serial: int, z: float = 1.5, host: int = 1, step: int = -1, side: int = 1) -> Break:
@@ -76,7 +86,7 @@ def test_break_sigma_and_incidence() -> None:
 
 
 def test_vertical_edge_clusters_and_top_edge_does_not() -> None:
-    em = EdgeMap(EdgeParams(min_points=6, min_scans=4, cluster_width=0.02), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=6, min_scans=4, cluster_width=0.02), resolve=lambda i: i)
     rng = np.random.default_rng(0)
     # a jamb at u = 2.0: breaks of 8 scans within +-5 mm, at several heights
     for s in range(8):
@@ -97,7 +107,7 @@ def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
     """A tilted scanline nearly parallel to a board's bottom edge puts its breaks close together at
     one height: not a vertical edge. The horizontal scanner's breaks are all at one height too, but
     its scanlines cross the wall flat and can only cross vertical edges."""
-    em = EdgeMap(EdgeParams(min_points=4, min_scans=3), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=4, min_scans=3), resolve=lambda i: i)
     for s in range(6):
         em.pending.append(_break(5.0 + 0.002 * s, s, z=0.9))
     assert em.cluster() == []
@@ -110,14 +120,14 @@ def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
 
 
 def test_too_few_scans_make_no_edge() -> None:
-    em = EdgeMap(EdgeParams(min_points=6, min_scans=4), resolve=lambda i: i)
+    em = EdgeMap(_params(min_points=6, min_scans=4), resolve=lambda i: i)
     for k in range(9):
         em.pending.append(_break(2.0, serial=k % 3))  # 9 breaks but 3 scans
     assert em.cluster() == []
 
 
 def test_match_respects_key_side_and_gate() -> None:
-    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: {5: 1}.get(i, i))
+    em = EdgeMap(_params(gate=0.03), resolve=lambda i: {5: 1}.get(i, i))
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     assert e.id == EDGE_ID_BASE
     assert em.match(_break(2.01, 0)) is e
@@ -131,7 +141,7 @@ def test_match_respects_key_side_and_gate() -> None:
 def test_match_with_an_index_follows_merges_and_new_edges() -> None:
     merged: dict[int, int] = {}
     gen = [0]
-    em = EdgeMap(EdgeParams(gate=0.03), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
+    em = EdgeMap(_params(gate=0.03), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     assert em.match(_break(2.01, 0)) is e
     assert em.match(_break(2.01, 0, host=5)) is None  # wall 5 is another wall ...
@@ -145,7 +155,7 @@ def test_match_with_an_index_follows_merges_and_new_edges() -> None:
 
 
 def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
-    em = EdgeMap(EdgeParams(gate=0.15, height_margin=0.1), resolve=lambda i: i)
+    em = EdgeMap(_params(gate=0.15, height_margin=0.1), resolve=lambda i: i)
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0, z_range=(0.5, 1.8))
     assert em.match(_break(2.1, 0, z=1.85)) is e
     top = _break(2.1, 0, z=2.05)  # a break on the door's top edge, 10 cm along it
@@ -156,7 +166,7 @@ def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
 
 def test_duplicates_pair_the_same_edge_made_twice() -> None:
     merged: dict[int, int] = {}
-    em = EdgeMap(EdgeParams(merge_distance=0.25), resolve=lambda i: merged.get(i, i))
+    em = EdgeMap(_params(merge_distance=0.25), resolve=lambda i: merged.get(i, i))
     a = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0)
     a.n_obs = 40
     b = em.add(3, -1, 1, along_wall(WALL_N), u=2.12, time=5.0)  # the same wall, a second plane
@@ -285,22 +295,29 @@ def test_steps_within_find_a_5_mm_poster_inside_a_wall_segment() -> None:
         assert k + 1 >= 12 and near.shape[0] - k - 1 >= 12
 
 
-def test_host_map_never_makes_the_bigger_tied_plane_a_door() -> None:
+def test_host_ties_never_make_the_bigger_tied_plane_a_door() -> None:
     """Merges can tie a wall and its door either way round (wall 0 -> door 1 via a merged child
-    and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count."""
-    from common.rig import resolve_rig
-    from slam.config import SlamConfig
-    from slam.frontend.planemap import KIND_WALL
-    from slam.pipeline import SlamRunner
+    and door 1 -> wall 0): the plane with more segments stays the wall, so its breaks count; a
+    wall's other face is a tie but no child."""
+    from slam.frontend.edge_finder import wall_test
+    from slam.frontend.map_builder import HostTies, TieKind
+    from slam.frontend.planemap import KIND_WALL, PlaneMap
 
-    runner = SlamRunner(resolve_rig("itc_backpack"), SlamConfig())
+    pmap = PlaneMap(cell_size=0.25)
     n = np.array([0.0, 1.0, 0.0])
-    wall = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
-    door = runner.pmap.add(n, -4.99, KIND_WALL, 0.0, 0.0)
-    other = runner.pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
-    wall.n_segments, door.n_segments, other.n_segments = 900, 60, 10
-    runner.pmap.merge(wall.id, other.id)  # a plane once tied to the door is now the wall
-    runner._host = {door.id: wall.id, other.id: door.id}
-    hosts = runner._host_map()
+    wall = pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    door = pmap.add(n, -4.99, KIND_WALL, 0.0, 0.0)
+    other = pmap.add(n, -5.0, KIND_WALL, 0.0, 0.0)
+    face = pmap.add(-n, 5.2, KIND_WALL, 0.0, 0.0)
+    wall.n_segments, door.n_segments, other.n_segments, face.n_segments = 900, 60, 10, 80
+    ties = HostTies(pmap)
+    ties.tie(door.id, wall.id, TieKind.DOOR)
+    ties.tie(other.id, door.id, TieKind.BOARD)
+    ties.tie(face.id, wall.id, TieKind.FACE)
+    assert ties.children() == {door.id: wall.id, other.id: door.id}
+    pmap.merge(wall.id, other.id)  # a plane once tied to the door is now the wall
+    hosts = ties.children()
     assert hosts == {door.id: wall.id}
-    assert runner._is_wall(hosts)(wall.id) and not runner._is_wall(hosts)(door.id)
+    assert wall_test(pmap, hosts)(wall.id) and not wall_test(pmap, hosts)(door.id)
+    assert wall_test(pmap, hosts)(face.id) and ties.kind_of(face.id) is TieKind.FACE
+    assert ties.kind_of(wall.id) is None

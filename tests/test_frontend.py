@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import replace
+from typing import Any
 
+import numpy as np
+import pytest
+
+from slam.config import SlamConfig
 from slam.frontend.plane_init import PlaneInitParams, PooledSegment, SegmentPool, on_plane
 from slam.frontend.planemap import PlaneMap, is_other_face, merge_tolerance
 from slam.frontend.tracking import freeze_unobserved, orthonormalize, refine_window
+from slam.params import plane_init_params
 from slam.trajectory.interpolation import (
     interpolate_poses,
     interpolate_trajectory,
@@ -16,6 +22,11 @@ from slam.trajectory.interpolation import (
     se3_log,
 )
 from slam.trajectory.placement import interval_poses, place_points
+
+
+def _init_params(**changes: Any) -> PlaneInitParams:
+    """The default configuration's plane creation (samples within 15 mm) with ``changes``."""
+    return replace(plane_init_params(SlamConfig()), **{"sample_distance": 0.015, **changes})
 
 
 def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.random.Generator,
@@ -36,7 +47,7 @@ def _segment(serial: int, y: float, z0: float, x0: float, x1: float, rng: np.ran
 
 def test_a_door_recessed_13_mm_does_not_join_its_wall() -> None:
     rng = np.random.default_rng(3)
-    p = PlaneInitParams(min_support=4, min_scans=3)
+    p = _init_params(min_support=4, min_scans=3)
     # the two tilted scanners' lines slant opposite ways across the wall
     wall = [_segment(i, 2.0, 0.2 + 0.1 * i, 0.1 * i, 0.1 * i + 0.8, rng, rise=0.5 if i % 2 else -0.5)
             for i in range(6)]
@@ -309,7 +320,7 @@ def test_the_wall_hypothesis_takes_level_scan_planes_only() -> None:
     lies on the table as much as on the vertical plane through it, so it makes no wall. The
     level scanner's repeated lines on a wall it faces do (kept vertical by a prior)."""
     rng = np.random.default_rng(4)
-    p = PlaneInitParams(min_support=4, min_scans=3)
+    p = _init_params(min_support=4, min_scans=3)
     tilted = np.array([0.66, 0.66, 0.34])  # 20 deg from vertical, its level direction along (1, -1, 0)
     table = SegmentPool(p)
     for i in range(8):
@@ -321,3 +332,74 @@ def test_the_wall_hypothesis_takes_level_scan_planes_only() -> None:
     planes = wall.create_planes()
     assert len(planes) == 1 and planes[0].vertical_hypothesis
     np.testing.assert_allclose(np.abs(planes[0].normal), [np.sqrt(0.5), np.sqrt(0.5), 0.0], atol=1e-3)
+
+
+def _scan(scan_index: int, stamp: float, first: list[int], t_end: float) -> Any:
+    """A stand-in for ``ScanSegments`` with what the queues read (scanner 0, beams from ``stamp`` to ``t_end``)."""
+    from types import SimpleNamespace
+
+    k = len(first)
+    return SimpleNamespace(scanner=0, scan_index=scan_index, stamp=stamp, n_segments=k,
+                           first_beam=np.array(first), last_beam=np.array(first) + 5,
+                           times=np.linspace(stamp, t_end, 2))
+
+
+def test_scan_queues_hand_scans_on_and_keep_their_rows() -> None:
+    """Pending scans become ready once their last beam is past; compacted scans keep their
+    segment rows, reported sorted with plane ids resolved through the merges."""
+    from slam.frontend.pending import ScanQueues
+
+    q = ScanQueues()
+    q.add(_scan(1, 0.1, [50, 10], 0.2), {})
+    q.add(_scan(0, 0.0, [30], 0.35), {(0, 1): None})
+    assert q.last_end() == 0.35
+    ready = q.take_ready(0.3)
+    assert [p.serial for p in ready] == [0] and [p.serial for p in q.pending] == [1]
+    assert q.pending[0].edge_tests == {(0, 1): None}
+    ready[0].plane_ids[:] = (7, -1)
+    q.done.extend(ready)
+    assert q.track(ready, 0.15) == ready and q.track([], 0.25) == []
+    q.compact(horizon=0.25)
+    assert q.done == [] and q.by_serial() == {}
+    rows = q.segment_rows(lambda pid: {7: 3}.get(pid, pid))
+    np.testing.assert_array_equal(rows["scan_index"], [0, 1, 1])
+    np.testing.assert_array_equal(rows["first_beam"], [30, 10, 50])
+    np.testing.assert_array_equal(rows["plane_id"], [-1, -1, 3])
+
+
+def test_knot_mirror_grows_holds_a_prediction_and_walks() -> None:
+    from slam.frontend.knots import KnotMirror
+
+    m = KnotMirror(0.05)
+    m.start(10.0, None)
+    for k in range(1100):  # past the first allocation
+        T = np.eye(4)
+        T[0, 3] = 0.01 * k
+        assert m.append(T) == k
+    assert m.n == 1100 and m.time(1100) == pytest.approx(65.0)
+    assert m.odometer == pytest.approx(10.99)
+    np.testing.assert_array_equal(m.V[:1100], 0.0)
+    T_pred = np.eye(4)
+    T_pred[0, 3] = 11.0
+    m.hold(T_pred)
+    assert m.n == 1101 and m.pose_at(m.time(1100))[0, 3] == pytest.approx(11.0)
+    m.release()
+    assert m.n == 1100 and m.odometer == pytest.approx(10.99)
+    np.testing.assert_allclose(m.place(np.zeros((2, 3)), np.array([10.0, 10.025])), [[0, 0, 0], [0.005, 0, 0]],
+                               atol=1e-12)
+    pts = np.ones((3, 3))
+    assert m.deskewed(pts, np.zeros(3)) is pts  # no deskew table
+
+
+def test_optional_features_share_their_interfaces() -> None:
+    """The runner holds either object of each pair without asking which."""
+    from slam.frontend.edge_tracker import EdgeTracker, NoEdges
+    from slam.frontend.motion_model import ConstantVelocity
+    from slam.imu_feed import ImuMotion
+
+    def public(cls: type) -> set[str]:
+        return {n for n in dir(cls) if not n.startswith("_") and callable(getattr(cls, n))}
+
+    assert public(EdgeTracker) == public(NoEdges)
+    assert public(ImuMotion) == public(ConstantVelocity)
+    assert {"predict", "initial_pose", "add_factors", "refresh", "velocity"} <= public(ConstantVelocity)

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from slam.config import SlamConfig
 from slam.frontend import kernels as fk
 from slam.frontend.association import Gates, WorldSegments, associate, world_segments
 from slam.frontend.planemap import PlaneMap
+from slam.params import gates as gates_of
 from slam.trajectory import kernels as tk
 from slam.trajectory.interpolation import (
     exp_coefficients,
@@ -16,6 +21,11 @@ from slam.trajectory.interpolation import (
     so3_exp,
     so3_log,
 )
+
+
+def _gates(**changes: Any) -> Gates:
+    """The default configuration's gates with a 2-cell extent margin, with ``changes``."""
+    return replace(gates_of(SlamConfig()), **{"extent_margin_cells": 2, **changes})
 
 
 def _knots(rng: np.random.Generator, k: int, rot: float = 0.3) -> np.ndarray:
@@ -183,7 +193,7 @@ def test_association_matches_the_numpy_gates() -> None:
     origin = np.array([1.0, 0.5, 1.2])
     virtual = ends * 0.9 + ends[:, ::-1] * 0.1
     segs = world_segments(virtual, ends, rng.uniform(0.001, 0.004, k), 0.003, rng.integers(10, 200, k), origin)
-    for gates in (Gates(), Gates().loosened(3.0)):
+    for gates in (_gates(), _gates().loosened(3.0)):
         got = associate(segs, pmap, 10.0, gates)
         np.testing.assert_array_equal(got, _associate_numpy(segs, pmap, 10.0, gates))
         assert 0.2 * k < (got >= 0).sum() < k  # some associated, some not
@@ -323,15 +333,15 @@ def test_a_tied_door_takes_neither_the_wall_beyond_its_extent_nor_by_its_tilt() 
     # the door's plane at x = 5.8-5.95 lies 1.3-2.7 mm before the wall's, the segments 2 mm
     segs = _wall_segments(np.linspace(5.8, 5.95, 8), 2.0 - 0.002, rng)
     hosts = {door: wall}
-    base = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4))
+    base = associate(segs, pmap, 0.0, _gates(extent_margin_cells=4))
     assert (base == door).all()
-    margin = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_margin_cells=1), hosts)
+    margin = associate(segs, pmap, 0.0, _gates(extent_margin_cells=4, child_margin_cells=1), hosts)
     assert (margin == wall).all()
-    normal = associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_host_normal=True), hosts)
+    normal = associate(segs, pmap, 0.0, _gates(extent_margin_cells=4, child_host_normal=True), hosts)
     assert (normal == wall).all()
     # the door's own segments still go to the door either way
     on_door = _wall_segments(np.linspace(4.2, 4.8, 8), 2.01, rng)
-    for g in (Gates(extent_margin_cells=4, child_margin_cells=1), Gates(extent_margin_cells=4, child_host_normal=True)):
+    for g in (_gates(extent_margin_cells=4, child_margin_cells=1), _gates(extent_margin_cells=4, child_host_normal=True)):
         assert (associate(on_door, pmap, 0.0, g, hosts) == door).all()
     # without children the options change nothing
-    assert (associate(segs, pmap, 0.0, Gates(extent_margin_cells=4, child_margin_cells=1)) == door).all()
+    assert (associate(segs, pmap, 0.0, _gates(extent_margin_cells=4, child_margin_cells=1)) == door).all()

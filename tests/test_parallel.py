@@ -16,12 +16,12 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
+from slam.frontend.scan_prep import ScanPreparer
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import InputError
 from slam.io.source import BagSource
 from slam.prefetch import can_fork_reader, prepared_scans
 from slam.run import load_imu, run_slam
-from slam.scan_prep import ScanPreparer
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
 
@@ -164,9 +164,10 @@ def test_an_error_in_an_export_process_leaves_no_output(walk: SimulationResult, 
     assert list(tmp_path.iterdir()) == []
 
 
-def test_the_precomputed_edge_tests_are_those_the_front_end_computes(walk: SimulationResult, rig: Any) -> None:
-    """The front end computes an edge test itself when the scan does not carry it: the same run
-    without the reader's tests gives the same trajectory, planes and edges."""
+def test_the_front_end_takes_the_edge_tests_from_the_prepared_scan(walk: SimulationResult, rig: Any) -> None:
+    """The scan-only edge tests (recesses past a wall segment's end, steps inside it) are computed
+    once, when the scan is prepared, and the front end only looks them up: the same run from scans
+    stripped of them finds the segment pairs' breaks only."""
     from slam.pipeline import SlamRunner
 
     cfg = SlamConfig()
@@ -175,15 +176,16 @@ def test_the_precomputed_edge_tests_are_those_the_front_end_computes(walk: Simul
     runs = []
     for keep in (True, False):
         runner = SlamRunner(rig, cfg, imu)
+        n_tests = 0
         with BagSource(walk.bag) as source:
             for scan in prepared_scans(source, rig, cfg, imu, process=False):
+                n_tests += len(scan.edge_tests)
                 runner.add_prepared(scan if keep else replace(scan, edge_tests={}))
         runner.finish()
-        runs.append(runner.result(batch=False))
+        runs.append(runner.result(batch=False, covariances=False))
+        assert n_tests > 0
     a, b = runs
-    assert a.stats["edge_observations"] == b.stats["edge_observations"] > 0
-    np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
-    np.testing.assert_array_equal(a.plane_normals, b.plane_normals)
+    assert a.stats.edge_observations > b.stats.edge_observations > 0
 
 
 def test_scans_fed_raw_or_prepared_elsewhere_give_the_same_run(walk: SimulationResult, rig: Any) -> None:

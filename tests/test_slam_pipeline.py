@@ -134,6 +134,31 @@ def test_noise_free_box_walk_recovers_the_trajectory(box_clean: SimulationResult
     assert res.planes.angle.max < 0.05  # deg
 
 
+def test_the_result_is_complete(box_noisy: SimulationResult, rig: Any) -> None:
+    """The result carries every plane's marginal covariance and the run statistics as one record
+    whose dictionary is what summary.json reports."""
+    from slam.io.bag import read_scans
+
+    cfg = _fast()
+    runner = SlamRunner(rig, cfg)
+    for line in read_scans(box_noisy.bag, rig=rig):
+        runner.add_scan(line)
+    runner.finish()
+    res = runner.result()
+    assert len(res.plane_ids) >= 3
+    assert sorted(res.plane_covariances) == sorted(map(int, res.plane_ids))
+    for pid, cov in res.plane_covariances.items():
+        assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0.0), pid
+        np.testing.assert_array_equal(cov, runner.backend.plane_covariance(pid))
+    d = res.stats.to_dict()
+    assert d["knots"] == len(res.knot_times) and d["planes"] == len(res.plane_ids) and d["scans"] > 0
+    assert d["batch"]["iterations"] >= 1 and res.stats["batch"] == d["batch"]
+    assert {"segments", "associated", "planes_created", "observation_blocks", "updates", "edge_observations",
+            "trimmed_points", "pool_dropped", "singular_systems", "residuals", "imu_used"} <= set(d)
+    assert runner.result(batch=False, covariances=False).plane_covariances == {}
+    assert "batch" not in runner.result(batch=False, covariances=False).stats.to_dict()
+
+
 @pytest.mark.parametrize("method", segmentation.available())
 def test_every_segmenter_runs_end_to_end(method: str, box_noisy: SimulationResult, rig: Any, tmp_path: Path) -> None:
     cfg = _fast(SlamConfig.model_validate({"segmenter": {"method": method}}))
@@ -382,5 +407,5 @@ def test_an_oblique_plane_needs_more_support(rig: Any, monkeypatch: pytest.Monke
         cfg = SlamConfig.model_validate({"frontend": {"min_support_oblique": support}})
         runner = SlamRunner(rig, cfg)
         monkeypatch.setattr(runner.pool, "create_planes", lambda: [NewPlane(n, -2.0 * n[1], members, 0.001)])
-        runner._create_planes(0.0)
-        assert runner.stats["planes_rejected_oblique"] == rejected
+        runner.maps.create_planes(0.0, runner.queues)
+        assert runner.stats.planes_rejected_oblique == rejected

@@ -20,12 +20,15 @@ gate) is ambiguous and left unassociated.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slam.frontend import kernels as fk
+from slam.frontend.knots import KnotMirror
+from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import PlaneMap
 
 FloatArray = NDArray[np.float64]
@@ -51,23 +54,23 @@ class WorldSegments:
 
 @dataclass(frozen=True)
 class Gates:
-    """Uncertainties added to every test, and the extent margin."""
+    """Uncertainties added to every test, and the extent margin (``slam.params.gates``)."""
 
-    sigma_pose: float = 0.004  # m, current pose estimate at the segment
-    sigma_rotation: float = np.radians(0.3)  # rad, in the angle test
-    sigma_lever: float = np.radians(0.05)  # rad, rotation error times range in the distance test
-    drift_rate: float = 0.003  # m of offset uncertainty per m walked since the plane was seen
-    drift_rate_vertical: float = 0.0003  # the same for floors and ceilings
-    extent_margin_cells: int = 2
-    max_extra_cells: int = 8  # cap of the drift-grown extent margin
-    max_drift_sigma: float = 0.05  # m, cap of the drift-grown offset uncertainty
-    chi2: float = CHI2_2DOF_99
-    max_endpoint_distance: float = 0.05  # m, hard cap on either endpoint's distance
+    sigma_pose: float  # m, current pose estimate at the segment
+    sigma_rotation: float  # rad, in the angle test
+    sigma_lever: float  # rad, rotation error times range in the distance test
+    drift_rate: float  # m of offset uncertainty per m walked since the plane was seen
+    drift_rate_vertical: float  # the same for floors and ceilings
+    extent_margin_cells: int
+    max_extra_cells: int  # cap of the drift-grown extent margin
+    max_drift_sigma: float  # m, cap of the drift-grown offset uncertainty
+    chi2: float  # gate of the combined test (CHI2_2DOF_99: 99 % of a chi-square with 2 dof)
+    max_endpoint_distance: float  # m, hard cap on either endpoint's distance
     # planes tied parallel to a host wall (doors, boards: ``associate``'s ``children``): their
     # extent margin (cells, not grown with the drift; -1: as every plane's), and whether their
     # distance is taken to the plane through their extent's centre with the host's normal
-    child_margin_cells: int = -1
-    child_host_normal: bool = False
+    child_margin_cells: int
+    child_host_normal: bool
 
     def loosened(self, factor: float) -> Gates:
         return Gates(
@@ -178,3 +181,57 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
         if not ambiguous:
             out[k] = ids[best]
     return out
+
+
+# per scan, placed in the world: virtual points (k, 2, 3), end points (k, 2, 3), the scanner's
+# position at the scan's stamp (4,, homogeneous)
+ScanSummary = tuple[FloatArray, FloatArray, FloatArray]
+
+
+class ScanAssociator:
+    """Association of whole scans with the map (``pmap``), placed with the current knots
+    (``knots``; ``T_body_scanner`` (4, 4) per scanner). ``point_sigma`` (m) is one point's
+    range noise, segments of fewer than ``min_segment_points`` points stay unassociated;
+    ``children`` gives the planes tied to a host wall (``associate``), asked only when the
+    gates treat them apart."""
+
+    def __init__(self, pmap: PlaneMap, knots: KnotMirror, T_body_scanner: list[FloatArray], point_sigma: float,
+                 min_segment_points: int, children: Callable[[], dict[int, int]]) -> None:
+        self._pmap = pmap
+        self._knots = knots
+        self._T_body_scanner = T_body_scanner
+        self._point_sigma = point_sigma
+        self._min_segment_points = min_segment_points
+        self._children = children
+
+    def summaries(self, ps: list[PendingScan]) -> list[ScanSummary]:
+        """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
+        their end points (k, 2, 3) and the scanner's position at the scan's stamp (4,,
+        homogeneous). One ``place`` for all the scans: per point the same numbers as one call per
+        scan (``place``'s arithmetic is element by element for two points or more, and a scan has
+        four at least). The stamps' poses stay one ``pose_at`` each: for a single pose numpy
+        takes another (matrix-vector) route through ``exp_coefficients``, with other last bits."""
+        if not ps:
+            return []
+        pts, tms, sizes = [], [], []
+        for p in ps:
+            segs = p.segs
+            ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
+            pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
+            tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
+            sizes += [2 * segs.n_segments, 2 * segs.n_segments]
+        w = np.split(self._knots.place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
+        return [
+            (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
+             self._knots.pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
+            for i, p in enumerate(ps)
+        ]
+
+    def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> NDArray[np.int64]:
+        """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``."""
+        v_world, e_world, origin = summary
+        ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self._point_sigma, p.segs.n_points, origin[:3])
+        children = self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal) else None
+        ids = associate(ws, self._pmap, self._knots.odometer, gates, children)
+        ids[p.segs.n_points < self._min_segment_points] = -1
+        return ids

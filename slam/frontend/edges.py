@@ -46,31 +46,41 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend.observations import ScanSegments
+
 FloatArray = NDArray[np.float64]
 EDGE_ID_BASE = 1_000_000  # back-end plane ids of edge planes start here; map planes stay below
 
 
 @dataclass(frozen=True)
 class EdgeParams:
-    """Break detection, clustering and association of door/board edges (metres, degrees, seconds)."""
+    """Break detection, clustering, association and ties of door/board edges (metres, seconds;
+    ``slam.params.edge_params``, see ``slam.config.EdgeSection``)."""
 
-    max_gap: float = 0.08
-    min_incidence_deg: float = 25.0
-    sigma: float = 0.003
-    cluster_width: float = 0.02
-    min_points: int = 4
-    min_scans: int = 3
-    gate: float = 0.04
-    window: float = 6.0
-    merge_distance: float = 0.25
-    min_step: float = 0.004
-    max_step: float = 0.04
-    step_tolerance: float = 0.005
-    max_skipped_points: int = 15
-    min_height_span: float = 0.15
-    point: str = "bracket"
-    height_margin: float = 0.1
-    flat_slope: float = 0.3
+    max_gap: float
+    min_incidence_deg: float
+    sigma: float
+    cluster_width: float
+    min_points: int
+    min_scans: int
+    gate: float
+    tracking_gate: float  # the gate of the tracker's pre-association
+    window: float
+    merge_distance: float
+    link_sigma: float  # m and rad, the tie between merged edges
+    min_step: float
+    max_step: float
+    step_tolerance: float
+    max_skipped_points: int
+    min_height_span: float
+    point: str
+    height_margin: float
+    flat_slope: float
+    perpendicular_sigma: float  # rad, the edge plane's tie across its wall
+    inline: bool  # also steps inside wall segments
+    inline_window: int
+    inline_z: float
+    min_segment_points: int  # a wall segment shorter than this yields no break (the front end's limit)
 
 
 @dataclass
@@ -219,6 +229,33 @@ def recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray,
     if len(inside) < min_returns or not min_step <= median <= max_step:
         return None
     return first, beams[inside[-1]], median
+
+
+def segment_owner(segs: ScanSegments) -> NDArray[np.int64]:
+    """Per beam of the scan, the segment whose beam range holds it (-1: none)."""
+    owner = np.full(segs.beam_angles.shape[0], -1, dtype=np.int64)
+    for j in range(segs.n_segments):
+        owner[segs.first_beam[j] : segs.last_beam[j] + 1] = j
+    return owner
+
+
+def segment_end(segs: ScanSegments, j: int, direction: int) -> int:
+    """The beam at segment ``j``'s end in ``direction`` (+1: its last beam, -1: its first)."""
+    return int(segs.last_beam[j]) if direction == 1 else int(segs.first_beam[j])
+
+
+def next_to_segment(owner: NDArray[np.int64], k_end: int, direction: int) -> bool:
+    """Whether another segment starts within three beams past beam ``k_end`` in ``direction``
+    (then the segment pairs, not the recess test, handle that end)."""
+    near = owner[max(0, min(k_end + direction, k_end + 3 * direction)): max(k_end + direction, k_end + 3 * direction) + 1]
+    return bool(np.any(near >= 0))
+
+
+def segment_returns(segs: ScanSegments, j: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Segment ``j``'s valid beams within its beam range and their returns (n, 2), scanner frame."""
+    beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
+    a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
+    return beams, np.column_stack((r * np.cos(a), r * np.sin(a)))
 
 
 def steps_within(points_xy: FloatArray, centroid: FloatArray, direction: FloatArray, sigma: float,

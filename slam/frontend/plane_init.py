@@ -39,24 +39,26 @@ class PooledSegment:
 
 @dataclass(frozen=True)
 class PlaneInitParams:
-    min_support: int = 3
-    min_scans: int = 2
-    coplanar_distance: float = 0.006  # m, a member's fitted line (both virtual points) within this of the plane
-    sample_distance: float = 0.015  # m, and every one of its raw samples within this
-    coplanar_angle: float = np.radians(2.0)
-    min_spread: float = 0.04  # m, second principal standard deviation of the members' points
-    min_angle_between: float = np.radians(10.0)  # non-parallel seed pair
-    min_parallel_separation: float = 0.05  # m, parallel seed pair
-    neighbourhood: float = 3.0  # m, members within this of the seed
-    min_scan_plane_angle: float = np.radians(15.0)  # a plane this close to a member's scan plane is that scan plane
-    window: float = 1.0  # s, pooled segments older than this are dropped
-    max_partners: int = 4  # seed pairs tried per seed segment (nearest in distance first)
-    vertical_walls: bool = True  # allow walls from horizontal segments alone (kept vertical by a prior)
-    horizontal_tolerance: float = np.radians(3.0)  # a segment this close to horizontal counts as horizontal
+    """Plane creation from the pool (``slam.params.plane_init_params``; angles in radians)."""
+
+    min_support: int
+    min_scans: int
+    coplanar_distance: float  # m, a member's fitted line (both virtual points) within this of the plane
+    sample_distance: float  # m, and every one of its raw samples within this
+    coplanar_angle: float
+    min_spread: float  # m, second principal standard deviation of the members' points
+    min_angle_between: float  # non-parallel seed pair
+    min_parallel_separation: float  # m, parallel seed pair
+    neighbourhood: float  # m, members within this of the seed
+    min_scan_plane_angle: float  # a plane this close to a member's scan plane is that scan plane
+    window: float  # s, pooled segments older than this are dropped
+    max_partners: int  # seed pairs tried per seed segment (nearest in distance first)
+    vertical_walls: bool  # allow walls from horizontal segments alone (kept vertical by a prior)
+    horizontal_tolerance: float  # a segment this close to horizontal counts as horizontal
     # the wall hypothesis takes segments of level scan planes only: a tilted scanner's level line
     # lies as well on a floor or table top as on the vertical plane through it, while a level
     # scanner cannot see a horizontal surface
-    max_level_scan_tilt: float = np.radians(30.0)
+    max_level_scan_tilt: float
 
 
 @dataclass
@@ -72,7 +74,7 @@ class NewPlane:
 class SegmentPool:
     """Recent unassociated segments, oldest first."""
 
-    params: PlaneInitParams = field(default_factory=PlaneInitParams)
+    params: PlaneInitParams
     items: list[PooledSegment] = field(default_factory=list)
     dropped: int = 0
     _tried: set[int] = field(default_factory=set)

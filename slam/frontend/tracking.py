@@ -12,6 +12,8 @@ the exact problem.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -19,6 +21,19 @@ from slam.frontend import kernels as fk
 from slam.trajectory.interpolation import interpolate_poses, se3_exp, se3_inverse, se3_log
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingParams:
+    """Tracking of the newest knots (``slam.params.tracking_params``): ``window`` knot intervals
+    refined together in ``iterations`` Gauss-Newton steps; ``first_prior_sigmas`` (6,: rad, m)
+    hold the window's oldest knot, ``twist_sigmas`` (6,: rad, m) the change of the body twist
+    per knot interval."""
+
+    window: int
+    iterations: int
+    first_prior_sigmas: FloatArray
+    twist_sigmas: FloatArray
 
 
 def orthonormalize(T: FloatArray) -> FloatArray:

@@ -15,15 +15,23 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 import segmentation
 from common.rig import Rig
 from segmentation import Scanline
 from slam.config import SlamConfig
-from slam.frontend.edges import recess_beyond, steps_within
+from slam.frontend.edges import (
+    EdgeParams,
+    next_to_segment,
+    recess_beyond,
+    segment_end,
+    segment_owner,
+    segment_returns,
+    steps_within,
+)
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.imu_feed import ImuSamples
+from slam.params import edge_params
 from slam.trajectory.deskew import DeskewTable, deskew_table
 
 
@@ -63,6 +71,7 @@ class ScanPreparer:
         self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
         self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
         self.segmenter = segmentation.get(cfg.segmenter.method, **cfg.segmenter.params)
+        self._edges = edge_params(cfg) if cfg.edges.use else None
         self._counter = [0] * len(self.scanner_names)
         self.t0: float | None = None
         self.deskew: DeskewTable | None = None
@@ -97,62 +106,35 @@ class ScanPreparer:
             segs.points_body[:] = self.deskew.apply(segs.points_body, segs.times)
             segs.virtual_body[:] = self.deskew.apply(
                 segs.virtual_body.reshape(-1, 3), segs.virtual_times.ravel()).reshape(segs.virtual_body.shape)
-        tests = scan_edge_tests(segs, self.cfg, self._range_sigma[s]) if self.cfg.edges.use and segs.n_segments else {}
+        tests = scan_edge_tests(segs, self._edges, self._range_sigma[s]) if self._edges is not None and segs.n_segments else {}
         t_end = time.perf_counter()
         return PreparedScan(s, scan_index, line.stamp, False, segs if segs.n_segments else None,
                             t_seg - t_start, t_end - t_seg, tests)
 
 
-def scan_edge_tests(segs: ScanSegments, cfg: SlamConfig, range_sigma: float) -> dict[tuple[int, int], Any]:
+def scan_edge_tests(segs: ScanSegments, ep: EdgeParams, range_sigma: float) -> dict[tuple[int, int], Any]:
     """The door-edge tests that depend on the scan alone, for every segment that may turn out to be
     a wall's (the front end asks them of wall segments only, once it knows which those are):
     ``(j, +-1)``: ``frontend.edges.recess_beyond`` past the segment's end in that direction, where
     no other segment starts within three beams; ``(j, 0)``: ``frontend.edges.steps_within``, with
-    ``edges.inline``. Segments shorter than the front end's limits are left out, as it leaves them."""
-    ec, min_points = cfg.edges, cfg.frontend.min_segment_points
+    ``inline``. Segments shorter than the front end's limits are left out: the front end takes
+    a missing test for a failed one."""
     out: dict[tuple[int, int], Any] = {}
     owner = segment_owner(segs)
-    W = ec.inline_window
+    W = ep.inline_window
     for j in range(segs.n_segments):
         n = int(segs.n_points[j])
         c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-        if n >= min_points:
+        if n >= ep.min_segment_points:
             for direction in (1, -1):
                 k_end = segment_end(segs, j, direction)
                 if not next_to_segment(owner, k_end, direction):
                     out[(j, direction)] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
-                                                        segs.beam_valid, c2, u2, ec.min_step, ec.max_step, ec.max_gap)
-        if ec.inline and n >= 2 * W:
+                                                        segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
+        if ep.inline and n >= 2 * W:
             _, xy = segment_returns(segs, j)
-            out[(j, 0)] = steps_within(xy, c2, u2, range_sigma, W, ec.min_step, ec.max_step, ec.inline_z)
+            out[(j, 0)] = steps_within(xy, c2, u2, range_sigma, W, ep.min_step, ep.max_step, ep.inline_z)
     return out
-
-
-def segment_owner(segs: ScanSegments) -> NDArray[np.int64]:
-    """Per beam of the scan, the segment whose beam range holds it (-1: none)."""
-    owner = np.full(segs.beam_angles.shape[0], -1, dtype=np.int64)
-    for j in range(segs.n_segments):
-        owner[segs.first_beam[j] : segs.last_beam[j] + 1] = j
-    return owner
-
-
-def segment_end(segs: ScanSegments, j: int, direction: int) -> int:
-    """The beam at segment ``j``'s end in ``direction`` (+1: its last beam, -1: its first)."""
-    return int(segs.last_beam[j]) if direction == 1 else int(segs.first_beam[j])
-
-
-def next_to_segment(owner: NDArray[np.int64], k_end: int, direction: int) -> bool:
-    """Whether another segment starts within three beams past beam ``k_end`` in ``direction``
-    (then the segment pairs, not the recess test, handle that end)."""
-    near = owner[max(0, min(k_end + direction, k_end + 3 * direction)): max(k_end + direction, k_end + 3 * direction) + 1]
-    return bool(np.any(near >= 0))
-
-
-def segment_returns(segs: ScanSegments, j: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Segment ``j``'s valid beams within its beam range and their returns (n, 2), scanner frame."""
-    beams = np.flatnonzero(segs.beam_valid[segs.first_beam[j] : segs.last_beam[j] + 1]) + segs.first_beam[j]
-    a, r = segs.beam_angles[beams], segs.beam_ranges[beams]
-    return beams, np.column_stack((r * np.cos(a), r * np.sin(a)))
 
 
 def knot_deskew(cfg: SlamConfig, imu: ImuSamples | None, t0: float) -> DeskewTable | None:

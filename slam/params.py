@@ -1,0 +1,241 @@
+"""The one translation from the run configuration to the parameters of the SLAM's components.
+
+Every parameter has exactly one default, in the configuration model (``slam.config``, the YAML
+keys); the components' parameter records (``Gates``, ``PlaneInitParams``, ``MapParams``, ``EdgeParams``,
+``TrackingParams``, ``ImuMotionParams``, ``ImuConfig``, ``MotionPriorConfig``, ``BackendConfig``)
+take none of their own and are built here only: degrees become radians, sigmas become arrays,
+the knot interval turns the motion prior's accelerations into densities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.backend import BackendConfig
+from slam.backend.factors import RobustKernel
+from slam.config import SlamConfig
+from slam.frontend.association import Gates
+from slam.frontend.edges import EdgeParams
+from slam.frontend.map_builder import MapParams
+from slam.frontend.plane_init import PlaneInitParams
+from slam.frontend.tracking import TrackingParams
+from slam.imu_feed import ImuMotionParams
+from slam.motion import ImuConfig, MotionPriorConfig
+
+
+def gates(cfg: SlamConfig) -> Gates:
+    """The association gates (``frontend``)."""
+    fe = cfg.frontend
+    return Gates(
+        sigma_pose=fe.sigma_pose,
+        sigma_rotation=np.radians(fe.sigma_rotation_deg),
+        sigma_lever=np.radians(fe.sigma_lever_deg),
+        drift_rate=fe.drift_rate,
+        drift_rate_vertical=fe.drift_rate_vertical,
+        extent_margin_cells=fe.extent_margin_cells,
+        max_extra_cells=fe.max_extra_cells,
+        max_drift_sigma=fe.max_drift_sigma,
+        chi2=fe.association_chi2,
+        max_endpoint_distance=fe.max_endpoint_distance,
+        child_margin_cells=fe.child_margin_cells,
+        child_host_normal=fe.child_host_normal,
+    )
+
+
+def tracking_gates(cfg: SlamConfig) -> Gates:
+    """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``."""
+    return gates(cfg).loosened(cfg.frontend.tracking_loosen)
+
+
+def plane_init_params(cfg: SlamConfig) -> PlaneInitParams:
+    """Plane creation from the pool of unassociated segments (``frontend``)."""
+    fe = cfg.frontend
+    return PlaneInitParams(
+        min_support=fe.min_support,
+        min_scans=fe.min_scans,
+        coplanar_distance=fe.coplanar_distance,
+        sample_distance=fe.coplanar_distance + 3.0 * fe.point_sigma,
+        coplanar_angle=np.radians(fe.coplanar_angle_deg),
+        min_spread=fe.min_spread,
+        min_angle_between=np.radians(fe.seed_min_angle_deg),
+        min_parallel_separation=fe.seed_min_separation,
+        neighbourhood=fe.seed_neighbourhood,
+        min_scan_plane_angle=np.radians(fe.min_scan_plane_angle_deg),
+        window=fe.pool_window,
+        max_partners=fe.seed_max_partners,
+        vertical_walls=cfg.backend.vertical_walls,
+        horizontal_tolerance=np.radians(fe.horizontal_tolerance_deg),
+        max_level_scan_tilt=np.radians(fe.max_level_scan_tilt_deg),
+    )
+
+
+def edge_params(cfg: SlamConfig) -> EdgeParams:
+    """Door and board edges (``edges``)."""
+    ec = cfg.edges
+    return EdgeParams(
+        max_gap=ec.max_gap,
+        min_incidence_deg=ec.min_incidence_deg,
+        sigma=ec.sigma,
+        cluster_width=ec.cluster_width,
+        min_points=ec.min_points,
+        min_scans=ec.min_scans,
+        gate=ec.gate,
+        tracking_gate=ec.tracking_gate,
+        window=ec.window,
+        merge_distance=ec.merge_distance,
+        link_sigma=ec.link_sigma,
+        min_step=ec.min_step,
+        max_step=ec.max_step,
+        step_tolerance=ec.step_tolerance,
+        max_skipped_points=ec.max_skipped_points,
+        min_height_span=ec.min_height_span,
+        point=ec.point,
+        height_margin=ec.height_margin,
+        flat_slope=ec.flat_slope,
+        perpendicular_sigma=np.radians(ec.perpendicular_sigma_deg),
+        inline=ec.inline,
+        inline_window=ec.inline_window,
+        inline_z=ec.inline_z,
+        min_segment_points=cfg.frontend.min_segment_points,
+    )
+
+
+def map_params(cfg: SlamConfig) -> MapParams:
+    """The plane life cycle: classification, ties to a host, merges (``frontend``)."""
+    fe = cfg.frontend
+    return MapParams(
+        min_segment_points=fe.min_segment_points,
+        vertical_tolerance=np.radians(fe.vertical_tolerance_deg),
+        vertical_walls=cfg.backend.vertical_walls,
+        min_support_oblique=fe.min_support_oblique,
+        max_tilt_sigma=np.radians(fe.max_tilt_sigma_deg),
+        extent_margin_cells=fe.extent_margin_cells,
+        host_min_segments=fe.host_min_segments,
+        parallel_max_angle=np.radians(fe.parallel_max_angle_deg),
+        parallel_max_offset=fe.parallel_max_offset,
+        parallel_sigma=np.radians(fe.parallel_sigma_deg),
+        wall_faces=fe.wall_faces,
+        wall_thickness=fe.wall_thickness,
+        wall_faces_sigma=np.radians(fe.wall_faces_sigma_deg),
+        merge_angle=np.radians(fe.merge_angle_deg),
+        merge_distance=fe.merge_distance,
+        merge_drift_over=fe.merge_drift_over,
+        merge_coobserved_max=fe.merge_coobserved_max,
+        drift_rate=fe.drift_rate,
+        drift_rate_vertical=fe.drift_rate_vertical,
+        link_sigma=fe.link_sigma,
+    )
+
+
+def tracking_params(cfg: SlamConfig) -> TrackingParams:
+    """Tracking of the newest knots against the map (``frontend.tracking_*``)."""
+    fe = cfg.frontend
+    return TrackingParams(
+        window=fe.tracking_window,
+        iterations=fe.tracking_iterations,
+        first_prior_sigmas=np.array([np.radians(fe.tracking_first_prior_deg)] * 3
+                                    + [fe.tracking_first_prior_position] * 3),
+        twist_sigmas=np.array([fe.tracking_twist_sigma_rotation] * 3 + [fe.tracking_twist_sigma_position] * 3),
+    )
+
+
+def imu_motion_params(cfg: SlamConfig) -> ImuMotionParams:
+    """The front end's use of an IMU (``imu``): zero-velocity updates and IMU-predicted tracking."""
+    ic = cfg.imu
+    return ImuMotionParams(
+        zupt=ic.zupt,
+        zupt_window=ic.zupt_window,
+        zupt_threshold=ic.zupt_threshold,
+        zupt_sigma=ic.zupt_sigma,
+        accel_noise=ic.accel_noise,
+        gyro_noise=ic.gyro_noise,
+        gravity=ic.gravity,
+        increment_sigmas=np.array([np.radians(ic.increment_sigma_deg)] * 3 + [ic.increment_sigma_position] * 3),
+        degenerate_ratio=float(np.sin(np.radians(ic.degenerate_angle_deg)) ** 2),
+    )
+
+
+def imu_config(cfg: SlamConfig) -> ImuConfig:
+    """IMU noise for preintegration (``imu``); the IMU frame is the body frame."""
+    ic = cfg.imu
+    return ImuConfig(
+        accel_noise_density=ic.accel_noise,
+        gyro_noise_density=ic.gyro_noise,
+        accel_bias_rw=ic.accel_bias_walk,
+        gyro_bias_rw=ic.gyro_bias_walk,
+        integration_sigma=ic.integration_sigma,
+        bias_prior_sigmas=(ic.accel_bias_prior, ic.gyro_bias_prior),
+        velocity_prior_sigma=ic.velocity_prior_sigma,
+        gravity=ic.gravity,
+        T_body_imu=None,
+    )
+
+
+def motion_prior(cfg: SlamConfig) -> MotionPriorConfig:
+    """The constant-velocity prior: ``backend.motion_sigma_*`` (accelerations) as densities over
+    one knot interval."""
+    dt = 1.0 / cfg.trajectory.knot_rate
+    be = cfg.backend
+    return MotionPriorConfig(q_ang=be.motion_sigma_angacc**2 * dt, q_lin=be.motion_sigma_acc**2 * dt)
+
+
+def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
+    """The back end (``backend``), with the IMU's factors when ``with_imu``."""
+    be = cfg.backend
+    return BackendConfig(
+        kernel=RobustKernel(be.robust, be.robust_k),
+        motion=motion_prior(cfg),
+        use_motion_prior=not with_imu or cfg.imu.motion_prior,
+        initial_velocity_sigmas=be.initial_velocity_sigmas,
+        datum=be.datum,
+        datum_sigma=be.datum_sigma,
+        datum_tilt_sigma=be.datum_tilt_sigma,
+        vertical_sigma=np.radians(be.vertical_prior_deg),
+        horizontal_sigma=np.radians(be.horizontal_prior_deg),
+        relinearize_threshold=be.relinearize_threshold,
+        relinearize_skip=be.relinearize_skip,
+        plane_relinearize_factor=be.plane_relinearize_factor,
+        lm_max_iterations=be.lm_max_iterations,
+        lm_relative_tolerance=be.lm_relative_tolerance,
+        robust_schedule=be.robust_schedule,
+        imu=imu_config(cfg) if with_imu else None,
+        coalesce_blocks=be.solver == "window",
+        solver=be.solver,
+        window_knots=round(be.window_seconds / (1.0 / cfg.trajectory.knot_rate)),
+        window_iterations=be.window_iterations,
+        isam2_iterations=be.isam2_iterations,
+        isam2_fallback_iterations=be.isam2_fallback_iterations,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Components:
+    """Every component's parameters for one run; ``edges`` None with ``edges.use`` off, ``imu``
+    and ``imu_motion`` None without an IMU."""
+
+    gates: Gates
+    tracking_gates: Gates
+    plane_init: PlaneInitParams
+    map: MapParams
+    edges: EdgeParams | None
+    tracking: TrackingParams
+    imu: ImuConfig | None
+    imu_motion: ImuMotionParams | None
+    backend: BackendConfig
+
+
+def components(cfg: SlamConfig, with_imu: bool) -> Components:
+    """All of the above for a run with (``with_imu``) or without an IMU."""
+    return Components(
+        gates=gates(cfg),
+        tracking_gates=tracking_gates(cfg),
+        plane_init=plane_init_params(cfg),
+        map=map_params(cfg),
+        edges=edge_params(cfg) if cfg.edges.use else None,
+        tracking=tracking_params(cfg),
+        imu=imu_config(cfg) if with_imu else None,
+        imu_motion=imu_motion_params(cfg) if with_imu else None,
+        backend=backend_config(cfg, with_imu),
+    )
