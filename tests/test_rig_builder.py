@@ -54,7 +54,7 @@ def test_cartographer_urdf_gives_the_cartographer_rig() -> None:
     rig = build_rig("from_urdf", [_scan("horizontal_laser_2d", "horizontal_laser_link"),
                                   _scan("vertical_laser_2d", "vertical_laser_link")], tree, imu=("imu", "imu_link"))
     want = resolve_rig("cartographer_backpack_2d")
-    assert rig.body_frame == "imu_link" and rig.reference == "horizontal_laser_2d"
+    assert rig.body_frame == "imu_link" and rig.reference == "horizontal_laser_link"
     for got, ref in zip(rig.scanners, want.scanners, strict=True):
         np.testing.assert_allclose(got.T_body_scanner.matrix(), ref.T_body_scanner.matrix(), atol=1e-5)
         assert got.scanner_model.n_beams == 1079 and got.message == "MultiEchoLaserScan"
