@@ -14,6 +14,7 @@ from pydantic import Field, model_validator
 
 from common.config import ConfigError, StrictModel, load
 from segmentation import segmenter_class
+from slam.health import HealthSection
 
 # The SLAM's own defaults for a segmenter's parameters, where they differ from the segmenter's:
 # RoR at sigma = 6 mm separates doors set 1 cm into their walls (the paper's 9.5 mm merges them),
@@ -271,7 +272,7 @@ class ImuSection(StrictModel):
     datasheet values; the defaults are the simulator's (ADIS16448, EuRoC calibration)."""
 
     use: Literal["auto", "on", "off"] = Field("auto", description="auto: when the bag has the topic")
-    topic: str = "/imu"
+    topic: str | None = Field(None, description="IMU topic; None: the rig's (rig.imu.topic)")
     samples: Literal["instantaneous", "held"] = Field(
         "instantaneous", description="how a reading is integrated: taken as the reading at its stamp "
         "(instantaneous: midpoint rule; the simulator writes such readings, and its noise-free IMU dead-reckons "
@@ -324,6 +325,7 @@ class SlamConfig(StrictModel):
     imu: ImuSection = Field(default_factory=ImuSection)
     output: OutputConfig = Field(default_factory=OutputConfig)
     parallel: ParallelSection = Field(default_factory=ParallelSection)
+    health: HealthSection = Field(default_factory=HealthSection)
 
 
 def load_slam_config(path: str | Path | None) -> SlamConfig:

@@ -35,33 +35,38 @@ class RigCheck:
     notes: list[str] = field(default_factory=list)
 
 
-def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None, imu_topic: str | None) -> RigCheck:
+def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None) -> RigCheck:
     """The run's rig: ``rig`` checked against the recording's transforms (or ``urdf``), or, when
-    None, built from them. ``imu_topic`` is the IMU topic the run will use (None: none)."""
+    None, built from them."""
     if rig is None:
         built = rig_from_source(src, urdf=urdf)
         where = f"the URDF {urdf}" if urdf is not None else "the recording's transforms"
-        out = RigCheck(built, f"built from {where}", [f"rig built from {where} of {src.path}: "
-                                                       + ", ".join(f"{s.name} on {s.topic}" for s in built.scanners)])
-    else:
-        out = RigCheck(rig, "given")
-        transforms = urdf_transforms(urdf) if urdf is not None else static_transforms(src)
-        if transforms:
-            where = str(urdf) if urdf is not None else f"{src.path}"
-            tree = FrameTree(transforms, where)
-            by_topic = rig.by_topic()
-            frames = {by_topic[s.topic].name: s.frame_id for s in scan_topics(src) if s.topic in by_topic}
-            error, warnings = rig_verdict(rig, compare_rig(rig, tree, frames), where)
-            if error is not None:
-                raise RigError(error)
-            out.notes += warnings
-    obs = rig_observability(out.rig)
-    if not obs.observed:
-        left = ", ".join(obs.unobserved_names())
-        if imu_topic is None:
-            raise RigError(
-                f"rig '{out.rig.name}' leaves {left} to an IMU (its scanners do not observe it from walls, floor "
-                f"and ceiling) and {src.path} has no IMU the run can use: the estimate would drift; record an IMU "
-                "or add a scanner that sees it")
-        out.notes.append(f"rig '{out.rig.name}': {obs.summary()} ({imu_topic})")
+        return RigCheck(built, f"built from {where}", [
+            f"rig built from {where} of {src.path}: " + ", ".join(f"{s.name} on {s.topic}" for s in built.scanners)])
+    out = RigCheck(rig, "given")
+    transforms = urdf_transforms(urdf) if urdf is not None else static_transforms(src)
+    if transforms:
+        where = str(urdf) if urdf is not None else f"{src.path}"
+        tree = FrameTree(transforms, where)
+        by_topic = rig.by_topic()
+        frames = {by_topic[s.topic].name: s.frame_id for s in scan_topics(src) if s.topic in by_topic}
+        error, warnings = rig_verdict(rig, compare_rig(rig, tree, frames), where)
+        if error is not None:
+            raise RigError(error)
+        out.notes += warnings
     return out
+
+
+def check_observability(rig: Rig, src: BagSource, imu_topic: str | None) -> list[str]:
+    """Notes on the degrees of freedom ``rig``'s scanners leave to an IMU; a RigError when they
+    leave any and the run has no IMU (``imu_topic`` None)."""
+    obs = rig_observability(rig)
+    if obs.observed:
+        return []
+    left = ", ".join(obs.unobserved_names())
+    if imu_topic is None:
+        raise RigError(
+            f"rig '{rig.name}' leaves {left} to an IMU (its scanners do not observe it from walls, floor and "
+            f"ceiling) and {src.path} has no IMU the run can use: the estimate would drift; record an IMU or add a "
+            "scanner that sees it")
+    return [f"rig '{rig.name}': {obs.summary()} (IMU: {imu_topic})"]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import resource
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,13 +33,16 @@ from common.atomic import atomic_dir
 from common.rig import Rig
 from slam.config import SlamConfig
 from slam.export import write_summary_json
+from slam.health import Health, assess
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import input_error
 from slam.io.source import BagSource
 from slam.pipeline import SlamRunner
 from slam.prefetch import PreparedScans, prepared_scans
+from slam.preflight import check_observability, check_rig
 from slam.rerun_map import MapOptions, write_map_rrd
+from slam.result import SlamResult
 from slam.run_folder import RunSummary, write_cloud_outputs, write_tables
 
 # bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
@@ -47,33 +51,43 @@ __all__ = ["bag_time_range", "load_imu", "peak_rss_gb", "run_slam"]
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
 
 
-def load_imu(bag: BagSource | str | Path, cfg: SlamConfig, t_start: float, t_end: float) -> ImuSamples | None:
+def imu_topic(cfg: SlamConfig, rig: Rig | None) -> str:
+    """The IMU topic of a run: the configuration's, else the rig's."""
+    return cfg.imu.topic or (rig.imu.topic if rig is not None else "/imu")
+
+
+def load_imu(bag: BagSource | str | Path, cfg: SlamConfig, t_start: float, t_end: float,
+             rig: Rig | None = None) -> ImuSamples | None:
     """The bag's IMU samples for the run (``cfg.imu.use``: auto = when the bag has the topic and it
-    covers the scans, ``t_start``-``t_end`` s); None when the run goes without. ``bag``: an open
-    source, or a path opened for this call. Errors name the bag and the topic."""
+    covers the scans, ``t_start``-``t_end`` s); None when the run goes without. The topic is
+    :func:`imu_topic`'s; the samples' frame must be the body frame (the rig's body or IMU frame,
+    or a usual name of it). ``bag``: an open source, or a path opened for this call. Errors name
+    the bag and the topic."""
     if not isinstance(bag, BagSource):
         with BagSource(bag) as source:
-            return load_imu(source, cfg, t_start, t_end)
+            return load_imu(source, cfg, t_start, t_end, rig)
     ic = cfg.imu
+    topic = imu_topic(cfg, rig)
     if ic.use == "off":
         return None
-    if ic.topic not in bag.topics():
+    if topic not in bag.topics():
         if ic.use == "on":
-            raise input_error(bag.path, "has no IMU messages (imu.use is 'on')", ic.topic)
+            raise input_error(bag.path, "has no IMU messages (imu.use is 'on')", topic)
         return None
-    series = bag.imu(ic.topic)
-    if series.frame_id not in IMU_FRAMES:
-        raise input_error(bag.path, f"IMU frame '{series.frame_id}' is not the body frame ({', '.join(IMU_FRAMES[1:])})",
-                          ic.topic)
+    series = bag.imu(topic)
+    frames = (*IMU_FRAMES, *((rig.body_frame, rig.imu.frame_id) if rig is not None else ()))
+    if series.frame_id not in frames:
+        raise input_error(bag.path, f"IMU frame '{series.frame_id}' is not the body frame ({', '.join(frames[1:])})",
+                          topic)
     try:
         samples = ImuSamples(series.times, series.linear_acceleration, series.angular_velocity,
                              instantaneous=ic.samples == "instantaneous")
     except ValueError as e:
-        raise input_error(bag.path, str(e), ic.topic) from None
+        raise input_error(bag.path, str(e), topic) from None
     if not samples.covers(t_start, t_end - 0.05):
         if ic.use == "on":
             raise input_error(bag.path, f"IMU samples do not cover the scans ({t_start:.2f}-{t_end:.2f} s) without gaps",
-                              ic.topic)
+                              topic)
         return None
     return samples
 
@@ -87,27 +101,45 @@ def peak_rss_gb() -> float:
 
 def run_slam(
     bag: str | Path,
-    rig: Rig,
+    rig: Rig | None,
     cfg: SlamConfig,
     out_dir: str | Path,
     progress: bool = True,
     voxel: float | None = None,
+    urdf: str | Path | None = None,
+    report: Callable[[str], object] | None = None,
 ) -> dict[str, Any]:
-    """Run SLAM on ``bag`` with ``rig`` and ``cfg``; write the run folder; return the summary."""
+    """Run SLAM on ``bag`` with ``rig`` (None: built from the bag's transforms or ``urdf``) and
+    ``cfg``; write the run folder; return the summary, its ``health`` block the run's verdict.
+
+    Before anything is processed the rig is checked against the recording (a wrong rig, or one
+    that leaves a degree of freedom to an IMU the run does not have, is a ``RigError``); what the
+    checks note goes to ``report`` (one line each) and into the summary. A recording without a
+    single line segment is an ``InputError`` (no usable returns), with no output written."""
     t_wall = time.perf_counter()
     with BagSource(bag) as source:
+        check = check_rig(source, rig, urdf)
+        rig = check.rig
         source.scan_plan(rig=rig)  # checks the bag and its topics before anything is written
         t_range = source.time_range()
-        imu = load_imu(source, cfg, *t_range)
+        imu = load_imu(source, cfg, *t_range, rig=rig)
+        check.notes += check_observability(rig, source, imu_topic(cfg, rig) if imu is not None else None)
+        for note in check.notes:
+            if report is not None:
+                report(note)
         runner = SlamRunner(rig, cfg, imu)
         scans = prepared_scans(source, rig, cfg, imu, process=cfg.parallel.reader)
         _estimate(runner, scans, t_range, progress)
+        if runner.stats["segments"] == 0:
+            raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "
+                              + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
         res = runner.result(batch=cfg.backend.final_batch)
+        health = run_health(res, cfg, imu is not None)
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}
 
         with atomic_dir(Path(out_dir)) as tmp:
             t0 = time.perf_counter()
-            planes = write_tables(tmp, res, runner)
+            planes = write_tables(tmp, res)
             cloud = write_cloud_outputs(tmp, source, rig, cfg, res, scans.index, progress, voxel)
             if cfg.output.rerun:
                 write_map_rrd(tmp / "map.rrd", times=res.knot_times, T_world_body=res.T_world_body, planes=planes,
@@ -116,9 +148,19 @@ def run_slam(
             res.timings["export"] = time.perf_counter() - t0
             memory["peak_rss_gb_after_export"] = peak_rss_gb()
             summary = RunSummary.of(bag, rig, cfg, res, cloud.points, memory, time.perf_counter() - t_wall,
-                                    t_range).to_dict()
+                                    t_range, health, check.notes).to_dict()
             write_summary_json(tmp / "summary.json", summary)
     return summary
+
+
+def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool) -> Health:
+    """The run's verdict on its own estimate (``slam.health``)."""
+    rows = res.segment_rows
+    normals = {int(i): n for i, n in zip(res.plane_ids, res.plane_normals, strict=True)}
+    counts = {"segments": len(rows["plane_id"]), "segments_associated": int((rows["plane_id"] >= 0).sum())}
+    residuals = res.stats.get("residuals") or {}
+    return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
+                  residuals.get("rms_whitened"), with_imu, cfg.health)
 
 
 def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:

@@ -26,8 +26,9 @@ from slam.export import (
     write_trajectory_tum,
 )
 from slam.frontend.planemap import KIND_NAMES
+from slam.health import Health
 from slam.io.source import BagSource, StreamIndex
-from slam.pipeline import SlamResult, SlamRunner
+from slam.pipeline import SlamResult
 from slam.rerun_map import CloudView, MapOptions, SegmentLines, view_of_cloud_ply
 
 FloatArray = NDArray[np.float64]
@@ -40,21 +41,6 @@ TIMINGS_DEFINITION = ("seconds per stage; 'segmentation' and 'frontend' (lifting
                       "scan-only edge tests) are spent in the reader process when parallel.reader is on, overlapped "
                       "with the estimator's stages; 'export' is elapsed time (its cloud pass split across "
                       "parallel.export_processes); 'wall' is the whole run's elapsed time")
-
-
-def _plane_covariances(res: SlamResult, runner: SlamRunner) -> dict[int, FloatArray]:
-    """Each plane's marginal covariance (3, 3) over (Unit3 tangent of the normal, d); a plane
-    whose covariance cannot be computed is left out.
-
-    The one place that reaches into the runner (its back end): once ``SlamResult.plane_covariances``
-    is filled (issue 20), this is ``return res.plane_covariances``."""
-    out = {}
-    for pid in res.plane_ids:
-        try:
-            out[int(pid)] = runner.backend.plane_covariance(int(pid))
-        except (ValueError, RuntimeError):
-            pass
-    return out
 
 
 def plane_records(res: SlamResult, covariances: dict[int, FloatArray]) -> list[PlaneRecord]:
@@ -76,10 +62,10 @@ def plane_records(res: SlamResult, covariances: dict[int, FloatArray]) -> list[P
     return recs
 
 
-def write_tables(out: Path, res: SlamResult, runner: SlamRunner) -> list[PlaneRecord]:
+def write_tables(out: Path, res: SlamResult) -> list[PlaneRecord]:
     """trajectory.tum, planes.json and segments.npz into ``out``; returns the planes written."""
     write_trajectory_tum(out / "trajectory.tum", res.knot_times, res.T_world_body)
-    planes = plane_records(res, _plane_covariances(res, runner))
+    planes = plane_records(res, res.plane_covariances)
     write_planes_json(out / "planes.json", planes)
     rows = res.segment_rows
     table = make_segment_table(res.scanner_names, rows["scanner"], rows["scan_index"], rows["stamp"],
@@ -182,10 +168,13 @@ class RunSummary:
     timings_definition: str
     data_duration: float
     realtime_factor: float
+    health: dict[str, Any]
+    rig_checks: list[str]
 
     @classmethod
     def of(cls, bag: str | Path, rig: Rig, cfg: SlamConfig, res: SlamResult, cloud_points: int,
-           memory: dict[str, float], wall: float, time_range: tuple[float, float]) -> RunSummary:
+           memory: dict[str, float], wall: float, time_range: tuple[float, float], health: Health,
+           rig_checks: list[str]) -> RunSummary:
         """The summary of a run on ``bag`` (log ``time_range``, s) that took ``wall`` s."""
         st = res.stats
         timings = {k: round(v, 3) for k, v in res.timings.items()} | {"wall": round(wall, 3)}
@@ -203,6 +192,8 @@ class RunSummary:
             timings_definition=TIMINGS_DEFINITION,
             data_duration=duration,
             realtime_factor=duration / max(timings["wall"], 1e-9),
+            health=health.to_dict(),
+            rig_checks=list(rig_checks),
         )
 
     def to_dict(self) -> dict[str, Any]:

@@ -1,12 +1,21 @@
-"""``backpack-slam run BAG --rig RIG --out DIR``: SLAM on a bag, the run folder out."""
+"""``backpack-slam run BAG [--rig RIG] --out DIR``: SLAM on a bag, the run folder out.
+
+Exit codes: 0 the run's estimate passed its own health checks (``summary.json`` ``health``); 3
+the run finished but its estimate cannot be trusted (outputs written, marked ``failed``, one
+line per problem printed); 2 bad input, a rig that does not match the recording, or a rig that
+leaves a degree of freedom to an IMU the recording lacks (nothing written)."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 from common.rig import resolve_rig
 from slam.config import load_slam_config, with_segmenter
+from slam.health import EXIT_FAILED
+
+PROG = "backpack-slam"
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
@@ -23,7 +32,9 @@ def parse_params(items: list[str]) -> dict[str, Any]:
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     p: argparse.ArgumentParser = sub.add_parser("run", help="run SLAM on a bag and write trajectory, planes, cloud, map")
     p.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder with the rig's LaserScan topics")
-    p.add_argument("--rig", default="itc_backpack", help="rig name (configs/rig/NAME.yaml) or YAML path")
+    p.add_argument("--rig", default=None,
+                   help="rig name (configs/rig/NAME.yaml) or YAML path (default: built from the bag's /tf_static or --urdf)")
+    p.add_argument("--urdf", default=None, help="URDF with the rig's extrinsics (without --rig: the rig is built from it)")
     p.add_argument("--config", default=None, help="SLAM config YAML (default: built-in defaults, see configs/slam/default.yaml)")
     p.add_argument("--segmenter", default=None, help="segmenter name (overrides the config)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="segmenter parameter (repeatable)")
@@ -36,11 +47,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from slam.run import run_slam
 
-    rig = resolve_rig(args.rig)
+    rig = resolve_rig(args.rig) if args.rig is not None else None
     cfg = with_segmenter(load_slam_config(args.config), args.segmenter, parse_params(args.param))
     if args.voxel is not None and not args.voxel > 0:
         raise ValueError(f"--voxel {args.voxel}: must be > 0")
-    summary = run_slam(args.bag, rig, cfg, args.out, progress=not args.quiet, voxel=args.voxel)
+    summary = run_slam(args.bag, rig, cfg, args.out, progress=not args.quiet, voxel=args.voxel, urdf=args.urdf,
+                       report=lambda line: print(f"note: {line}", file=sys.stderr))
     c = summary["counts"]
     t = summary["timings"]
     print(
@@ -49,4 +61,12 @@ def run(args: argparse.Namespace) -> int:
         f"{t['wall']:.1f} s ({summary['realtime_factor']:.2f}x real time)"
     )
     print(f"outputs: {args.out}/ (trajectory.tum, planes.json, segments.npz, cloud.ply, map.rrd, summary.json)")
+    health = summary["health"]
+    for p in sorted(health["problems"], key=lambda p: p["severity"] != "failure"):
+        print(f"{PROG}: {p['severity']}: {p['message']}", file=sys.stderr)
+    if health["verdict"] == "failed":
+        print(f"{PROG}: the run's estimate cannot be trusted (verdict: failed; outputs marked so in summary.json)",
+              file=sys.stderr)
+        return EXIT_FAILED
+    print(f"health: {health['verdict']}")
     return 0
