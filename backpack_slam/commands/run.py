@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from common.rig import resolve_rig
 from slam.config import load_slam_config, with_segmenter
 from slam.health import EXIT_FAILED
+from slam.survey import export_cloud, survey_format
 
 PROG = "backpack-slam"
 
@@ -40,6 +42,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="segmenter parameter (repeatable)")
     p.add_argument("--voxel", type=float, default=None, help="thin cloud.ply to one point per voxel of this size (m)")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--cloud-format", default=None, metavar="FMT",
+                   help="also write the cloud as FMT for survey tools: laz, las, e57 or pcd (OUT/cloud.FMT)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -48,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from slam.run import run_slam
 
     rig = resolve_rig(args.rig) if args.rig is not None else None
+    fmt = survey_format(args.cloud_format) if args.cloud_format is not None else None
     cfg = with_segmenter(load_slam_config(args.config), args.segmenter, parse_params(args.param))
     if args.voxel is not None and not args.voxel > 0:
         raise ValueError(f"--voxel {args.voxel}: must be > 0")
@@ -61,6 +66,10 @@ def run(args: argparse.Namespace) -> int:
         f"{t['wall']:.1f} s ({summary['realtime_factor']:.2f}x real time)"
     )
     print(f"outputs: {args.out}/ (trajectory.tum, planes.json, segments.npz, cloud.ply, map.rrd, summary.json)")
+    if fmt is not None:
+        out = Path(args.out)
+        n = export_cloud(out / "cloud.ply", out / f"cloud.{fmt}", fmt, out / "trajectory.tum")
+        print(f"cloud for survey tools: {n} points -> {out / f'cloud.{fmt}'}")
     health = summary["health"]
     for p in sorted(health["problems"], key=lambda p: p["severity"] != "failure"):
         print(f"{PROG}: {p['severity']}: {p['message']}", file=sys.stderr)
