@@ -753,6 +753,23 @@ class GroundTruth:
             raise EvaluationError(f"{path}: no triangles")
         return v, f
 
+    def _scanner_aliases(self) -> dict[str, str]:
+        """The true rig's scanner names by their frame ids and topics (a run whose rig was built
+        from the recording names its scanners by frame id), from ``rig.yaml`` when present."""
+        path = self.folder / "rig.yaml"
+        if not path.is_file():
+            return {}
+        from common.config import ConfigError
+        from common.rig import load_rig
+
+        try:
+            rig = load_rig(path)
+        except ConfigError:
+            return {}
+        out = {s.topic: s.name for s in rig.scanners}
+        out.update({s.frame: s.name for s in rig.scanners})
+        return out
+
     def beams(
         self, names: Sequence[str]
     ) -> tuple[dict[str, NDArray[np.int32]], dict[str, FloatArray]]:
@@ -761,13 +778,15 @@ class GroundTruth:
             raise EvaluationError(f"{path}: no such file")
         ids: dict[str, NDArray[np.int32]] = {}
         stamps: dict[str, FloatArray] = {}
+        alias = self._scanner_aliases()
         with np.load(path, allow_pickle=False) as z:
             for name in names:
-                if f"{name}_plane_id" not in z.files:
+                key = name if f"{name}_plane_id" in z.files else alias.get(name, name)
+                if f"{key}_plane_id" not in z.files:
                     raise EvaluationError(f"{path}: no array '{name}_plane_id'")
-                ids[name] = z[f"{name}_plane_id"]
-                if f"{name}_stamps" in z.files:
-                    stamps[name] = z[f"{name}_stamps"].astype(np.float64)
+                ids[name] = z[f"{key}_plane_id"]
+                if f"{key}_stamps" in z.files:
+                    stamps[name] = z[f"{key}_stamps"].astype(np.float64)
         return ids, stamps
 
 

@@ -49,15 +49,13 @@ def test_topics_renamed_and_no_rig_file_reach_the_hand_written_rigs_accuracy(ren
 
 def test_the_default_rig_on_another_rigs_recording_is_refused(renamed, tmp_path: Path, capsys) -> None:
     bag, _, rig = renamed
-    wrong = resolve_rig("itc_backpack")  # same scanners, other topics: refused by its topics
-    other = wrong.model_copy(update={"scanners": [s.model_copy(update={"topic": t}) for s, t in
-                                                  zip(wrong.scanners, [c.topic for c in resolve_rig(rig).scanners],
-                                                      strict=True)]})
-    moved = other.model_copy(update={"scanners": [other.scanners[0], other.scanners[2].model_copy(
-        update={"name": "left", "frame_id": "laser_1_link"}), other.scanners[1].model_copy(
-        update={"name": "right", "frame_id": "laser_2_link"})], "body_frame": "base_link"})
+    r = resolve_rig(rig)
+    left, right = r.scanners[1], r.scanners[2]
+    moved = r.model_copy(update={"scanners": [r.scanners[0],
+                                              left.model_copy(update={"T_body_scanner": right.T_body_scanner}),
+                                              right.model_copy(update={"T_body_scanner": left.T_body_scanner})]})
     path = tmp_path / "swapped.yaml"
-    write_rig(path, moved)  # left and right swapped: 140 deg and 0.5 m off the recording's
+    write_rig(path, moved)  # the left and right mounts swapped: 40 deg and 0.5 m off the recording's
     out = tmp_path / "out"
     assert main(["run", str(bag), "--rig", str(path), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
