@@ -20,9 +20,10 @@ class ConfigError(ValueError):
 
 
 class StrictModel(BaseModel):
-    """Base of every config section: unknown keys are errors, values are validated."""
+    """Base of every config section: unknown keys are errors, values are validated, and a float
+    must be finite (a NaN or infinite sigma, extrinsic or limit is never meant)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def read_yaml(path: str | Path) -> Any:

@@ -36,14 +36,22 @@ class ScannerModel(StrictModel):
     """
 
     name: str = "utm30lx"
-    n_beams: int = Field(1081, gt=1)
-    angle_min: float = -math.radians(135.0)
-    angle_increment: float = Field(math.radians(0.25), gt=0)
-    scan_period: float = Field(0.025, gt=0, description="s per mirror turn (1 / scan rate)")
-    time_increment: float = Field(0.025 / 1440.0, ge=0, description="s between beams")
+    n_beams: int = Field(1081, gt=1, le=100_000)
+    angle_min: float = Field(-math.radians(135.0), ge=-2 * math.pi, le=2 * math.pi)
+    angle_increment: float = Field(math.radians(0.25), gt=0, le=math.pi)
+    scan_period: float = Field(0.025, gt=0, le=10.0, description="s per mirror turn (1 / scan rate)")
+    time_increment: float = Field(0.025 / 1440.0, ge=0, le=1.0, description="s between beams")
     range_min: float = Field(0.1, ge=0)
-    range_max: float = Field(30.0, gt=0)
-    range_sigma: float = Field(0.003, ge=0, description="range noise standard deviation (m)")
+    range_max: float = Field(30.0, gt=0, le=10_000.0)
+    range_sigma: float = Field(0.003, ge=0, le=1.0, description="range noise standard deviation (m)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ScannerModel:
+        if self.range_min >= self.range_max:
+            raise ValueError(f"range_min {self.range_min:g} must be below range_max {self.range_max:g}")
+        if (self.n_beams - 1) * self.angle_increment > 2 * math.pi + 1e-9:
+            raise ValueError(f"{self.n_beams} beams at {self.angle_increment:g} rad span more than a full turn")
+        return self
 
     @property
     def angle_max(self) -> float:

@@ -88,7 +88,10 @@ class BagWriter:
         self.imu_noise = imu_noise
         if not self.path.parent.is_dir():
             raise ValueError(f"{self.path}: the folder {self.path.parent} does not exist")
+        # a ROS2 bag's storage file takes the name of its folder: that folder is written inside a
+        # temporary one under its final name (a ROS1 bag is written under a temporary name)
         self.tmp = temporary_sibling(self.path)
+        self._bag_path = self.tmp if fmt == "ros1" else self.tmp / self.path.name
         self._writer: Any = None
         self._serialize = self.ts.serialize_ros1 if fmt == "ros1" else self.ts.serialize_cdr
         self._types = self.ts.types
@@ -102,9 +105,10 @@ class BagWriter:
     # -- lifecycle
     def open(self) -> BagWriter:
         if self.fmt == "ros1":
-            self._writer = Writer1(self.tmp)
+            self._writer = Writer1(self._bag_path)
         else:
-            self._writer = Writer2(self.tmp, version=ROS2_VERSION)
+            self.tmp.mkdir()
+            self._writer = Writer2(self._bag_path, version=ROS2_VERSION)
         self._writer.open()
         for sc in self.rig.scanners:
             self._add(sc.topic, MULTIECHO if sc.message == "MultiEchoLaserScan" else LASERSCAN)
@@ -119,7 +123,9 @@ class BagWriter:
         self.flush()
         self._writer.close()
         self._writer = None
-        commit(self.tmp, self.path)
+        commit(self._bag_path, self.path)
+        if self._bag_path != self.tmp:
+            self.tmp.rmdir()
 
     def abort(self) -> None:
         """Drop the temporary bag."""

@@ -67,8 +67,12 @@ def write_trajectory_tum(path: str | Path, times: ArrayLike, T_world_body: Array
     return target
 
 
+MAX_COORDINATE = 1e7  # m: a trajectory or cloud beyond this (UTM's range) is not a survey
+
+
 def read_trajectory_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
-    """Read a TUM file; return times (N,) and ``T_world_body`` (N,4,4)."""
+    """Read a TUM file; return times (N,) and ``T_world_body`` (N,4,4). Non-finite values and
+    positions beyond :data:`MAX_COORDINATE` are an ``OutputFileError`` naming the file."""
     from evo.tools import file_interface
     from evo.tools.file_interface import FileInterfaceException
 
@@ -83,6 +87,10 @@ def read_trajectory_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
     T = np.asarray(traj.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
     if times.shape[0] == 0:
         raise OutputFileError(f"{p}: empty trajectory")
+    if not (np.all(np.isfinite(times)) and np.all(np.isfinite(T))):
+        raise OutputFileError(f"{p}: non-finite times or poses")
+    if np.abs(T[:, :3, 3]).max() > MAX_COORDINATE:
+        raise OutputFileError(f"{p}: positions beyond {MAX_COORDINATE:g} m")
     return times, T
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import ValidationError
 
 from common.rig import Extrinsic, ImuMount, MessageType, Rig, ScannerConfig, ScannerModel
 from common.rotations import matrix_to_rpy
@@ -61,6 +62,17 @@ class ScanTopic:
             angle_increment=self.angle_increment, scan_period=period, time_increment=max(self.time_increment, 0.0),
             range_min=self.range_min, range_max=self.range_max, range_sigma=range_sigma,
         )
+
+    def check(self, recording: str | Path) -> None:
+        """A RigError naming ``recording`` and the topic when its messages describe no scanner a
+        rig can hold (non-finite or inconsistent angles, ranges or timing)."""
+        try:
+            self.model(0.01)
+        except ValidationError as e:
+            first = e.errors()[0]
+            key = ".".join(str(x) for x in first.get("loc", ()))
+            raise RigError(f"{recording} topic {self.topic}: its scans describe no usable scanner "
+                           f"({key + ': ' if key else ''}{first.get('msg', 'invalid')})") from None
 
 
 def _f32(x: float) -> float:
@@ -280,6 +292,8 @@ def rig_from_source(src: BagSource, urdf: str | Path | None = None, base: str | 
     scans = scan_topics(src)
     if not scans:
         raise RigError(f"{src.path}: no LaserScan or MultiEchoLaserScan topic with messages")
+    for s in scans:
+        s.check(src.path)
     if urdf is not None:
         tree = FrameTree(urdf_transforms(urdf), str(urdf))
     else:

@@ -68,12 +68,27 @@ def new_figure(n_panels: int, size: float = 5.0) -> tuple[Figure, list[Axes]]:
     return fig, list(axes)
 
 
+IMAGE_FORMATS = ("png", "pdf", "svg", "svgz", "jpg", "jpeg", "eps", "ps", "tif", "tiff", "webp", "gif", "avif", "pgf")
+
+
+def check_image_path(path: str | Path, option: str) -> None:
+    """A ValueError naming ``option`` unless ``path`` can take an image: a suffix matplotlib
+    writes, and not an existing folder (checked before any work, so that nothing is written
+    for an image that cannot be)."""
+    p = Path(path)
+    fmt = p.suffix.lower().lstrip(".")
+    if fmt not in IMAGE_FORMATS:
+        raise ValueError(f"{option} {p}: unknown image format '{p.suffix}' (use one of .{', .'.join(IMAGE_FORMATS)})")
+    if p.is_dir():
+        raise ValueError(f"{option} {p}: is a folder")
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = 150) -> Path:
     """Save ``fig`` to ``path`` atomically (the format from the suffix); creates the folder."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=dpi)
+        fig.savefig(tmp, dpi=dpi, format=p.suffix.lower().lstrip(".") or None)
     return p
 
 

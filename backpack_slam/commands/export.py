@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else run_dir / f"cloud.{fmt}"
     n, _ = cloud_ply_layout(run_dir / "cloud.ply")
     traj = run_dir / "trajectory.tum"
-    with tqdm(total=n, unit="pt", unit_scale=True, desc=f"export {fmt}", leave=False) as bar:
+    with tqdm(total=n, unit="pt", unit_scale=True, desc=f"export {fmt}", leave=False, disable=None) as bar:
         written = export_cloud(run_dir / "cloud.ply", out, fmt, traj if traj.is_file() else None, bar.update)
     print(f"{written} points -> {out}")
     return 0

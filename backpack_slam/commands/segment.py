@@ -208,6 +208,12 @@ def segment_input(
 
     if noise not in ("auto", "none"):
         raise ValueError(f"segment: noise={noise!r} is invalid: must be auto or none")
+    if plot is not None:
+        from backpack_slam.commands._segplot import check_image_path
+
+        check_image_path(plot, "--plot")
+    if json_out is not None and json_out.is_dir():
+        raise ValueError(f"--json {json_out}: is a folder")
     fixed = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading
     fmt = detect_format(path)
     source = f"{path}" + (f" topic {','.join(topics)}" if topics else "")
@@ -249,11 +255,11 @@ def segment_input(
                 record = {**scan_info(index, line), "time_s": dt, "segmentation": seg.to_dict()}
                 js.write((", " if n_written else "") + json.dumps(json_safe(record)))
                 n_written += 1
+        if first_panel is None:  # inside the block: the JSON's temporary file is dropped
+            reasons = "; ".join(f"scan {i}: {r}" for i, r in summary.skipped[:3])
+            raise ValueError(f"{source}: no scan could be segmented ({reasons or 'the input has no scans'})")
         if js is not None:
             js.write('], "summary": ' + json.dumps(json_safe(summary.as_dict())) + "}\n")
-    if first_panel is None:
-        reasons = "; ".join(f"scan {i}: {r}" for i, r in summary.skipped[:3])
-        raise ValueError(f"{source}: no scan could be segmented ({reasons})")
     _print_summary(out, path, fmt, method, summary, first_panel, single=scan is not None)
     if plot is not None:
         _plot(plot, path, method, summary, first_panel, single=scan is not None)

@@ -149,6 +149,39 @@ def is_bag(path: str | Path) -> bool:
     return is_ros1_bag(path) or ros2_bag_dir(path) is not None
 
 
+_BAGS = "expected a ROS1 .bag file or a ROS2 bag folder (with metadata.yaml)"
+_OTHER_FORMATS = {"carmen": "a CARMEN log", "npz": "an .npz scanline", "csv": "a CSV scanline"}
+
+
+def not_a_bag(path: Path) -> InputError | None:
+    """Why ``path`` (an existing file or folder) cannot be opened as a bag, naming what it is and
+    what is expected (rosbags picks its reader from the name: ``*.bag`` is ROS1, anything else
+    ROS2); None when it has a bag's form."""
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            return input_error(path, f"not a readable ROS bag: a folder without metadata.yaml; {_BAGS}")
+        if path.suffix == ".bag":
+            return input_error(path, "not a readable ROS bag: a ROS2 bag folder whose name ends in .bag (read as a "
+                               "ROS1 bag file); rename the folder")
+        return None
+    if is_ros1_bag(path):
+        if path.suffix != ".bag":
+            return input_error(path, "not a readable ROS bag: a ROS1 bag whose name does not end in .bag (read as a "
+                               "ROS2 bag); rename it to *.bag")
+        return None
+    if path.suffix in (".db3", ".mcap"):
+        return input_error(path, f"not a readable ROS bag: a ROS2 storage file without metadata.yaml beside it; {_BAGS}")
+    from slam.io import detect_format  # the package imports this module
+
+    try:
+        kind = _OTHER_FORMATS.get(detect_format(path))
+    except (ValueError, OSError):
+        kind = None
+    if kind is not None:
+        return input_error(path, f"not a ROS bag but {kind} (backpack-slam segment reads it); {_BAGS}")
+    return input_error(path, f"not a readable ROS bag; {_BAGS}")
+
+
 def stamp_ns(header: Any) -> int:
     """A ``std_msgs/Header`` stamp in integer nanoseconds."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
@@ -168,8 +201,11 @@ class BagSource:
         if not p.exists():
             raise input_error(p, "no such file or directory")
         self.path = ros2_bag_dir(p) or p
-        self._reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        refused = not_a_bag(self.path)
+        if refused is not None:
+            raise refused
         try:
+            self._reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             self._reader.open()
         except Exception as e:  # rosbags raises many types here (bare AssertionError for old ROS1 indexes)
             raise input_error(self.path, f"not a readable ROS bag ({_describe(e)})") from None
