@@ -16,6 +16,7 @@ from slam.io.source import BagSource
 from slam.rig_builder import (
     FrameTree,
     RigError,
+    ScanTopic,
     compare_rig,
     rig_from_source,
     rig_verdict,
@@ -44,6 +45,7 @@ def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None) -> RigCh
         return RigCheck(built, f"built from {where}", [
             f"rig built from {where} of {src.path}: " + ", ".join(f"{s.name} on {s.topic}" for s in built.scanners)])
     out = RigCheck(rig, "given")
+    check_geometry(rig, scan_topics(src), str(src.path))
     transforms = urdf_transforms(urdf) if urdf is not None else static_transforms(src)
     if transforms:
         where = str(urdf) if urdf is not None else f"{src.path}"
@@ -55,6 +57,25 @@ def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None) -> RigCh
             raise RigError(error)
         out.notes += warnings
     return out
+
+
+def check_geometry(rig: Rig, scans: list[ScanTopic], source: str) -> None:
+    """Each scan topic's beam geometry (from its first message) against the rig's scanner model
+    for that topic; a mismatch is a RigError naming the topic and the field."""
+    by_topic = rig.by_topic()
+    for s in scans:
+        sc = by_topic.get(s.topic)
+        if sc is None:
+            continue
+        m = sc.scanner_model
+        for what, bag_value, rig_value, tol in (
+            ("number of beams", float(s.n_beams), float(m.n_beams), 0.5),
+            ("angle_min", s.angle_min, m.angle_min, 1e-4),
+            ("angle_increment", s.angle_increment, m.angle_increment, 1e-6),
+        ):
+            if abs(bag_value - rig_value) > tol:
+                raise RigError(f"{source}: topic {s.topic}: {what} {bag_value:g} in the recording, {rig_value:g} in "
+                               f"rig '{rig.name}' (scanner '{sc.name}', model '{m.name}')")
 
 
 def check_observability(rig: Rig, src: BagSource, imu_topic: str | None) -> list[str]:

@@ -103,3 +103,14 @@ def test_rig_command_builds_the_rig_from_the_bag_or_a_urdf(cartographer, tmp_pat
     assert main(["rig", str(bag), "--urdf", str(urdf), "--base", "base_link"]) == 0
     assert main(["rig", str(bag), "--urdf", str(urdf), "--base", "nowhere"]) == 2
     assert "unknown frame 'nowhere'" in capsys.readouterr().err
+
+
+def test_a_rig_whose_scanner_geometry_is_not_the_bags_is_one_line(renamed, tmp_path: Path, capsys) -> None:
+    bag, _, rig = renamed
+    r = resolve_rig(rig)
+    urg = r.model_copy(update={"scanners": [r.scanners[0].model_copy(update={"model": "urg04lx"}), *r.scanners[1:]]})
+    path = tmp_path / "urg.yaml"
+    write_rig(path, urg)
+    assert main(["run", str(bag), "--rig", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "topic /sensors/laser_0/scan: number of beams 1081 in the recording, 726" in err[0]
