@@ -1,10 +1,12 @@
 """Calibrate a rig from a recording: SLAM, batch extrinsic estimation, repeat until converged.
 
-1. Run SLAM (:class:`slam.pipeline.SlamRunner`, without its final batch: the calibration batch
-   replaces it) on the bag with the current rig: trajectory, planes, segment-to-plane
-   associations.
-2. Re-read the scans; every associated segment becomes two moment-matched virtual points in its
-   scanner frame (:mod:`calibration.observations`).
+1. Run SLAM (:class:`slam.pipeline.SlamRunner` through its public API, without its final batch:
+   the calibration batch replaces it) on the bag with the current rig: trajectory, planes,
+   segment-to-plane associations. Every scan is prepared once by the runner's preparer; a
+   :class:`calibration.observations.SegmentLog` keeps its segments' virtual points in the scanner
+   frame as the runner takes the scan.
+2. Every associated segment becomes two moment-matched virtual points in its scanner frame
+   (:mod:`calibration.observations`), without reading the recording again.
 3. One batch graph with the extrinsics (and optionally time offsets) as variables, priors around
    the *initial* rig (:mod:`calibration.estimator`).
 4. Update the rig; repeat from 1 until the extrinsics move less than ``tol_rot`` / ``tol_trans``
@@ -49,7 +51,7 @@ from numpy.typing import NDArray
 
 from calibration.estimator import BatchResult, EstimatorConfig, ScannerEstimate, estimate_extrinsics
 from calibration.observability import ParameterSigmas, parameter_sigmas, warn_unobservable
-from calibration.observations import collect_observations
+from calibration.observations import SegmentLog
 from calibration.rig_io import updated_rig
 from common.rig import Rig
 from segmentation import Scanline
@@ -171,9 +173,11 @@ def is_loosened(cfg: SlamConfig, rot: float, trans: float) -> bool:
 
 
 def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
-             uncertainty: tuple[float, float] | None = None) -> SlamResult:
+             uncertainty: tuple[float, float] | None = None) -> tuple[SlamResult, SegmentLog]:
     """SLAM for calibration (:func:`slam_config_for_calibration`), with the gates loosened for an
-    extrinsic ``uncertainty`` (rad, m) if given."""
+    extrinsic ``uncertainty`` (rad, m) if given; with the scanner-frame segments of the scans it
+    was given. Without an IMU (as here) no deskew touches the points, and the scanner-frame
+    virtual points never depend on the extrinsics or a deskew."""
     cfg = slam_config_for_calibration(slam_cfg)
     loose = uncertainty is not None and is_loosened(cfg, *uncertainty)
     if loose:
@@ -181,10 +185,13 @@ def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
         rot, trans = uncertainty
         cfg = loosened_slam_config(cfg, rot, trans)
     runner = SlamRunner(rig, cfg)
+    log = SegmentLog()
     for line in scans:
-        runner.add_scan(line)
+        scan = runner.preparer.prepare(line)
+        log.add(scan)
+        runner.add_prepared(scan)
     runner.finish()
-    return runner.result(batch=False, covariances=False)
+    return runner.result(batch=False, covariances=False), log
 
 
 def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamConfig,
@@ -192,8 +199,8 @@ def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamCon
                     ) -> tuple[BatchResult, SlamResult, int]:
     """One round (steps 1-3) with the current ``rig``; priors around ``initial``; SLAM gates for
     an extrinsic ``uncertainty`` (rad, m; None: the plain configuration)."""
-    res = run_slam(scans(rig), rig, slam_cfg, uncertainty)
-    obs = collect_observations(scans(rig), rig, res.segment_rows)
+    res, log = run_slam(scans(rig), rig, slam_cfg, uncertainty)
+    obs = log.observations(rig, res.segment_rows)
     planes = {int(j): (n, float(d)) for j, n, d in
               zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True)}
     names = [s.name for s in rig.scanners]

@@ -1,16 +1,18 @@
-"""Calibration observations: the SLAM run's associated segments, re-read in the scanner frame.
+"""Calibration observations: the SLAM run's associated segments, in the scanner frame.
 
-For each segment that SLAM associated with a plane (``SlamResult.segment_rows``), the scan is
-read again from the bag and the segment's valid beams ``first_beam..last_beam`` are refitted and
-summarised by the two moment-matched virtual points of :mod:`slam.frontend.observations`, here
-in the *scanner* frame (``T_body_scanner = I``), with their beam times (plus the rig's current
-``time_offset`` of the scanner) and point-to-plane sigma. The extrinsics are then free to move
-in the calibration graph: nothing here depends on them.
+While SLAM runs, :class:`SegmentLog` keeps from every prepared scan
+(:class:`slam.frontend.scan_prep.PreparedScan`) what the calibration needs of its segments: scanner,
+scan index, beam range, number of points and the two moment-matched virtual points of
+:mod:`slam.frontend.observations` in the *scanner* frame with their beam times. These do not depend
+on the extrinsics (nor on a deskew, which moves only the body-frame points), so the recording is
+read once. After SLAM, every segment it associated with a plane (``SlamResult.segment_rows``)
+becomes two point observations, with the rig's current ``time_offset`` of its scanner added to
+their times and a point-to-plane sigma from the scanner's range noise. The extrinsics are then
+free to move in the calibration graph.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,12 +20,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.rig import Rig
-from segmentation import Scanline
-from segmentation.base import build_segmentation
-from slam.frontend.observations import scan_segments
+from slam.frontend.scan_prep import PreparedScan
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+_SCAN_BITS = 32  # segment key: (scanner, scan index, first beam) in one int64
+_BEAM_BITS = 20
 
 
 @dataclass(frozen=True)
@@ -69,78 +72,114 @@ class PointObservations:
         )
 
 
-def segment_virtual_points(line: Scanline, first_beam: IntArray, last_beam: IntArray,
-                           scanner: int, point_sigma: float
-                           ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray]:
-    """Two moment-matched virtual points per segment ``first_beam..last_beam`` of ``line``.
-
-    Returns virtual points (k, 2, 3) in the scanner frame (z = 0), their times (k, 2) [s], the
-    sigma (k,) of one virtual point and the number of valid points (k,) per segment. Segments with
-    fewer than two valid beams get zero points (and should be skipped).
-    """
-    vi = line.valid_index
-    first = np.searchsorted(vi, first_beam, side="left").astype(np.int64)
-    last = (np.searchsorted(vi, last_beam, side="right") - 1).astype(np.int64)
-    n_pts = np.maximum(last - first + 1, 0)
-    ok = n_pts >= 2
-    k = first.shape[0]
-    v = np.zeros((k, 2, 3))
-    t = np.zeros((k, 2))
-    sg = np.full(k, np.inf)
-    if not ok.any():
-        return v, t, sg, n_pts
-    f, la = first[ok], last[ok]
-    labels = np.full(vi.shape[0], -1, dtype=np.int64)
-    for j, (a, b) in enumerate(zip(f, la, strict=True)):
-        labels[a:b + 1] = j
-    sigma_pts = np.full(vi.shape[0], point_sigma)
-    seg = build_segmentation(line, labels, f, la, sigma_pts, "calibration", {})
-    segs = scan_segments(line, seg, np.eye(4), scanner, 0, point_sigma)
-    v[ok], t[ok], sg[ok] = segs.virtual_scanner, segs.virtual_times, segs.virtual_sigma
-    return v, t, sg, n_pts
+def _segment_key(scanner: NDArray[Any], scan_index: NDArray[Any], first_beam: NDArray[Any]) -> IntArray:
+    """One int64 per segment, ordered as (scanner, scan index, first beam); a ValueError if one
+    does not fit."""
+    s, i, b = (np.asarray(a, dtype=np.int64) for a in (scanner, scan_index, first_beam))
+    if s.size and (s.min() < 0 or s.max() >= 1 << (63 - _SCAN_BITS - _BEAM_BITS) or i.min() < 0
+                   or i.max() >= 1 << _SCAN_BITS or b.min() < 0 or b.max() >= 1 << _BEAM_BITS):
+        raise ValueError("segment rows: scanner, scan index or beam index out of range")
+    return (s << (_SCAN_BITS + _BEAM_BITS)) | (i << _BEAM_BITS) | b
 
 
-def collect_observations(scans: Iterable[Scanline], rig: Rig, segment_rows: dict[str, NDArray[Any]],
-                         point_sigma: float | None = None, min_points: int = 10) -> PointObservations:
-    """Virtual points of every associated segment (``segment_rows['plane_id'] >= 0``).
+class SegmentLog:
+    """Every segment of the prepared scans of one SLAM run, in stream order, column-wise: scanner,
+    scan index, first and last beam, number of points (int32), the two virtual points in the
+    scanner frame (their x, y; z = 0) and their times [s]. Grown in chunks of ``chunk`` scans."""
 
-    ``scans`` is the same time-ordered stream SLAM read (scan indices count per scanner from 0);
-    ``point_sigma`` [m] defaults to each scanner model's ``range_sigma``. Times get the rig's
-    ``time_offset`` of their scanner added.
-    """
-    names = [s.name for s in rig.scanners]
-    index = {n: i for i, n in enumerate(names)}
-    rows = segment_rows
-    assoc = np.flatnonzero(np.asarray(rows["plane_id"]) >= 0)
-    key = rows["scanner"][assoc].astype(np.int64) * (1 << 40) + rows["scan_index"][assoc].astype(np.int64)
-    order = np.argsort(key, kind="stable")
-    key_sorted, rows_sorted = key[order], assoc[order]
-    counters = [0] * len(names)
-    parts: list[PointObservations] = []
-    for line in scans:
-        s = index.get(line.scanner_id)
-        if s is None:
-            raise ValueError(f"scan from unknown scanner '{line.scanner_id}' (rig has {', '.join(names)})")
-        si = counters[s]
-        counters[s] += 1
-        k = s * (1 << 40) + si
-        lo, hi = np.searchsorted(key_sorted, [k, k + 1])
-        if lo == hi or line.n_valid < 2:
-            continue
-        r = rows_sorted[lo:hi]
-        cfg = rig.scanners[s]
-        sigma = cfg.scanner_model.range_sigma if point_sigma is None else point_sigma
-        v, t, sg, n = segment_virtual_points(line, rows["first_beam"][r], rows["last_beam"][r], s,
-                                             max(sigma, 1e-4))
-        keep = n >= min_points
-        if not keep.any():
-            continue
-        m = int(keep.sum())
-        parts.append(PointObservations(
-            np.full(2 * m, s, dtype=np.int64),
-            np.repeat(rows["plane_id"][r][keep].astype(np.int64), 2),
-            v[keep].reshape(-1, 3),
-            t[keep].ravel() + cfg.time_offset,
-            np.repeat(sg[keep], 2),
+    _COLUMNS = ("scanner", "scan_index", "first_beam", "last_beam", "n_points", "virtual_xy", "virtual_times")
+
+    def __init__(self, chunk: int = 512) -> None:
+        self._chunk = chunk
+        self._pending: list[tuple[NDArray[Any], ...]] = []
+        self._chunks: list[tuple[NDArray[Any], ...]] = []
+
+    def add(self, scan: PreparedScan) -> None:
+        """Keep ``scan``'s segments (copies: the scan goes on to the front end)."""
+        segs = scan.segs
+        if segs is None or segs.n_segments == 0:
+            return
+        k = segs.n_segments
+        self._pending.append((
+            np.full(k, scan.scanner, dtype=np.int32),
+            np.full(k, scan.scan_index, dtype=np.int32),
+            segs.first_beam.astype(np.int32),
+            segs.last_beam.astype(np.int32),
+            segs.n_points.astype(np.int32),
+            segs.virtual_scanner[:, :, :2].copy(),
+            segs.virtual_times.copy(),
         ))
-    return PointObservations.concatenate(parts)
+        if len(self._pending) >= self._chunk:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._pending:
+            self._chunks.append(tuple(np.concatenate(c) for c in zip(*self._pending, strict=True)))
+            self._pending = []
+
+    def columns(self) -> dict[str, NDArray[Any]]:
+        """The log's columns (see the class docstring), one row per segment."""
+        self._flush()
+        if not self._chunks:
+            z = np.zeros(0, dtype=np.int32)
+            return {"scanner": z, "scan_index": z, "first_beam": z, "last_beam": z, "n_points": z,
+                    "virtual_xy": np.zeros((0, 2, 2)), "virtual_times": np.zeros((0, 2))}
+        if len(self._chunks) > 1:
+            self._chunks = [tuple(np.concatenate(c) for c in zip(*self._chunks, strict=True))]
+        return dict(zip(self._COLUMNS, self._chunks[0], strict=True))
+
+    def __len__(self) -> int:
+        return int(self.columns()["scanner"].shape[0])
+
+    def observations(self, rig: Rig, segment_rows: dict[str, NDArray[Any]], point_sigma: float | None = None,
+                     min_points: int = 10) -> PointObservations:
+        """Two virtual points of every segment SLAM associated (``segment_rows['plane_id'] >= 0``)
+        with at least ``min_points`` points, in stream order.
+
+        ``segment_rows`` must come from the run these scans were prepared for (a ValueError names
+        an associated row the log lacks). A virtual point's sigma is ``sigma / sqrt(n / 2)`` with
+        ``sigma`` = ``point_sigma`` [m], by default its scanner model's ``range_sigma`` (at least
+        0.1 mm), and ``n`` its segment's points. Times get the rig's ``time_offset`` of their
+        scanner added.
+        """
+        c = self.columns()
+        rows = segment_rows
+        pid = np.asarray(rows["plane_id"], dtype=np.int64)
+        assoc = np.flatnonzero(pid >= 0)
+        key_log = _segment_key(c["scanner"], c["scan_index"], c["first_beam"])
+        by_key = np.argsort(key_log, kind="stable")
+        key_sorted = key_log[by_key]
+        key_rows = _segment_key(rows["scanner"][assoc], rows["scan_index"][assoc], rows["first_beam"][assoc])
+        pos = np.minimum(np.searchsorted(key_sorted, key_rows), max(key_sorted.size - 1, 0))
+        hit = key_sorted[pos] == key_rows if key_sorted.size else np.zeros(assoc.size, dtype=bool)
+        if not hit.all():
+            r = assoc[np.flatnonzero(~hit)[0]]
+            raise ValueError(f"segment_rows: segment of scanner {int(rows['scanner'][r])}, scan "
+                             f"{int(rows['scan_index'][r])}, beams {int(rows['first_beam'][r])}.."
+                             f"{int(rows['last_beam'][r])} is not among the prepared scans' segments")
+        seg = by_key[pos]  # the log's row of every associated segment
+        stream = np.argsort(seg, kind="stable")
+        seg, row = seg[stream], assoc[stream]
+        if np.any(np.asarray(rows["last_beam"])[row] != c["last_beam"][seg]):
+            raise ValueError("segment_rows: a segment's last beam differs from the prepared scans'")
+        n = c["n_points"][seg]
+        keep = n >= min_points
+        idx, row = seg[keep], row[keep]
+        n = n[keep].astype(np.float64)
+        scanner = c["scanner"][idx].astype(np.int64)
+        if point_sigma is None:
+            sigma_of = np.array([max(s.scanner_model.range_sigma, 1e-4) for s in rig.scanners])
+        else:
+            sigma_of = np.full(len(rig.scanners), max(point_sigma, 1e-4))
+        sigma = sigma_of[scanner]
+        offset = np.array([s.time_offset for s in rig.scanners], dtype=np.float64)[scanner]
+        m = idx.size
+        points = np.zeros((m, 2, 3))
+        points[:, :, :2] = c["virtual_xy"][idx]
+        return PointObservations(
+            np.repeat(scanner, 2),
+            np.repeat(pid[row], 2),
+            points.reshape(-1, 3),
+            (c["virtual_times"][idx] + offset[:, None]).ravel(),
+            np.repeat(np.sqrt(sigma**2 / (np.maximum(n, 2.0) / 2.0)), 2),
+        )

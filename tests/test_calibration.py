@@ -17,6 +17,7 @@ from calibration.observability import UnobservableWarning, parameter_sigmas, war
 from calibration.observations import PointObservations
 from calibration.rig_io import updated_rig
 from common.rig import load_rig, resolve_rig, write_rig
+from segmentation import Scanline
 from slam.backend.factors import NO_KERNEL
 from slam.motion import MotionPriorConfig
 from slam.trajectory.interpolation import interpolate_trajectory, se3_exp, se3_log
@@ -272,6 +273,65 @@ def test_robust_scale_is_the_mad_sigma() -> None:
     assert robust_scale(np.zeros(0)) == 0.0
 
 
+
+def _room_scan(scanner: str, stamp: float, rng: np.random.Generator) -> Scanline:
+    """A scanline of the walls x = -2 / 3 and y = -1.5 / 2.5 (scanner frame), 1 mm noise."""
+    ang = np.linspace(-3 * np.pi / 4, 3 * np.pi / 4, 541)
+    c, s = np.cos(ang), np.sin(ang)
+    with np.errstate(divide="ignore"):
+        r = np.min(np.stack([np.where(c > 0, 3.0 / c, np.inf), np.where(c < 0, -2.0 / c, np.inf),
+                             np.where(s > 0, 2.5 / s, np.inf), np.where(s < 0, -1.5 / s, np.inf)]), axis=0)
+    return Scanline.from_ranges(r + rng.normal(0.0, 0.001, r.size), ang, stamp, scanner_id=scanner,
+                                time_increment=0.025 / 540)
+
+
+def test_segment_log_gives_the_prepared_scans_virtual_points_on_the_associated_segments() -> None:
+    """One pass: the observations are the preparer's own scanner-frame virtual points of the
+    associated segments (stream order, the rig's time offsets, sigma range_sigma / sqrt(n / 2)),
+    lying on the walls; a segment row the log lacks is an error."""
+    from calibration.observations import SegmentLog
+    from slam.config import SlamConfig
+    from slam.frontend.scan_prep import ScanPreparer
+
+    rig = updated_rig(resolve_rig("itc_backpack"), {}, {"left": 0.002})
+    prep = ScanPreparer(rig, SlamConfig())
+    rng = np.random.default_rng(2)
+    scans = [prep.prepare(_room_scan(n, 100.0 + 0.01 * k, rng)) for k, n in enumerate(["left", "top", "left"])]
+    log = SegmentLog(chunk=2)
+    for scan in scans:
+        log.add(scan)
+    segs = [sc.segs for sc in scans if sc.segs is not None]
+    assert len(segs) == 3 and all(sg.n_segments >= 3 for sg in segs)
+    assert len(log) == sum(sg.n_segments for sg in segs)
+
+    def column(name: str) -> np.ndarray:
+        return np.concatenate([getattr(sg, name) for sg in segs])
+
+    # rows as SLAM reports them: sorted by scanner, scan, first beam; every other segment associated
+    scanner = np.concatenate([np.full(sg.n_segments, sc.scanner) for sc, sg in zip(scans, segs, strict=True)])
+    index = np.concatenate([np.full(sg.n_segments, sc.scan_index) for sc, sg in zip(scans, segs, strict=True)])
+    pid = np.where(np.arange(scanner.size) % 2 == 0, np.arange(scanner.size) + 10, -1)
+    order = np.lexsort((column("first_beam"), index, scanner))
+    rows = {"scanner": scanner[order], "scan_index": index[order], "first_beam": column("first_beam")[order],
+            "last_beam": column("last_beam")[order], "plane_id": pid[order]}
+    obs = log.observations(rig, rows, min_points=0)
+    take = pid >= 0
+    np.testing.assert_array_equal(obs.plane_id, np.repeat(pid[take], 2))
+    v, t, n = column("virtual_scanner")[take], column("virtual_times")[take], column("n_points")[take]
+    np.testing.assert_array_equal(obs.points_scanner, v.reshape(-1, 3))
+    np.testing.assert_array_equal(obs.scanner, np.repeat(scanner[take], 2))
+    np.testing.assert_allclose(obs.times, (t + np.where(scanner[take] == 1, 0.002, 0.0)[:, None]).ravel())
+    np.testing.assert_allclose(obs.sigmas, np.repeat(0.003 / np.sqrt(n / 2.0), 2))
+    p = obs.points_scanner
+    wall = np.min(np.abs(np.stack([p[:, 0] - 3.0, p[:, 0] + 2.0, p[:, 1] - 2.5, p[:, 1] + 1.5])), axis=0)
+    assert np.all(wall < 0.01) and np.all(p[:, 2] == 0.0)
+    few = log.observations(rig, rows, min_points=int(np.median(n)) + 1)
+    assert 0 < len(few) < len(obs)
+    foreign = {**rows, "first_beam": rows["first_beam"] + 1}
+    with pytest.raises(ValueError, match="not among the prepared scans' segments"):
+        log.observations(rig, foreign)
+
+
 # ---------------------------------------------------------------- coarse to fine (large initial error)
 def test_loosened_slam_config_opens_the_gates_and_never_tightens() -> None:
     from calibration.calibrate import is_loosened, loosened_slam_config
@@ -308,7 +368,6 @@ def test_calibration_options_reject_bad_schedules() -> None:
 
 def test_coarse_rounds_read_only_the_first_seconds() -> None:
     from calibration.calibrate import _first_seconds
-    from segmentation import Scanline
 
     lines = [Scanline.from_ranges(np.ones(5), np.linspace(-1.0, 1.0, 5), 100.0 + 0.5 * k, time_increment=0.01)
              for k in range(10)]
@@ -340,8 +399,8 @@ def test_loosened_slam_keeps_a_badly_calibrated_rig_on_few_planes(short_calibrat
     T = {s.name: s.T_body_scanner.matrix() @ se3_exp(np.r_[np.radians([2.5, -2.5, 2.5]), [0.04, -0.04, 0.04]])
          for s in true.scanners if s.name != true.reference}
     bad = updated_rig(true, {n: (m, None) for n, m in T.items()})
-    plain = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig())
-    loose = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig(), (np.radians(3.0), 0.05))
+    plain, _ = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig())
+    loose, _ = run_slam(read_scans(short_calibration_bag, rig=bad), bad, SlamConfig(), (np.radians(3.0), 0.05))
 
     def tilted_share(res: object) -> float:
         rows = res.segment_rows  # type: ignore[attr-defined]
