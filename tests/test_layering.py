@@ -91,3 +91,16 @@ def test_front_and_back_end_separation_is_caught(tmp_path: Path) -> None:
     (tmp_path / "slam" / "frontend" / "x.py").write_text("from slam.backend import Backend\n")
     assert violations(tmp_path) == ["slam/frontend/x.py:1: slam.frontend imports slam.backend",
                                     "slam/frontend/x.py:1: slam.frontend imports slam.backend.Backend"]
+
+
+MAX_CLASS_LINES = 400
+
+
+def test_no_class_in_slam_is_over_400_lines() -> None:
+    """The runner and the back end stay split by job (issue 20): no class of slam/ over 400 lines."""
+    big = []
+    for path in sorted((ROOT / "slam").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and (n := (node.end_lineno or node.lineno) - node.lineno + 1) > MAX_CLASS_LINES:
+                big.append(f"{path.relative_to(ROOT)}:{node.name} ({n} lines)")
+    assert big == []
