@@ -76,33 +76,51 @@ EXIT_TERMINATED = 143  # SIGTERM
 
 
 @contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """While the block runs, SIGTERM raises :class:`Terminated` in this process; a process forked
-    meanwhile (a reader or export helper) exits at once on it instead, its parent cleaning up.
-    The previous handler comes back after the block (``main`` may run inside a test)."""
+def signals_as_interrupt() -> Iterator[list[int]]:
+    """While the block runs, SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` in
+    this process, and the block's list records which arrived (an exception that an interrupt turns
+    into another one on its way out, such as an extension module's ImportError while it loads, is
+    then still an interrupt). A process forked meanwhile (a reader or export helper) exits at once
+    on SIGTERM instead, its parent cleaning up. The previous handlers come back after the block
+    (``main`` may run inside a test)."""
     me = os.getpid()
+    received: list[int] = []
 
     def handler(signum: int, frame: FrameType | None) -> None:
         if os.getpid() != me:
-            os._exit(128 + signum)
-        raise Terminated()
+            if signum == signal.SIGTERM:
+                os._exit(128 + signum)
+            raise KeyboardInterrupt
+        received.append(signum)
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
+    previous = {}
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave SIGTERM as it is
-        yield
-        return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+    except ValueError:  # not the main thread: leave the signals as they are
+        pass
     try:
-        yield
+        yield received
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def _interrupted(signum: int) -> int:
+    if signum == signal.SIGTERM:
+        print(f"{PROG}: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    print(f"{PROG}: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
     debug = os.environ.get("BACKPACK_SLAM_DEBUG", "") not in ("", "0")
+    received: list[int] = []
     try:
-        with sigterm_as_interrupt():
+        with signals_as_interrupt() as received:
             parser = build_parser()
             args = parser.parse_args(argv)
             run: Any = getattr(args, "_run", None)
@@ -112,18 +130,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
             return int(run(args))
     except Terminated:
-        print(f"{PROG}: terminated", file=sys.stderr)
-        return EXIT_TERMINATED
+        return _interrupted(signal.SIGTERM)
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (ValueError, OSError) as e:
-        if debug:
+        return _interrupted(signal.SIGINT)
+    except SystemExit as e:  # --help, --version
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    except Exception as e:
+        if received:
+            return _interrupted(received[-1])
+        if debug or not isinstance(e, ValueError | OSError):
             raise
         print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
         return 2
-    except SystemExit as e:  # --help, --version
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
 
 
 if __name__ == "__main__":

@@ -101,9 +101,12 @@ class Scanline:
         """Build from a ``sensor_msgs/LaserScan``-like record (attribute access).
 
         The header stamp is the time of the first beam; beam i is taken at
-        ``stamp + i * time_increment``.
+        ``stamp + i * time_increment`` (a non-finite ``time_increment`` is a ValueError).
         """
-        ranges = np.asarray(msg.ranges, dtype=np.float64)
+        if not np.isfinite(float(msg.time_increment)):
+            raise ValueError(f"time_increment {float(msg.time_increment)} is not finite")
+        with np.errstate(invalid="ignore"):  # a signalling NaN (a corrupt message) is a NaN like any other
+            ranges = np.asarray(msg.ranges, dtype=np.float64)
         n = ranges.size
         angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(n, dtype=np.float64)
         if stamp is None:

@@ -149,18 +149,31 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
     return {k: v for k, v in runs.items() if v > 0}
 
 
+def silent_scanners(scanner_names: list[str], seg_scanner: NDArray[np.integer]) -> list[Problem]:
+    """A warning for each scanner (index into ``scanner_names``) without a single line segment in
+    the run: its topic held no usable returns, and the run went on without it."""
+    seen = set(np.unique(np.asarray(seg_scanner)).tolist())
+    return [Problem(f"silent_scanner_{name}", "warning", f"scanner '{name}' gave no line segment in the whole "
+                    "recording (no usable returns on its topic): the run went on without it", 0.0, 1.0)
+            for k, name in enumerate(scanner_names) if k not in seen]
+
+
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],
            plane_normals: Mapping[int, FloatArray], counts: Mapping[str, float], rms_whitened: float | None,
-           with_imu: bool, cfg: HealthSection) -> Health:
+           with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None) -> Health:
     """The health of a run (module doc). ``counts`` holds at least ``segments`` and
-    ``segments_associated``; ``plane_normals`` maps a final plane id to its world normal."""
-    problems: list[Problem] = []
+    ``segments_associated``; ``plane_normals`` maps a final plane id to its world normal;
+    ``extra``: problems found elsewhere (:func:`silent_scanners`)."""
+    problems: list[Problem] = list(extra or [])
     measures: dict[str, float] = {}
     n_seg = float(counts.get("segments", 0))
     n_assoc = float(counts.get("segments_associated", 0))
     if n_seg == 0:
         problems.append(Problem("no_segments", "failure", "no line segments in the recording's scans: no usable returns",
                                 0.0, 1.0))
+        return Health("failed", problems, measures)
+    if not np.all(np.isfinite(T_world_body)):
+        problems.append(Problem("non_finite", "failure", "the trajectory holds non-finite poses (NaN or inf)", 0.0, 0.0))
         return Health("failed", problems, measures)
     frac = n_assoc / n_seg
     measures["associated_fraction"] = frac

@@ -33,7 +33,7 @@ from common.atomic import atomic_dir
 from common.rig import Rig
 from slam.config import SlamConfig
 from slam.export import write_summary_json
-from slam.health import Health, assess
+from slam.health import Health, assess, silent_scanners
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import input_error
@@ -160,7 +160,8 @@ def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool) -> Health:
     counts = {"segments": len(rows["plane_id"]), "segments_associated": int((rows["plane_id"] >= 0).sum())}
     residuals = res.stats.get("residuals") or {}
     return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
-                  residuals.get("rms_whitened"), with_imu, cfg.health)
+                  residuals.get("rms_whitened"), with_imu, cfg.health,
+                  extra=silent_scanners(res.scanner_names, rows["scanner"]))
 
 
 def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:

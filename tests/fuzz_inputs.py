@@ -1446,13 +1446,14 @@ def build_cli(spec: dict[str, Any], materials: Materials, folder: Path) -> list[
     elif value == "OUT_IS_DIR":
         value = str(folder / "in")
     culprits = [option, value, bag.name] if value else [option, bag.name]
+    vpath = Path(value) if Path(value).is_absolute() else folder / value  # commands run in the case folder
     if command == "run":
         cmd = run_command(bag, materials.rig, folder, culprits)
         if option == "--out":
             cmd.argv[cmd.argv.index("--out") + 1] = value
-            cmd.outputs = [] if value in ("", "/dev/null") or Path(value).exists() else cmd.outputs
+            cmd.outputs = [] if value in ("", "/dev/null") or vpath.exists() else cmd.outputs
             if cmd.outputs:
-                cmd.outputs[0].path = Path(value)
+                cmd.outputs[0].path = vpath
         elif option in ("--rig", "--config"):
             if option == "--rig":
                 cmd.argv[cmd.argv.index("--rig") + 1] = value
@@ -1471,7 +1472,7 @@ def build_cli(spec: dict[str, Any], materials: Materials, folder: Path) -> list[
         cmd = calibrate_command(bag, materials.rig, folder, culprits)
         cmd.argv += [option, value] + (["5"] if option == "--coarse" else [])
         if option == "--report":
-            cmd.outputs.append(Output(Path(value), folder=True, required=("report.md",)) if value and not Path(value).exists()
+            cmd.outputs.append(Output(vpath, folder=True, required=("report.md",)) if value and not vpath.exists()
                                else Output(folder / "out" / "unused"))
         return [cmd]
     run_dir = folder / "in" / "run"
@@ -1486,7 +1487,7 @@ def build_cli(spec: dict[str, Any], materials: Materials, folder: Path) -> list[
     argv = ["export", str(run_dir)]
     if option == "--out":
         argv += ["--out", value]
-        outputs = [] if not value or Path(value).exists() else [Output(Path(value))]
+        outputs = [] if not value or vpath.exists() else [Output(vpath)]
     else:
         argv += ["--out", str(out), option, value]
         outputs = [Output(out)]

@@ -214,7 +214,10 @@ def segment_input(
         check_image_path(plot, "--plot")
     if json_out is not None and json_out.is_dir():
         raise ValueError(f"--json {json_out}: is a folder")
-    fixed = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading
+    try:
+        fixed = segmentation.get(method, **(params or {}))  # unknown names/values fail before reading
+    except ValueError as e:
+        raise ValueError(f"--method/--param: {e}") from None
     fmt = detect_format(path)
     source = f"{path}" + (f" topic {','.join(topics)}" if topics else "")
     models = _noise_models(path, topics, source, out) if noise == "auto" else {}

@@ -40,6 +40,7 @@ TFMESSAGE = "tf2_msgs/msg/TFMessage"
 POSESTAMPED = "geometry_msgs/msg/PoseStamped"
 IMU = "sensor_msgs/msg/Imu"
 ROS1_MAGIC = b"#ROSBAG V2.0"
+MAX_SCAN_GAP = 60.0  # s: a SLAM run's scans further apart than this have broken stamps (the knots would span them)
 _WINDOW_MARGIN_NS = 1_000_000  # log-time slack around a stamp window: a float stamp's rounding is ~0.2 us
 FloatArray = NDArray[np.float64]
 
@@ -301,16 +302,19 @@ class BagSource:
         :meth:`scan_plan`; checked before this returns).
 
         ``scanner_id`` is the rig's scanner name for the topic, else the message's frame id, else
-        the topic. Messages are merged across topics through a buffer that holds those stamped
+        the topic; a message without beams is left out. Messages are merged across topics through a buffer that holds those stamped
         within ``reorder_window`` s of the latest log time, so memory stays bounded; the output
         is in stamp order whenever no message's stamp lags its log time by more than that window.
         With ``window``, only the scans stamped within it, in the order the whole stream gives
         them when that is in stamp order. ``owned``: the stream closes this source when it is
-        closed or exhausted."""
+        closed or exhausted. A stream of a rig's scans (``rig`` given: a SLAM run) is an
+        ``InputError`` where its stamps jump ahead by more than :data:`MAX_SCAN_GAP` s (broken
+        header stamps, such as zero or far-future ones: the trajectory would span them)."""
         plan = self.scan_plan(topics, rig)
         if reorder_window < 0:
             raise ValueError(f"reorder_window must be >= 0, got {reorder_window}")
-        return ScanStream(self, plan, int(reorder_window * 1e9), window, owned, echo)
+        return ScanStream(self, plan, int(reorder_window * 1e9), window, owned, echo,
+                          MAX_SCAN_GAP if rig is not None else None)
 
     def imu(self, topic: str = "/imu") -> ImuSeries:
         """All ``sensor_msgs/Imu`` messages of ``topic`` as arrays, in log order."""
@@ -384,12 +388,12 @@ class ScanStream:
     records what it yielded (:class:`StreamIndex`)."""
 
     def __init__(self, source: BagSource, plan: dict[str, str | None], reorder_ns: int, window: StampWindow | None,
-                 owned: bool, echo: Echo = "first") -> None:
+                 owned: bool, echo: Echo = "first", max_gap: float | None = None) -> None:
         self.source = source
         self.index = StreamIndex()
         self._owned = owned
         # the generator holds no reference to this stream, so that dropping it closes the bag at once
-        self._lines = _merged(source, self.index, plan, reorder_ns, window, echo)
+        self._lines = _merged(source, self.index, plan, reorder_ns, window, echo, max_gap)
 
     def __iter__(self) -> ScanStream:
         return self
@@ -435,9 +439,11 @@ def single_echo(msg: Any, echo: Echo) -> SimpleNamespace:
 
 
 def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reorder_ns: int,
-            window: StampWindow | None, echo: Echo = "first") -> Generator[Scanline, None, None]:
+            window: StampWindow | None, echo: Echo = "first",
+            max_gap: float | None = None) -> Generator[Scanline, None, None]:
     """The scans of ``plan``'s topics (within ``window``) merged into stamp order through the
-    reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index``."""
+    reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index``; with ``max_gap``,
+    stamps that jump ahead by more than that (s) are an InputError."""
     heap: list[tuple[int, int, Scanline]] = []
     counter = itertools.count()
     start, stop = window.log_range_ns() if window is not None else (None, None)
@@ -446,6 +452,8 @@ def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reo
         s_ns = stamp_ns(msg.header)
         lag = t_ns - s_ns
         index.lag_ns = (lag, lag) if index.lag_ns is None else (min(index.lag_ns[0], lag), max(index.lag_ns[1], lag))
+        if len(msg.ranges) == 0:  # a scan without beams carries nothing (and has no first-beam time)
+            continue
         if window is None or window.contains(s_ns * 1e-9):
             name = plan[conn.topic] or str(msg.header.frame_id) or conn.topic
             try:
@@ -456,12 +464,16 @@ def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reo
                 raise input_error(src.path, f"bad LaserScan at log time {t_ns * 1e-9:.9f} s: {e}", conn.topic) from None
             heapq.heappush(heap, (s_ns, next(counter), line))
         while heap and heap[0][0] < t_ns - reorder_ns:
-            yield _recorded(index, heapq.heappop(heap)[2])
+            yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path)
     while heap:
-        yield _recorded(index, heapq.heappop(heap)[2])
+        yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path)
 
 
-def _recorded(index: StreamIndex, line: Scanline) -> Scanline:
+def _recorded(index: StreamIndex, line: Scanline, max_gap: float | None = None, path: Path | None = None) -> Scanline:
+    if max_gap is not None and index.stamps and line.stamp - index.stamps[-1] > max_gap:
+        raise input_error(path or "", f"scan stamps jump by {line.stamp - index.stamps[-1]:.6g} s (from "
+                          f"{index.stamps[-1]:.6f} to {line.stamp:.6f} s, scanner {line.scanner_id}): more than "
+                          f"{max_gap:g} s without a scan; broken header stamps")
     index.stamps.append(line.stamp)
     index.scanner_ids.append(line.scanner_id)
     return line
