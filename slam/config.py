@@ -88,6 +88,15 @@ class FrontEndConfig(StrictModel):
         0.006, gt=0, description="rad, sigma of the body twist's change per knot interval in tracking (rotation)")
     tracking_twist_sigma_position: float = Field(
         0.002, gt=0, description="m, the same for the translation")
+    initial_motion_window: float = Field(
+        1.0, ge=0, description="s of the first scans registered against each other (in the scan plane of the most "
+        "level scanner) before the first knot: a recording may start while the operator walks; then the first "
+        "0.3 s give the start's motion and the 2D odometry of this window predicts its knots "
+        "(slam.frontend.initial_motion); 0 = assume the walk starts at rest")
+    initial_motion_min_speed: float = Field(
+        0.05, ge=0, description="m/s; a start slower than this (and turning slower than initial_motion_min_rate_deg) "
+        "is at rest")
+    initial_motion_min_rate_deg: float = Field(3.0, ge=0, description="deg/s, see initial_motion_min_speed")
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
     extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
     min_support: int = Field(6, ge=2, description="segments a new plane needs")

@@ -18,6 +18,7 @@ from slam.backend.factors import RobustKernel
 from slam.config import SlamConfig
 from slam.frontend.association import Gates
 from slam.frontend.edges import EdgeParams
+from slam.frontend.initial_motion import InitialMotionParams
 from slam.frontend.map_builder import MapParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
@@ -141,6 +142,13 @@ def tracking_params(cfg: SlamConfig) -> TrackingParams:
     )
 
 
+def initial_motion_params(cfg: SlamConfig) -> InitialMotionParams:
+    """The start's motion from the first scans (``frontend.initial_motion_*``)."""
+    fe = cfg.frontend
+    return InitialMotionParams(window=fe.initial_motion_window, min_speed=fe.initial_motion_min_speed,
+                               min_rate=np.radians(fe.initial_motion_min_rate_deg))
+
+
 def imu_motion_params(cfg: SlamConfig) -> ImuMotionParams:
     """The front end's use of an IMU (``imu``): zero-velocity updates and IMU-predicted tracking."""
     ic = cfg.imu
@@ -221,6 +229,7 @@ class Components:
     map: MapParams
     edges: EdgeParams | None
     tracking: TrackingParams
+    initial_motion: InitialMotionParams
     imu: ImuConfig | None
     imu_motion: ImuMotionParams | None
     backend: BackendConfig
@@ -235,6 +244,7 @@ def components(cfg: SlamConfig, with_imu: bool) -> Components:
         map=map_params(cfg),
         edges=edge_params(cfg) if cfg.edges.use else None,
         tracking=tracking_params(cfg),
+        initial_motion=initial_motion_params(cfg),
         imu=imu_config(cfg) if with_imu else None,
         imu_motion=imu_motion_params(cfg) if with_imu else None,
         backend=backend_config(cfg, with_imu),

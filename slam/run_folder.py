@@ -154,7 +154,8 @@ class RunCounts:
 
 @dataclass(frozen=True)
 class RunSummary:
-    """summary.json: the run's inputs, counts, solver diagnostics, memory and timings (s)."""
+    """summary.json: the run's inputs, counts, solver diagnostics, memory and timings (s), its health, the rig
+    checks' notes and how the walk started (``start``: ``slam.frontend.initial_motion``)."""
 
     bag: str
     rig: str
@@ -170,6 +171,7 @@ class RunSummary:
     realtime_factor: float
     health: dict[str, Any]
     rig_checks: list[str]
+    start: dict[str, Any]
 
     @classmethod
     def of(cls, bag: str | Path, rig: Rig, cfg: SlamConfig, res: SlamResult, cloud_points: int,
@@ -194,6 +196,7 @@ class RunSummary:
             realtime_factor=duration / max(timings["wall"], 1e-9),
             health=health.to_dict(),
             rig_checks=list(rig_checks),
+            start=dict(st["initial_motion"]),
         )
 
     def to_dict(self) -> dict[str, Any]:
