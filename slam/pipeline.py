@@ -63,15 +63,18 @@ class SlamRunner:
     the IMU's samples (``imu``, body frame) when there are any."""
 
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
+        self.noise = params.noise_levels(rig, cfg)
+        self.preparer = ScanPreparer(rig, cfg, imu)
+        # the run's values at its scanners' noise (``slam.config.NoiseSection``'s rule)
+        cfg = params.noise_scaled(cfg, self.noise.shared)
         self.cfg = cfg
         self.imu = imu
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
         T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
-        range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        range_sigma = list(self.noise.sigma)
         self._T_body_scanner = T_body_scanner
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
-        self.preparer = ScanPreparer(rig, cfg, imu)
         with_imu = imu is not None
         self.params = params.components(cfg, with_imu)
         self.gates = self.params.gates
@@ -90,7 +93,8 @@ class SlamRunner:
                                   self.stats)
         children = self.maps.ties.children
         self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
-                                         cfg.frontend.min_segment_points, children)
+                                         cfg.frontend.min_segment_points, children,
+                                         line_direction=self.noise.shared > 1.0)
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
                                      self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
