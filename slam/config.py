@@ -88,6 +88,15 @@ class FrontEndConfig(StrictModel):
         0.006, gt=0, description="rad, sigma of the body twist's change per knot interval in tracking (rotation)")
     tracking_twist_sigma_position: float = Field(
         0.002, gt=0, description="m, the same for the translation")
+    initial_motion_window: float = Field(
+        1.0, ge=0, description="s of the first scans registered against each other (in the scan plane of the most "
+        "level scanner) before the first knot: a recording may start while the operator walks; then the first "
+        "0.3 s give the start's motion and the 2D odometry of this window predicts its knots "
+        "(slam.frontend.initial_motion); 0 = assume the walk starts at rest")
+    initial_motion_min_speed: float = Field(
+        0.05, ge=0, description="m/s; a start slower than this (and turning slower than initial_motion_min_rate_deg) "
+        "is at rest")
+    initial_motion_min_rate_deg: float = Field(3.0, ge=0, description="deg/s, see initial_motion_min_speed")
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
     extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
     min_support: int = Field(6, ge=2, description="segments a new plane needs")
@@ -302,6 +311,38 @@ class ImuSection(StrictModel):
     zupt_sigma: float = Field(0.005, gt=0, description="m/s, sigma of a zero-velocity update")
 
 
+class NoiseSection(StrictModel):
+    """Each scanner's range noise, and the values that follow it.
+
+    The rule: every noise-dependent value of this configuration (``NOISE_SCALED`` in
+    ``slam.params``: the front end's point_sigma, coplanar_distance, merge_distance and
+    max_endpoint_distance, the edges' sigma, min_step, step_tolerance and cluster_width, the
+    back end's final_trim_distance, and the segmenter's thresholds) is stated as written for
+    ``reference`` noise. A scanner's noise is ``scanners[name]`` when given (fixed), else estimated
+    from its first ``estimate_scans`` scans (``estimate``; ``segmentation.noise``: the effective
+    range noise at the samples' median range), else its rig model's ``range_sigma``. A scanner up
+    to ``scale_above`` times as noisy as the reference (or quieter) keeps the values as written;
+    a noisier one scales its segmenter's thresholds and its points' sigmas by its noise over the
+    reference, and the run's shared values by the largest such ratio of its scanners."""
+
+    estimate: bool = Field(True, description="estimate the noise of the scanners not in 'scanners' from the recording")
+    scanners: dict[str, float] = Field(
+        default_factory=dict, description="m, range noise per scanner name: fixed, not estimated (the run driver "
+        "writes its estimates here, so summary.json's config holds the values used)")
+    reference: float = Field(0.003, gt=0, description="m, the range noise the noise-dependent values are stated for")
+    scale_above: float = Field(
+        1.25, ge=1, description="noise up to this many times the reference keeps the values as written (an estimate "
+        "scatters by a few per cent; the values were tuned at the reference, and below it other errors dominate)")
+    estimate_scans: int = Field(40, ge=1, description="scans per scanner the estimate looks at (the first ones)")
+
+    @model_validator(mode="after")
+    def _positive(self) -> NoiseSection:
+        for name, sigma in self.scanners.items():
+            if not sigma > 0:
+                raise ValueError(f"scanners.{name}: range noise must be > 0 m, got {sigma}")
+        return self
+
+
 class OutputConfig(StrictModel):
     cloud: bool = True
     voxel: float = Field(0.0, ge=0, description="voxel size of cloud.ply (m), 0 = every point")
@@ -326,6 +367,7 @@ class SlamConfig(StrictModel):
     output: OutputConfig = Field(default_factory=OutputConfig)
     parallel: ParallelSection = Field(default_factory=ParallelSection)
     health: HealthSection = Field(default_factory=HealthSection)
+    noise: NoiseSection = Field(default_factory=NoiseSection)
 
 
 def load_slam_config(path: str | Path | None) -> SlamConfig:

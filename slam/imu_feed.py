@@ -192,6 +192,11 @@ class ImuMotion:
             T[:3, :3] = so3_exp(axis / s * np.arctan2(s, c))
         return T
 
+    def start_moving(self, increments: list[FloatArray], sigmas: FloatArray | None) -> None:
+        """Nothing beyond the first knot's velocity, which the runner gives it (the IMU then
+        predicts the rest)."""
+        return None
+
     def predict(self, knots: KnotMirror) -> tuple[FloatArray, FloatArray | None]:
         k = knots.n
         return predict_navstate(self.config, knots.T[k - 1], knots.V[k - 1], knots.bias, self.samples,

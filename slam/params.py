@@ -1,7 +1,9 @@
 """The one translation from the run configuration to the parameters of the SLAM's components.
 
 Every parameter has exactly one default, in the configuration model (``slam.config``, the YAML
-keys); the components' parameter records (``Gates``, ``PlaneInitParams``, ``MapParams``, ``EdgeParams``,
+keys); the noise-dependent ones are stated for the reference noise and scaled here to the
+scanners' (:func:`noise_levels`, :func:`noise_scaled`, :func:`segmenter`; the rule is
+``slam.config.NoiseSection``'s). The components' parameter records (``Gates``, ``PlaneInitParams``, ``MapParams``, ``EdgeParams``,
 ``TrackingParams``, ``ImuMotionParams``, ``ImuConfig``, ``MotionPriorConfig``, ``BackendConfig``)
 take none of their own and are built here only: degrees become radians, sigmas become arrays,
 the knot interval turns the motion prior's accelerations into densities.
@@ -10,19 +12,90 @@ the knot interval turns the motion prior's accelerations into densities.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from common.rig import Rig
+from segmentation import NoiseModel, Segmenter, segmenter_class
+from segmentation import get as get_segmenter
 from slam.backend import BackendConfig
 from slam.backend.factors import RobustKernel
 from slam.config import SlamConfig
 from slam.frontend.association import Gates
 from slam.frontend.edges import EdgeParams
+from slam.frontend.initial_motion import InitialMotionParams
 from slam.frontend.map_builder import MapParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
 from slam.imu_feed import ImuMotionParams
 from slam.motion import ImuConfig, MotionPriorConfig
+
+# the values stated for the reference noise (``noise.reference``) that scale with the scanners' noise
+NOISE_SCALED: dict[str, tuple[str, ...]] = {
+    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance"),
+    "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
+    "backend": ("final_trim_distance",),
+}
+
+
+@dataclass(frozen=True)
+class NoiseLevels:
+    """Per scanner (the rig's order): the range noise its values follow (``sigma``, m; the
+    reference inside the dead band) and its ratio to the reference (``ratio``, 1 there)."""
+
+    sigma: tuple[float, ...]
+    ratio: tuple[float, ...]
+
+    @property
+    def shared(self) -> float:
+        """The ratio the run's shared values scale by: the largest of its scanners'."""
+        return max(self.ratio, default=1.0)
+
+
+def noise_levels(rig: Rig, cfg: SlamConfig) -> NoiseLevels:
+    """Each scanner's noise by the rule of ``slam.config.NoiseSection``: ``noise.scanners`` (set
+    by hand, or by the run driver from its estimate), else the rig model's ``range_sigma``."""
+    nc = cfg.noise
+    sigma, ratio = [], []
+    for s in rig.scanners:
+        measured = nc.scanners.get(s.name, s.scanner_model.range_sigma)
+        if measured <= nc.scale_above * nc.reference:
+            sigma.append(nc.reference)
+            ratio.append(1.0)
+        else:
+            sigma.append(float(measured))
+            ratio.append(float(measured) / nc.reference)
+    return NoiseLevels(tuple(sigma), tuple(ratio))
+
+
+def noise_scaled(cfg: SlamConfig, ratio: float) -> SlamConfig:
+    """``cfg`` with the values of ``NOISE_SCALED`` multiplied by ``ratio`` (``cfg`` itself at 1)."""
+    if ratio == 1.0:
+        return cfg
+    update = {}
+    for section, keys in NOISE_SCALED.items():
+        sec = getattr(cfg, section)
+        update[section] = sec.model_copy(update={k: getattr(sec, k) * ratio for k in keys})
+    return cfg.model_copy(update=update)
+
+
+def segmenter(cfg: SlamConfig, rig: Rig, levels: NoiseLevels, index: int) -> Segmenter:
+    """Scanner ``index``'s segmenter: the configured one as given at the reference noise, else with
+    the defaults derived from its noise (``Params.from_noise``) and the given thresholds that its
+    noise-derived defaults scale (floats other than the noise itself) scaled by its ratio."""
+    seg = cfg.segmenter
+    ratio = levels.ratio[index]
+    if ratio == 1.0:
+        return get_segmenter(seg.method, **seg.params)
+    scanner = rig.scanners[index]
+    model = NoiseModel.of(levels.sigma[index], scanner.scanner_model.angle_increment, scanner_id=scanner.name)
+    derived = segmenter_class(seg.method).Params.from_noise(model)
+    given: dict[str, Any] = {
+        k: v * ratio if k in derived and isinstance(v, float) and k not in ("point_sigma", "noise_slope") else v
+        for k, v in seg.params.items()
+    }
+    return get_segmenter(seg.method, noise=model, **given)
 
 
 def gates(cfg: SlamConfig) -> Gates:
@@ -141,6 +214,13 @@ def tracking_params(cfg: SlamConfig) -> TrackingParams:
     )
 
 
+def initial_motion_params(cfg: SlamConfig) -> InitialMotionParams:
+    """The start's motion from the first scans (``frontend.initial_motion_*``)."""
+    fe = cfg.frontend
+    return InitialMotionParams(window=fe.initial_motion_window, min_speed=fe.initial_motion_min_speed,
+                               min_rate=np.radians(fe.initial_motion_min_rate_deg))
+
+
 def imu_motion_params(cfg: SlamConfig) -> ImuMotionParams:
     """The front end's use of an IMU (``imu``): zero-velocity updates and IMU-predicted tracking."""
     ic = cfg.imu
@@ -221,6 +301,7 @@ class Components:
     map: MapParams
     edges: EdgeParams | None
     tracking: TrackingParams
+    initial_motion: InitialMotionParams
     imu: ImuConfig | None
     imu_motion: ImuMotionParams | None
     backend: BackendConfig
@@ -235,6 +316,7 @@ def components(cfg: SlamConfig, with_imu: bool) -> Components:
         map=map_params(cfg),
         edges=edge_params(cfg) if cfg.edges.use else None,
         tracking=tracking_params(cfg),
+        initial_motion=initial_motion_params(cfg),
         imu=imu_config(cfg) if with_imu else None,
         imu_motion=imu_motion_params(cfg) if with_imu else None,
         backend=backend_config(cfg, with_imu),

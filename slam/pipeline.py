@@ -43,8 +43,10 @@ from slam.frontend.association import ScanAssociator
 from slam.frontend.blocks import ObservationBlocks
 from slam.frontend.edge_tracker import edge_feature
 from slam.frontend.edges import EDGE_ID_BASE
+from slam.frontend.initial_motion import estimate as estimate_initial_motion
 from slam.frontend.knots import KnotMirror
 from slam.frontend.map_builder import MapBuilder
+from slam.frontend.observations import ScanSegments
 from slam.frontend.pending import PendingScan, ScanQueues
 from slam.frontend.plane_init import SegmentPool
 from slam.frontend.planemap import KIND_NAMES, PlaneMap
@@ -61,15 +63,18 @@ class SlamRunner:
     the IMU's samples (``imu``, body frame) when there are any."""
 
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
+        self.noise = params.noise_levels(rig, cfg)
+        self.preparer = ScanPreparer(rig, cfg, imu)
+        # the run's values at its scanners' noise (``slam.config.NoiseSection``'s rule)
+        cfg = params.noise_scaled(cfg, self.noise.shared)
         self.cfg = cfg
         self.imu = imu
         self.rig = rig
         self.scanner_names = [s.name for s in rig.scanners]
         T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
-        range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
+        range_sigma = list(self.noise.sigma)
         self._T_body_scanner = T_body_scanner
         self._scan_span = max(s.scanner_model.time_increment * (s.scanner_model.n_beams - 1) for s in rig.scanners)
-        self.preparer = ScanPreparer(rig, cfg, imu)
         with_imu = imu is not None
         self.params = params.components(cfg, with_imu)
         self.gates = self.params.gates
@@ -88,10 +93,13 @@ class SlamRunner:
                                   self.stats)
         children = self.maps.ties.children
         self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
-                                         cfg.frontend.min_segment_points, children)
+                                         cfg.frontend.min_segment_points, children,
+                                         line_direction=self.noise.shared > 1.0)
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
                                      self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
+        # the first scans, held (and no knot processed) until the start's motion is known
+        self._start_scans: list[ScanSegments] | None = None
 
     # ------------------------------------------------------------------ knots
     def _append_knot(self, T: FloatArray, v: FloatArray | None = None) -> int:
@@ -118,7 +126,7 @@ class SlamRunner:
             # prepared in another process) the same one built here
             own = self.preparer.t0 == scan.stamp
             self.knots.start(scan.stamp, self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp))
-            self._append_knot(self.motion.initial_pose(scan.stamp))
+            self._start_scans = []
         self._timer.add_seconds("segmentation", scan.seconds_segmentation)
         self._timer.add_seconds("frontend", scan.seconds_lift)
         if scan.skipped:
@@ -128,18 +136,44 @@ class SlamRunner:
         if segs is not None:
             self.stats.segments += segs.n_segments
             self.queues.add(segs, scan.edge_tests)  # the scan is handed over: its tests are the queue's
+            if self._start_scans is not None:
+                self._start_scans.append(segs)
         self._timer.add("frontend", t_start)
+        if self._start_scans is not None:
+            if scan.stamp <= self.knots.time(0) + self.params.initial_motion.window:
+                return
+            self._begin()
         # a knot is complete once no later scan can have beams before it
         while self.knots.time(self.knots.n) + self._scan_span < scan.stamp:
             self._process_knot()
 
     def finish(self) -> None:
         """Process the remaining knots (up to the last beam) and take a last back-end step."""
+        if self._start_scans is not None:
+            self._begin()
         last = self.queues.last_end()
         if last is not None:
             while self.knots.time(self.knots.n - 1) < last:
                 self._process_knot()
         self._update()
+
+    def _begin(self) -> None:
+        """The first knot, once the first scans tell how the walk starts (at rest, or moving:
+        ``frontend.initial_motion``, which then gives the motion model its start and the first
+        knot its velocity)."""
+        t_start = _time.perf_counter()
+        assert self._start_scans is not None
+        scans, self._start_scans = self._start_scans, None
+        t0 = self.knots.time(0)
+        start = estimate_initial_motion(scans, self._T_body_scanner, t0, self.dt, self.params.initial_motion)
+        self.stats.initial_motion = start.as_dict()
+        T0 = self.motion.initial_pose(t0)
+        v0 = None
+        if start.moving:
+            self.motion.start_moving(start.increments, start.increment_sigmas)
+            v0 = T0[:3, :3] @ start.twist_body[3:]
+        self._append_knot(T0, v0)
+        self._timer.add("initial_motion", t_start)
 
     # ------------------------------------------------------------------ one knot
     def _process_knot(self) -> None:

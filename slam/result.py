@@ -63,6 +63,8 @@ class RunStats:
     singular_systems: list[str] = field(default_factory=list)
     batch: BatchStats | None = None
     residuals: dict[str, float] = field(default_factory=dict)
+    # how the walk started (``frontend.initial_motion``): moving, speed (m/s), yaw rate (deg/s), ...
+    initial_motion: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The statistics by name (``batch`` only after a final batch), as ``summary.json``

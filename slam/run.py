@@ -31,6 +31,9 @@ from tqdm import tqdm
 
 from common.atomic import atomic_dir
 from common.rig import Rig
+from segmentation import Scanline
+from segmentation.noise import estimate as estimate_noise_model
+from slam import params
 from slam.config import SlamConfig
 from slam.export import write_summary_json
 from slam.health import Health, assess, silent_scanners
@@ -46,9 +49,10 @@ from slam.result import SlamResult
 from slam.run_folder import RunSummary, write_cloud_outputs, write_tables
 
 # bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
-__all__ = ["bag_time_range", "load_imu", "peak_rss_gb", "run_slam"]
+__all__ = ["bag_time_range", "estimate_noise", "load_imu", "peak_rss_gb", "run_slam"]
 
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
+NOISE_READ_SECONDS = 10.0  # s of scans read at most for the noise estimate (a scanner silent at the start)
 
 
 def imu_topic(cfg: SlamConfig, rig: Rig | None) -> str:
@@ -92,6 +96,54 @@ def load_imu(bag: BagSource | str | Path, cfg: SlamConfig, t_start: float, t_end
     return samples
 
 
+def estimate_noise(source: BagSource, rig: Rig, cfg: SlamConfig) -> tuple[SlamConfig, dict[str, Any]]:
+    """Each scanner's range noise from the recording (``noise.estimate``): the first
+    ``noise.estimate_scans`` scans of every scanner without a fixed value in ``noise.scanners``
+    (read for at most ``NOISE_READ_SECONDS``), through ``segmentation.noise.estimate``. Returns
+    ``cfg`` with the estimates in ``noise.scanners`` (the effective noise at the samples' median
+    range) and the record summary.json reports: per scanner where its noise comes from, the
+    estimate, the noise its values follow and its ratio to the reference; the shared ratio."""
+    nc = cfg.noise
+    todo = [s.name for s in rig.scanners if s.name not in nc.scanners] if nc.estimate else []
+    lines: dict[str, list[Scanline]] = {name: [] for name in todo}
+    if todo:
+        stream = source.scans(rig=rig)
+        t_first = None
+        for line in stream:
+            t_first = line.stamp if t_first is None else t_first
+            got = lines.get(line.scanner_id)
+            if got is not None and len(got) < nc.estimate_scans:
+                got.append(line)
+            if line.stamp - t_first > NOISE_READ_SECONDS or all(len(v) >= nc.estimate_scans for v in lines.values()):
+                break
+        stream.close()
+    record: dict[str, Any] = {}
+    fixed = dict(nc.scanners)
+    for s in rig.scanners:
+        if s.name in nc.scanners:
+            record[s.name] = {"source": "config", "range_sigma": nc.scanners[s.name]}
+            continue
+        if s.name not in lines:
+            record[s.name] = {"source": "rig", "range_sigma": s.scanner_model.range_sigma}
+            continue
+        try:
+            model = estimate_noise_model(lines[s.name])
+        except ValueError as e:  # too few returns: the rig's model holds
+            record[s.name] = {"source": "rig", "range_sigma": s.scanner_model.range_sigma, "estimate_failed": str(e)}
+            continue
+        fixed[s.name] = model.sigma_ref
+        record[s.name] = {
+            "source": "estimated", "range_sigma": model.sigma_ref, "range_ref": model.range_ref,
+            "sigma0": model.sigma0, "slope": model.slope, "beam_sigma": model.beam_sigma,
+            "quantum": model.quantum, "n_scans": model.n_scans, "n_samples": model.n_samples,
+        }
+    out = cfg.model_copy(update={"noise": nc.model_copy(update={"scanners": fixed})})
+    levels = params.noise_levels(rig, out)
+    for s, sigma, ratio in zip(rig.scanners, levels.sigma, levels.ratio, strict=True):
+        record[s.name] |= {"values_follow": sigma, "ratio": ratio}
+    return out, {"scanners": record, "shared_ratio": levels.shared, "reference": nc.reference}
+
+
 def peak_rss_gb() -> float:
     """The peak resident memory of this process so far (GB): ``ru_maxrss``, KiB on Linux and
     bytes on macOS."""
@@ -114,7 +166,9 @@ def run_slam(
 
     Before anything is processed the rig is checked against the recording (a wrong rig, or one
     that leaves a degree of freedom to an IMU the run does not have, is a ``RigError``); what the
-    checks note goes to ``report`` (one line each) and into the summary. A recording without a
+    checks note goes to ``report`` (one line each) and into the summary. Then each scanner's range
+    noise is estimated from its first scans (:func:`estimate_noise`; the values that follow it:
+    ``slam.config.NoiseSection``). A recording without a
     single line segment is an ``InputError`` (no usable returns), with no output written."""
     t_wall = time.perf_counter()
     with BagSource(bag) as source:
@@ -127,6 +181,7 @@ def run_slam(
         for note in check.notes:
             if report is not None:
                 report(note)
+        cfg, noise = estimate_noise(source, rig, cfg)
         runner = SlamRunner(rig, cfg, imu)
         scans = prepared_scans(source, rig, cfg, imu, process=cfg.parallel.reader)
         _estimate(runner, scans, t_range, progress)
@@ -148,7 +203,7 @@ def run_slam(
             res.timings["export"] = time.perf_counter() - t0
             memory["peak_rss_gb_after_export"] = peak_rss_gb()
             summary = RunSummary.of(bag, rig, cfg, res, cloud.points, memory, time.perf_counter() - t_wall,
-                                    t_range, health, check.notes).to_dict()
+                                    t_range, health, check.notes, noise).to_dict()
             write_summary_json(tmp / "summary.json", summary)
     return summary
 

@@ -154,7 +154,9 @@ class RunCounts:
 
 @dataclass(frozen=True)
 class RunSummary:
-    """summary.json: the run's inputs, counts, solver diagnostics, memory and timings (s)."""
+    """summary.json: the run's inputs, counts, solver diagnostics, memory and timings (s), its health, the rig
+    checks' notes, how the walk started (``start``: ``slam.frontend.initial_motion``) and each scanner's range
+    noise (``noise``: ``slam.run.estimate_noise``)."""
 
     bag: str
     rig: str
@@ -170,11 +172,13 @@ class RunSummary:
     realtime_factor: float
     health: dict[str, Any]
     rig_checks: list[str]
+    start: dict[str, Any]
+    noise: dict[str, Any]
 
     @classmethod
     def of(cls, bag: str | Path, rig: Rig, cfg: SlamConfig, res: SlamResult, cloud_points: int,
            memory: dict[str, float], wall: float, time_range: tuple[float, float], health: Health,
-           rig_checks: list[str]) -> RunSummary:
+           rig_checks: list[str], noise: dict[str, Any] | None = None) -> RunSummary:
         """The summary of a run on ``bag`` (log ``time_range``, s) that took ``wall`` s."""
         st = res.stats
         timings = {k: round(v, 3) for k, v in res.timings.items()} | {"wall": round(wall, 3)}
@@ -194,6 +198,8 @@ class RunSummary:
             realtime_factor=duration / max(timings["wall"], 1e-9),
             health=health.to_dict(),
             rig_checks=list(rig_checks),
+            start=dict(st["initial_motion"]),
+            noise=dict(noise or {}),
         )
 
     def to_dict(self) -> dict[str, Any]:

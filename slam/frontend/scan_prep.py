@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-import segmentation
 from common.rig import Rig
 from segmentation import Scanline
+from slam import params
 from slam.config import SlamConfig
 from slam.frontend.edges import (
     EdgeParams,
@@ -31,7 +31,6 @@ from slam.frontend.edges import (
 )
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.imu_feed import ImuSamples
-from slam.params import edge_params
 from slam.trajectory.deskew import DeskewTable, deskew_table
 
 
@@ -60,7 +59,9 @@ class PreparedScan:
 class ScanPreparer:
     """Prepares the scans of one time-ordered stream (see the module docstring).
 
-    The first scan's stamp is the trajectory's origin ``t0``: the deskew table is built on the
+    Each scanner has its own segmenter and point noise, from its noise level
+    (``slam.params.noise_levels``: the configuration's rule). The first scan's stamp is the
+    trajectory's origin ``t0``: the deskew table is built on the
     knot grid from it (``knot_rate``), as ``SlamRunner`` builds its own."""
 
     def __init__(self, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None = None) -> None:
@@ -69,9 +70,12 @@ class ScanPreparer:
         self.scanner_names = [s.name for s in rig.scanners]
         self._index = {n: i for i, n in enumerate(self.scanner_names)}
         self._T_body_scanner = [s.T_body_scanner.matrix() for s in rig.scanners]
-        self._range_sigma = [s.scanner_model.range_sigma for s in rig.scanners]
-        self.segmenter = segmentation.get(cfg.segmenter.method, **cfg.segmenter.params)
-        self._edges = edge_params(cfg) if cfg.edges.use else None
+        levels = params.noise_levels(rig, cfg)
+        self._range_sigma = list(levels.sigma)
+        # one segmenter per scanner: each follows its scanner's noise (slam.params.segmenter)
+        self.segmenters = [params.segmenter(cfg, rig, levels, i) for i in range(len(rig.scanners))]
+        scaled = params.noise_scaled(cfg, levels.shared)
+        self._edges = params.edge_params(scaled) if cfg.edges.use else None
         self._counter = [0] * len(self.scanner_names)
         self.t0: float | None = None
         self.deskew: DeskewTable | None = None
@@ -95,7 +99,7 @@ class ScanPreparer:
         if line.n_valid < 2 or line.stamp < self.t0:
             return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0)
         try:
-            seg = self.segmenter.segment(line)
+            seg = self.segmenters[s].segment(line)
         except ValueError:
             return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0)
         t_seg = time.perf_counter()

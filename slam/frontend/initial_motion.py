@@ -1,0 +1,436 @@
+"""The body's motion at the start of a recording, from its first scans, before any plane exists.
+
+A recording may start while the operator already walks. The front end predicts each knot from
+the ones before it (constant velocity, or the IMU from the first knot's velocity); starting at
+rest when the rig moves at 1 m/s places the first scans metres from where they were taken, the
+first planes are made from smeared segments and the trajectory runs away. Even the right start
+velocity is not enough: a walker's speed changes by 10-20 % within a second, a new plane's
+segments must agree within millimetres (``frontend.coplanar_distance``), and until a plane
+across the walking direction exists nothing corrects the prediction along it. So before the
+first knot is processed, the scans of the first ``window`` seconds of one scanner are
+registered in its scan plane (2D lidar odometry), and the knots of that time are predicted with
+the motion they give.
+
+The scanner is the one whose scan plane is nearest the body's horizontal (a walker moves and
+turns in it); its segments' points (scanner frame, every point at its own beam time) are used.
+
+1. **At rest or moving** (:func:`register`): one constant 2D twist ``xi = (v_x, v_y, w)`` of
+   the scanner frame over the first ``REST_SPAN`` s, ``p(t0) = Exp(xi (t - t0)) p``, fitted by
+   Gauss-Newton with Huber weights to the distances of the later scans' points from the lines of
+   the first scan's segments, matched segment to segment (nearly parallel, near, overlapping),
+   coarse to fine (the gates shrink as the scans reach further in time: at 1 m/s the scans of
+   the first 0.1 s lie within 10 cm of the first). A weak prior holds directions the scans do not
+   observe (a corridor's walls say nothing about the walk along them) at rest. Below
+   ``min_speed`` and ``min_rate`` the start counts as at rest, and the front end takes exactly
+   the standstill path.
+2. **Odometry** (:func:`odometry`), when moving: scan after scan, the scanner's pose at its stamp
+   against the lines of the first scan and of the last ``MAP_SCANS`` scans, each scan deskewed
+   with the twist from the previous pose to its own; a weak prior holds it at the
+   constant-velocity prediction along directions no line observes.
+3. The knots' predicted motions (:func:`knot_increments`): the scanner's poses interpolated at
+   the knot times, lifted into the body frame by the scanner's mounting
+   (``T_body_scanner``); directions out of the scan plane (height, roll, pitch) are left at
+   rest, for the planes to correct.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam.frontend.observations import ScanSegments
+from slam.trajectory.interpolation import adjoint
+
+FloatArray = NDArray[np.float64]
+Residuals = Callable[[FloatArray], FloatArray]
+
+REST_SPAN = 0.3  # s of scans (at most the window) the rest test's constant twist is fitted to
+# coarse to fine: the scans up to this many seconds after the first, with this distance gate (m)
+# and angle gate (deg) for matching a segment to a line of the first scan
+STAGES = ((0.08, 0.15, 10.0), (0.16, 0.06, 5.0), (np.inf, 0.03, 3.0))
+ITERATIONS = 6
+MIN_POINTS = 10  # segments with fewer points are not used
+MIN_MATCHES = 4  # matched segments a fit needs
+OVERLAP_MARGIN = 0.3  # m, a matched segment's end points lie within the target's extent grown by this
+HUBER = 0.01  # m, Huber width of the point-to-line distances
+PRIOR_SIGMAS = np.array([3.0, 3.0, 3.0])  # m/s, m/s, rad/s: the rest test's weak prior towards rest
+MAP_SCANS = 4  # odometry: the previous scans whose lines a scan is registered against (with the first)
+ODOMETRY_GATE = (0.03, 3.0)  # m, deg: odometry's matching gates
+ODOMETRY_PRIOR = np.array([0.05, 0.05, 0.05])  # m, m, rad: the hold on the constant-velocity prediction
+# sigmas (rad, m; scanner frame) of a knot interval's motion from the odometry, for tracking: tight in
+# the scan plane (rotation about its z, translation along x, y), loose out of it (a walker's bob and
+# sway, which the odometry does not see)
+ODOMETRY_SIGMAS = np.array([np.radians(1.0), np.radians(1.0), np.radians(0.05), 0.001, 0.001, 0.02])
+
+
+@dataclass(frozen=True, eq=False)
+class InitialMotionParams:
+    """``window`` s of scans registered (0: the walk starts at rest); the start counts as at
+    rest below ``min_speed`` (m/s) and ``min_rate`` (rad/s)."""
+
+    window: float
+    min_speed: float
+    min_rate: float
+
+
+@dataclass(frozen=True, eq=False)
+class InitialMotion:
+    """How the walk starts: ``moving`` or at rest, the start's body twist ``twist_body`` (6,:
+    rad/s then m/s, body frame, gtsam's order; zeros at rest) and, when moving, the predicted
+    motion of the first knot intervals (``increments``: (4, 4) each, ``T_body(k)^-1 T_body(k +
+    1)``) with the sigmas (6,: rad, m, body frame) tracking holds them with (``increment_sigmas``). ``scanner`` is the index registered (-1: none), ``twist_scan`` its 2D twist (v_x, v_y
+    m/s, w rad/s), ``matches`` the rest test's matched segments and ``rms`` its points' RMS
+    distance (m); ``scans`` the scans of the odometry."""
+
+    twist_body: FloatArray
+    moving: bool
+    scanner: int = -1
+    twist_scan: FloatArray | None = None
+    matches: int = 0
+    rms: float = float("nan")
+    increments: list[FloatArray] = field(default_factory=list)
+    increment_sigmas: FloatArray | None = None
+    scans: int = 0
+
+    @staticmethod
+    def rest(scanner: int = -1) -> InitialMotion:
+        return InitialMotion(np.zeros(6), False, scanner)
+
+    def as_dict(self) -> dict[str, object]:
+        """For the run's summary."""
+        return {
+            "moving": self.moving,
+            "speed": float(np.linalg.norm(self.twist_body[3:])),
+            "yaw_rate_deg": float(np.degrees(np.linalg.norm(self.twist_body[:3]))),
+            "scanner": self.scanner,
+            "matches": self.matches,
+            "rms": None if not np.isfinite(self.rms) else self.rms,
+            "odometry_knots": len(self.increments),
+            "odometry_scans": self.scans,
+        }
+
+
+def level_scanner(T_body_scanner: list[FloatArray]) -> int:
+    """The scanner whose scan plane is nearest the body's horizontal (its z axis along body z)."""
+    return int(np.argmax([abs(float(T[2, 2])) for T in T_body_scanner]))
+
+
+# ---- SE(2) ------------------------------------------------------------------------------------
+
+
+def se2(x: float, y: float, th: float) -> FloatArray:
+    """The pose (3, 3) of position (x, y) m and heading ``th`` rad."""
+    c, s = np.cos(th), np.sin(th)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def se2_exp(xi: FloatArray) -> FloatArray:
+    """``Exp(xi)`` (3, 3) of a twist (v_x, v_y, w) over unit time."""
+    th = float(xi[2])
+    if abs(th) < 1e-9:
+        a, b = 1.0 - th * th / 6.0, th / 2.0
+    else:
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th
+    return se2(a * xi[0] - b * xi[1], b * xi[0] + a * xi[1], th)
+
+
+def se2_log(P: FloatArray) -> FloatArray:
+    """The twist (v_x, v_y, w) whose ``Exp`` is ``P`` (3, 3)."""
+    th = float(np.arctan2(P[1, 0], P[0, 0]))
+    if abs(th) < 1e-9:
+        a, b = 1.0 - th * th / 6.0, th / 2.0
+    else:
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th
+    det = a * a + b * b
+    x, y = P[0, 2], P[1, 2]
+    return np.array([(a * x + b * y) / det, (-b * x + a * y) / det, th])
+
+
+def se2_place(points: FloatArray, dt: FloatArray, xi: FloatArray, P: FloatArray | None = None) -> FloatArray:
+    """Points (m, 2) taken ``dt`` (m,) s after a reference time, moved into the frame at that
+    time by the constant twist ``xi`` (v_x, v_y, w), ``Exp(xi dt) p``, then by the pose ``P``
+    (3, 3) when given."""
+    th = xi[2] * dt
+    c, s = np.cos(th), np.sin(th)
+    small = np.abs(th) < 1e-9
+    safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th * th / 6.0, s / safe)  # sin(th) / th
+    b = np.where(small, th / 2.0, (1.0 - c) / safe)  # (1 - cos(th)) / th
+    vx, vy = xi[0] * dt, xi[1] * dt
+    x, y = points[:, 0], points[:, 1]
+    qx = c * x - s * y + a * vx - b * vy
+    qy = s * x + c * y + b * vx + a * vy
+    if P is None:
+        return np.column_stack((qx, qy))
+    return np.column_stack((P[0, 0] * qx + P[0, 1] * qy + P[0, 2], P[1, 0] * qx + P[1, 1] * qy + P[1, 2]))
+
+
+def lift(P: FloatArray) -> FloatArray:
+    """The SE(3) pose (4, 4) of a pose (3, 3) in the scan plane (z = 0)."""
+    T = np.eye(4)
+    T[:2, :2] = P[:2, :2]
+    T[:2, 3] = P[:2, 2]
+    return T
+
+
+# ---- lines and matching -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Seg:
+    points: FloatArray  # (n, 2) scanner frame
+    dt: FloatArray  # (n,) s after the scan's stamp
+
+
+@dataclass(frozen=True, eq=False)
+class _Lines:
+    """Lines (L rows) in a common frame: centroid, unit direction and normal, extent along it."""
+
+    c: FloatArray
+    u: FloatArray
+    n: FloatArray
+    lo: FloatArray
+    hi: FloatArray
+
+    @staticmethod
+    def of(placed: list[FloatArray]) -> _Lines:
+        rows = [_line(p) for p in placed]
+        if not rows:
+            z2, z1 = np.zeros((0, 2)), np.zeros(0)
+            return _Lines(z2, z2, z2, z1, z1)
+        c, u, n, lo, hi = (np.array(x) for x in zip(*rows, strict=True))
+        return _Lines(c, u, n, lo, hi)
+
+    @staticmethod
+    def concat(parts: list[_Lines]) -> _Lines:
+        return _Lines(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("c", "u", "n", "lo", "hi")))
+
+
+def _line(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, float, float]:
+    """TLS line of points (m, 2): centroid, unit direction, unit normal, extent along it."""
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    u = vt[0]
+    s = (points - c) @ u
+    return c, u, np.array([-u[1], u[0]]), float(s.min()), float(s.max())
+
+
+def _segments(scans: list[ScanSegments], T_body_scanner: FloatArray) -> list[list[_Seg]]:
+    """Each scan's segments with at least MIN_POINTS points, in the scanner frame, times after
+    the scan's stamp."""
+    T_sb = np.linalg.inv(T_body_scanner)
+    out = []
+    for segs in scans:
+        pts = segs.points_body @ T_sb[:3, :3].T + T_sb[:3, 3]
+        rows = []
+        for j in range(segs.n_segments):
+            if segs.n_points[j] >= MIN_POINTS:
+                sl = slice(int(segs.offsets[j]), int(segs.offsets[j + 1]))
+                rows.append(_Seg(np.ascontiguousarray(pts[sl, :2]), segs.times[sl] - segs.stamp))
+        out.append(rows)
+    return out
+
+
+def _match_one(lines: _Lines, placed: FloatArray, gate: float, sin_gate: float) -> int:
+    """The index of the line a placed segment (m, 2) matches (the nearest nearly parallel line
+    whose extent its end points overlap), -1 for none."""
+    if lines.c.shape[0] == 0:
+        return -1
+    cs, us, _, _, _ = _line(placed)
+    d = np.abs(np.einsum("ij,ij->i", cs - lines.c, lines.n))
+    ends = placed[[0, -1]]
+    s0 = np.einsum("ij,ij->i", ends[0] - lines.c, lines.u)
+    s1 = np.einsum("ij,ij->i", ends[1] - lines.c, lines.u)
+    ok = ((np.abs(lines.n @ us) <= sin_gate) & (d < gate)
+          & (np.maximum(s0, s1) >= lines.lo - OVERLAP_MARGIN) & (np.minimum(s0, s1) <= lines.hi + OVERLAP_MARGIN))
+    if not ok.any():
+        return -1
+    return int(np.flatnonzero(ok)[np.argmin(d[ok])])
+
+
+def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: FloatArray) -> FloatArray:
+    """One Huber-weighted Gauss-Newton step of the residuals ``f(x)`` (numeric Jacobian) from
+    ``x0``, with the prior ``prior_w (x - prior_x)^2`` (weights in units of HUBER^2)."""
+    r = f(x0)
+    J = np.empty((r.size, x0.size))
+    for k in range(x0.size):
+        h = np.zeros(x0.size)
+        h[k] = 1e-5
+        J[:, k] = (f(x0 + h) - f(x0 - h)) / 2e-5
+    a = np.abs(r)
+    w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+    A = (J * w[:, None]).T @ J + np.diag(prior_w) * HUBER**2
+    g = (J * w[:, None]).T @ r + prior_w * (x0 - prior_x) * HUBER**2
+    return x0 - np.linalg.solve(A, g)
+
+
+# ---- 1: at rest or moving ------------------------------------------------------------------------
+
+
+def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, span: float,
+             ) -> tuple[FloatArray, int, float] | None:
+    """The constant 2D twist (v_x, v_y, w) of the scanner frame over ``scans`` (one scanner's,
+    time order, the first one the target; those within ``span`` s of ``t0``), with the matched
+    segments and the RMS distance (m); None when too few segments match."""
+    segs = _segments(scans, T_body_scanner)
+    if len(segs) < 2 or not segs[0]:
+        return None
+    dts = [np.array(s.stamp - t0) for s in scans]
+    xi = np.zeros(3)
+    w_prior = 1.0 / PRIOR_SIGMAS**2
+    matches: list[tuple[_Seg, float, FloatArray, float]] = []
+
+    def residuals(x: FloatArray) -> FloatArray:
+        return np.concatenate([se2_place(seg.points, seg.dt + dt, x) @ n + d for seg, dt, n, d in matches])
+
+    for reach, gate, angle in STAGES:
+        sources = [i for i in range(1, len(segs)) if float(dts[i]) <= min(reach, span) + 1e-9]
+        if not sources:
+            continue
+        sin_gate = np.sin(np.radians(angle))
+        for _ in range(ITERATIONS):
+            target = _Lines.of([se2_place(s.points, s.dt + dts[0], xi) for s in segs[0]])
+            matches = []
+            for i in sources:
+                for seg in segs[i]:
+                    j = _match_one(target, se2_place(seg.points, seg.dt + dts[i], xi), gate, sin_gate)
+                    if j >= 0:
+                        matches.append((seg, float(dts[i]), target.n[j], -float(target.n[j] @ target.c[j])))
+            if len(matches) < MIN_MATCHES:
+                return None
+            new = _gauss_newton(residuals, xi, np.zeros(3), w_prior)
+            done = np.abs(new - xi).max() < 1e-5
+            xi = new
+            if done:
+                break
+    r = residuals(xi)
+    return xi, len(matches), float(np.sqrt(np.mean(r * r)))
+
+
+# ---- 2: odometry ---------------------------------------------------------------------------------
+
+
+def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatArray,
+             ) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
+    """The scanner's pose (3, 3) at each scan's stamp relative to the first scan's, with the
+    twist (v_x, v_y, w) of the interval before it (the first: ``xi0``): the stamps (s,), the
+    poses and the twists (module doc, step 2)."""
+    segs = _segments(scans, T_body_scanner)
+    stamps = np.array([s.stamp for s in scans])
+    poses = [np.eye(3)]
+    twists = [np.asarray(xi0, dtype=np.float64)]
+    placed = [_Lines.of([se2_place(s.points, s.dt, twists[0]) for s in segs[0]])]
+    for i in range(1, len(segs)):
+        target = _Lines.concat([placed[0], *placed[max(1, len(placed) - MAP_SCANS):]])
+        P, xi = _register_scan(segs[i], target, poses[-1], twists[-1], float(stamps[i] - stamps[i - 1]))
+        poses.append(P)
+        twists.append(xi)
+        placed.append(_Lines.of([se2_place(s.points, s.dt, xi, P) for s in segs[i]]))
+    return stamps, poses, twists
+
+
+def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: FloatArray, h: float,
+                   ) -> tuple[FloatArray, FloatArray]:
+    """The pose (3, 3) of a scan ``h`` s after the one at ``prev`` (whose interval's twist was
+    ``xi_prev``) against the ``target`` lines, and the twist of the interval between them; the
+    constant-velocity prediction when too few segments match."""
+    pred = prev @ se2_exp(xi_prev * h)
+    prev_inv = np.linalg.inv(prev)
+    gate, sin_gate = ODOMETRY_GATE[0], np.sin(np.radians(ODOMETRY_GATE[1]))
+    w_prior = 1.0 / ODOMETRY_PRIOR**2
+
+    def pose_of(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        P = pred @ se2(*x)
+        return P, se2_log(prev_inv @ P) / max(h, 1e-6)
+
+    x = np.zeros(3)
+    for _ in range(ITERATIONS):
+        P, xi = pose_of(x)
+        matches: list[tuple[_Seg, FloatArray, float]] = []
+        for seg in segs:
+            j = _match_one(target, se2_place(seg.points, seg.dt, xi, P), gate, sin_gate)
+            if j >= 0:
+                matches.append((seg, target.n[j], -float(target.n[j] @ target.c[j])))
+        if len(matches) < MIN_MATCHES:
+            break
+        new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior)
+        done = np.abs(new - x).max() < 1e-6
+        x = new
+        if done:
+            break
+    return pose_of(x)
+
+
+def _scan_residuals(matches: list[tuple[_Seg, FloatArray, float]],
+                    pose_of: Callable[[FloatArray], tuple[FloatArray, FloatArray]]) -> Residuals:
+    """The matched points' distances (m) from their lines as a function of the pose's correction."""
+
+    def residuals(v: FloatArray) -> FloatArray:
+        P, xi = pose_of(v)
+        return np.concatenate([se2_place(seg.points, seg.dt, xi, P) @ n + d for seg, n, d in matches])
+
+    return residuals
+
+
+def pose_at(t: float, stamps: FloatArray, poses: list[FloatArray], twists: list[FloatArray]) -> FloatArray:
+    """The scanner's pose (3, 3) at ``t`` (s) on the odometry's poses: from the scan before ``t``
+    with the twist of the interval after it (before the first scan: back from it with the first
+    interval's, after the last: on with the last's)."""
+    i = int(np.searchsorted(stamps, t, side="right")) - 1
+    i = min(max(i, 0), len(poses) - 1)
+    xi = twists[min(i + 1, len(twists) - 1)]
+    return poses[i] @ se2_exp(xi * (t - float(stamps[i])))
+
+
+def knot_increments(t0: float, dt: float, t_end: float, stamps: FloatArray, poses: list[FloatArray],
+                    twists: list[FloatArray], T_body_scanner: FloatArray) -> list[FloatArray]:
+    """The body's motion (4, 4) over each knot interval ``[t0 + k dt, t0 + (k + 1) dt]`` up to
+    ``t_end`` (s), from the odometry (module doc, step 3)."""
+    T_sb = np.linalg.inv(T_body_scanner)
+    out = []
+    k = 0
+    P_a = pose_at(t0, stamps, poses, twists)
+    while t0 + (k + 1) * dt <= t_end + 1e-9:
+        P_b = pose_at(t0 + (k + 1) * dt, stamps, poses, twists)
+        out.append(T_body_scanner @ lift(np.linalg.inv(P_a) @ P_b) @ T_sb)
+        P_a = P_b
+        k += 1
+    return out
+
+
+# ---- the start -----------------------------------------------------------------------------------
+
+
+def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: float, dt: float,
+             params: InitialMotionParams) -> InitialMotion:
+    """How the walk starts, from the scans of the first ``params.window`` s (any scanners, time
+    order; see the module doc) with knots every ``dt`` s from ``t0``; at rest when the start is
+    below the thresholds or cannot be measured."""
+    if params.window <= 0:
+        return InitialMotion.rest()
+    s = level_scanner(T_body_scanner)
+    own = [p for p in scans if p.scanner == s and p.stamp <= t0 + params.window]
+    span = min(REST_SPAN, params.window)
+    first = [p for p in own if p.stamp <= t0 + span]
+    fit = register(first, T_body_scanner[s], t0, span) if len(first) >= 2 else None
+    if fit is None:
+        return InitialMotion.rest(s)
+    xi, n, rms = fit
+    speed, rate = float(np.hypot(xi[0], xi[1])), abs(float(xi[2]))
+    if speed < params.min_speed and rate < params.min_rate:
+        return InitialMotion(np.zeros(6), False, s, xi, n, rms)
+    twist_scan = np.array([0.0, 0.0, xi[2], xi[0], xi[1], 0.0])
+    twist_body = adjoint(T_body_scanner[s]) @ twist_scan
+    stamps, poses, twists = odometry(own, T_body_scanner[s], xi)
+    increments = knot_increments(t0, dt, float(stamps[-1]), stamps, poses, twists, T_body_scanner[s])
+    return InitialMotion(twist_body, True, s, xi, n, rms, increments, body_sigmas(T_body_scanner[s]), len(own))
+
+
+def body_sigmas(T_body_scanner: FloatArray) -> FloatArray:
+    """``ODOMETRY_SIGMAS`` (scanner frame) as sigmas (6,: rad, m) of the body's motion: the
+    diagonal of the covariance moved by the adjoint of the scanner's mounting."""
+    A = adjoint(T_body_scanner)
+    return np.sqrt(np.diag(A @ np.diag(ODOMETRY_SIGMAS**2) @ A.T))
