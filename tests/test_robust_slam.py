@@ -59,7 +59,7 @@ def walking_start(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
 
 
 def test_a_walking_start_recovers_the_trajectory(walking_start: SimulationResult, tmp_path: Path) -> None:
-    summary, ate, ate_se3 = _run(walking_start, _cfg(), tmp_path / "run")
+    summary, ate, ate_se3 = _run(walking_start, _cfg(initial_motion_window=1.0), tmp_path / "run")
     start = summary["start"]
     assert start["moving"] and 0.8 < start["speed"] < 1.3 and start["odometry_knots"] >= 15, start
     # the first knot's tilt rests on its own interval's scans only (no standstill to average
