@@ -38,7 +38,7 @@ from rosbags.typesys.store import Typestore
 from scipy.spatial.transform import Rotation
 
 from common.atomic import commit, discard, temporary_sibling
-from common.rig import Rig, ScannerConfig
+from common.rig import Rig, ScannerConfig, ScannerModel
 
 Format = Literal["ros1", "ros2"]
 LASERSCAN = "sensor_msgs/msg/LaserScan"
@@ -71,6 +71,14 @@ def seconds_to_ns(t: NDArray[np.float64] | float, base_ns: int = 0) -> NDArray[n
     """Times in s after ``base_ns`` to absolute integer ns (rounded; the base is added in
     integers so that large absolute times keep ns resolution)."""
     return base_ns + np.round(np.asarray(t, dtype=np.float64) * 1e9).astype(np.int64)
+
+
+def _geometry(model: ScannerModel) -> dict[str, float]:
+    """A scan message's beam geometry, timing and range limits from the scanner model."""
+    return {"angle_min": float(model.angle_min), "angle_max": float(model.angle_max),
+            "angle_increment": float(model.angle_increment), "time_increment": float(model.time_increment),
+            "scan_time": float(model.scan_period), "range_min": float(model.range_min),
+            "range_max": float(model.range_max)}
 
 
 class BagWriter:
@@ -228,13 +236,7 @@ class BagWriter:
         for i, t_ns in enumerate(stamps_ns.tolist()):
             msg = LS(
                 header=self._header(scanner.topic, t_ns, scanner.frame),
-                angle_min=float(model.angle_min),
-                angle_max=float(model.angle_max),
-                angle_increment=float(model.angle_increment),
-                time_increment=float(model.time_increment),
-                scan_time=float(model.scan_period),
-                range_min=float(model.range_min),
-                range_max=float(model.range_max),
+                **_geometry(model),
                 ranges=r32[i],
                 intensities=empty,
             )
@@ -252,13 +254,7 @@ class BagWriter:
             echoes = [LE(echoes=row[k : k + 1]) if good else none for k, good in enumerate(ok.tolist())]
             msg = MS(
                 header=self._header(scanner.topic, t_ns, scanner.frame),
-                angle_min=float(model.angle_min),
-                angle_max=float(model.angle_max),
-                angle_increment=float(model.angle_increment),
-                time_increment=float(model.time_increment),
-                scan_time=float(model.scan_period),
-                range_min=float(model.range_min),
-                range_max=float(model.range_max),
+                **_geometry(model),
                 ranges=echoes,
                 intensities=[],
             )
