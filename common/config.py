@@ -30,9 +30,11 @@ def read_yaml(path: str | Path) -> Any:
     """Parse a YAML file; a missing or malformed file is a ConfigError naming it."""
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8-sig")
     except OSError as e:
         raise ConfigError(f"{p}: cannot read ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not a text file ({e.reason} at byte {e.start})") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -44,7 +46,9 @@ def read_yaml(path: str | Path) -> Any:
 def format_validation_error(err: ValidationError, source: str) -> str:
     """One line: file, dotted key and what is wrong (first error, count of the rest)."""
     errs = err.errors()
-    first = errs[0]
+    # the deepest location first: of a union's alternatives (a scanner model by name or inline),
+    # the one that got furthest names the offending key
+    first = max(errs, key=lambda e: len(e.get("loc", ())))
     key = ".".join(str(x) for x in first.get("loc", ())) or "(top level)"
     msg = first.get("msg", "invalid")
     if first.get("type") == "extra_forbidden":

@@ -165,6 +165,9 @@ class Rig(StrictModel):
         names = [s.name for s in self.scanners]
         if len(set(names)) != len(names):
             raise ValueError("scanner names must be unique")
+        topics = [s.topic for s in self.scanners]
+        if len(set(topics)) != len(topics):
+            raise ValueError(f"scanner topics must be unique (each scanner records on its own topic): {topics}")
         if self.reference not in names:
             raise ValueError(f"reference '{self.reference}' is not one of the scanners {names}")
         return self

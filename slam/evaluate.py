@@ -29,6 +29,7 @@ Metrics (each defined where it is computed):
 from __future__ import annotations
 
 import copy
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -779,14 +780,19 @@ class GroundTruth:
         ids: dict[str, NDArray[np.int32]] = {}
         stamps: dict[str, FloatArray] = {}
         alias = self._scanner_aliases()
-        with np.load(path, allow_pickle=False) as z:
-            for name in names:
-                key = name if f"{name}_plane_id" in z.files else alias.get(name, name)
-                if f"{key}_plane_id" not in z.files:
-                    raise EvaluationError(f"{path}: no array '{name}_plane_id'")
-                ids[name] = z[f"{key}_plane_id"]
-                if f"{key}_stamps" in z.files:
-                    stamps[name] = z[f"{key}_stamps"].astype(np.float64)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                for name in names:
+                    key = name if f"{name}_plane_id" in z.files else alias.get(name, name)
+                    if f"{key}_plane_id" not in z.files:
+                        raise EvaluationError(f"{path}: no array '{name}_plane_id'")
+                    ids[name] = z[f"{key}_plane_id"]
+                    if f"{key}_stamps" in z.files:
+                        stamps[name] = z[f"{key}_stamps"].astype(np.float64)
+        except EvaluationError:
+            raise
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise EvaluationError(f"{path}: not a readable .npz ({' '.join(str(e).split())})") from None
         return ids, stamps
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -553,7 +554,7 @@ def read_segments_npz(path: str | Path) -> SegmentTable:
     try:
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise OutputFileError(f"{p}: not a readable .npz ({e})") from None
     missing = [k for k in ("scanner_names", *_SEGMENT_COLUMNS) if k not in data]
     if missing:

@@ -477,7 +477,7 @@ def mutate_zero_beams(bm: BagMessages, p: dict[str, Any], rng: random.Random) ->
 
 def mutate_stamps(bm: BagMessages, p: dict[str, Any], rng: random.Random) -> None:
     items = sorted(bm.of(p["topics"]), key=lambda i: i.log_ns)
-    items = [i for i in items if i.msgtype != "tf2_msgs/msg/TFMessage"]
+    items = [i for i in items if i.msgtype != "tf2_msgs/msg/TFMessage" and hasattr(bm.msg(i), "header")]
     chosen = _pick(items, p["fraction"], rng)
     prev: dict[str, int] = {}
     order = {id(i): k for k, i in enumerate(items)}

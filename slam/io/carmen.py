@@ -149,12 +149,16 @@ def _iter_carmen(
                 head = tok[0]
                 if head == "PARAM" and range_max is None and len(tok) >= 3 and tok[1] == "robot_front_laser_max":
                     flaser_max = _float(tok[2], p, line_no)
-                elif head == "FLASER":
+                elif head in ("FLASER", "ROBOTLASER1"):
                     rmax = DEFAULT_FLASER_RANGE_MAX if flaser_max is None else flaser_max
-                    yield _flaser(tok, p, line_no, rmax, time_increment, angle_convention, scanner_id, angle_cache)
-                    n_scans += 1
-                elif head == "ROBOTLASER1":
-                    yield _robotlaser(tok, p, line_no, time_increment, scanner_id)
+                    try:
+                        rec = (_flaser(tok, p, line_no, rmax, time_increment, angle_convention, scanner_id, angle_cache)
+                               if head == "FLASER" else _robotlaser(tok, p, line_no, time_increment, scanner_id))
+                    except InputError:
+                        raise
+                    except ValueError as e:  # the line's values make no scan (no beams, NaN angles)
+                        raise input_error(p, f"line {line_no}: {e}") from None
+                    yield rec
                     n_scans += 1
     except (OSError, EOFError, zlib.error, UnicodeDecodeError) as e:
         raise input_error(p, f"unreadable or truncated at line {line_no + 1}: {e}") from None
