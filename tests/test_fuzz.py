@@ -192,7 +192,7 @@ def _signalled_run(materials: Materials, folder: Path, sig: signal.Signals, grou
                              str(materials.rig), "--out", str(out), "--quiet"], cwd=folder, env=python_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     t0 = time.monotonic()
-    while proc.poll() is None and time.monotonic() - t0 < 20 and not any(folder.glob(".run.tmp-*")):
+    while proc.poll() is None and time.monotonic() - t0 < 90 and not any(folder.glob(".run.tmp-*")):
         time.sleep(0.02)
     if group:
         os.killpg(proc.pid, sig)
