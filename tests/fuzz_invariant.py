@@ -58,8 +58,10 @@ class Result:
     violations: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
+        lines = stderr_lines(self.stderr)
         return {"command": self.command.name, "argv": self.command.argv, "rc": self.rc, "seconds": round(self.seconds, 2),
-                "outcome": self.outcome, "violations": self.violations, "signal": self.command.signal}
+                "outcome": self.outcome, "violations": self.violations, "signal": self.command.signal,
+                "stderr_last": lines[-1][:300] if lines else ""}
 
 
 def stderr_lines(text: str) -> list[str]:

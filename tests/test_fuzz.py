@@ -137,6 +137,16 @@ REGRESSIONS: list[tuple[str, dict[str, Any], list[tuple[str, str]]]] = [
      {"kind": "rig", "seed": 1, "how": "duplicate_topic", "path": ["name"], "value": 0, "fmt": "ros1",
       "commands": ["calibrate"]},
      [("refused", "scanner topics must be unique")]),
+    ("an .npz scanline with a NaN angle: Scanline's error named no file",
+     {"kind": "scanline", "seed": 1, "fmt": "npz", "how": "angles_nan", "n": 50, "scans": 1, "method": None,
+      "noise": "none", "plot": False, "commands": ["segment"]},
+     [("refused", "case.npz: Scanline: a beam marked valid has a NaN")]),
+    ("calibrate --coarse 1e999: the estimator's error named no option",
+     {"kind": "cli", "seed": 1, "command": "calibrate", "option": "--coarse", "value": "1e999", "fmt": "ros1"},
+     [("refused", "--coarse inf 5: must be finite and >= 0")]),
+    ("run --voxel inf: a cloud thinned to nothing, exit 0",
+     {"kind": "cli", "seed": 1, "command": "run", "option": "--voxel", "value": "inf", "fmt": "ros1"},
+     [("refused", "--voxel inf: must be finite and > 0")]),
     ("a trajectory at 1e300 m: evaluate went on with overflows",
      {"kind": "run_dir", "seed": 1, "how": "traj_far", "format": "las", "plots": False, "at": 0.5,
       "commands": ["evaluate"]},
@@ -244,3 +254,22 @@ def test_judge_flags_what_breaks_the_invariant(tmp_path: Path) -> None:
     assert judge(cmd, 0, "", tmp_path, False)[1] == ["exit 0 over an input with no usable data"]
     (tmp_path / ".x.tmp-123.json").write_text("")
     assert any("temporary" in v for v in judge(cmd, 2, "backpack-slam: error: case.bag\n", tmp_path, False)[1])
+
+
+def test_calibrate_names_the_recording_in_the_estimators_errors(materials: Materials, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A singular calibration graph (a 400 Hz knot rate) was reported without naming the recording."""
+    import calibration.calibrate
+    from backpack_slam.cli import main
+
+    def singular(*args: Any, **kwargs: Any) -> None:
+        raise ValueError("calibration graph is singular or failed to solve (Indeterminate linear system)")
+
+    monkeypatch.setattr(calibration.calibrate, "calibrate_bag", singular)
+    bag = materials.bags["ros1"]
+    assert main(["calibrate", str(bag), "--rig", str(materials.rig), "--out", str(tmp_path / "c.yaml"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"backpack-slam: error: calibration from {bag} with rig {materials.rig}: calibration graph is "
+                   "singular or failed to solve (Indeterminate linear system)")
+    assert not (tmp_path / "c.yaml").exists()

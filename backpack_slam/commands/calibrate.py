@@ -51,25 +51,30 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_slam_config(args.config)
     if args.rounds < 1:
         raise ValueError(f"--rounds {args.rounds}: must be >= 1")
-    if not (args.sigma_rot > 0 and args.sigma_trans > 0):
-        raise ValueError("--sigma-rot/--sigma-trans: must be > 0")
+    if not all(math.isfinite(x) and x > 0 for x in (args.sigma_rot, args.sigma_trans)):
+        raise ValueError("--sigma-rot/--sigma-trans: must be finite and > 0")
     if not args.out.parent.is_dir():
         raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
     est = EstimatorConfig(sigma_rot=math.radians(args.sigma_rot), sigma_trans=args.sigma_trans,
                           time_offsets=args.time_offsets)
     coarse = None
     if args.coarse is not None:
-        if min(args.coarse) < 0:
-            raise ValueError(f"--coarse {args.coarse[0]:g} {args.coarse[1]:g}: must be >= 0")
+        if not all(math.isfinite(x) and x >= 0 for x in args.coarse):
+            raise ValueError(f"--coarse {args.coarse[0]:g} {args.coarse[1]:g}: must be finite and >= 0")
         coarse = (math.radians(args.coarse[0]), args.coarse[1] / 1000.0)
     if args.coarse_seconds is not None and not (math.isfinite(args.coarse_seconds) and args.coarse_seconds > 0):
         raise ValueError(f"--coarse-seconds {args.coarse_seconds:g}: must be > 0")
     say = None if args.quiet else print
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnobservableWarning)  # printed below, once
-        cal = calibrate_bag(args.bag, rig, cfg, CalibrationOptions(
-            estimator=est, max_rounds=args.rounds, initial_uncertainty=coarse,
-            coarse_duration=args.coarse_seconds), say)
+        try:
+            cal = calibrate_bag(args.bag, rig, cfg, CalibrationOptions(
+                estimator=est, max_rounds=args.rounds, initial_uncertainty=coarse,
+                coarse_duration=args.coarse_seconds), say)
+        except ValueError as e:  # the estimator's own errors (a singular graph) name no recording
+            if str(Path(args.bag)) in str(e):
+                raise
+            raise ValueError(f"calibration from {args.bag} with rig {args.rig}: {e}") from None
     write_rig(args.out, cal.rig, header=f"calibrated by backpack-slam calibrate from {args.bag}\n"
                                          f"initial rig: {args.rig}")
     for w in cal.warnings:

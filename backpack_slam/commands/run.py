@@ -8,6 +8,7 @@ leaves a degree of freedom to an IMU the recording lacks (nothing written)."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -54,8 +55,8 @@ def run(args: argparse.Namespace) -> int:
     rig = resolve_rig(args.rig) if args.rig is not None else None
     fmt = survey_format(args.cloud_format) if args.cloud_format is not None else None
     cfg = with_segmenter(load_slam_config(args.config), args.segmenter, parse_params(args.param))
-    if args.voxel is not None and not args.voxel > 0:
-        raise ValueError(f"--voxel {args.voxel}: must be > 0")
+    if args.voxel is not None and not (math.isfinite(args.voxel) and args.voxel > 0):
+        raise ValueError(f"--voxel {args.voxel}: must be finite and > 0")
     summary = run_slam(args.bag, rig, cfg, args.out, progress=not args.quiet, voxel=args.voxel, urdf=args.urdf,
                        report=lambda line: print(f"note: {line}", file=sys.stderr))
     c = summary["counts"]

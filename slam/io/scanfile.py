@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from common.atomic import atomic_path
 from segmentation import Scanline, validity_mask
-from slam.io.errors import input_error
+from slam.io.errors import InputError, input_error
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +40,12 @@ def read_npz(path: str | Path) -> Iterator[Scanline]:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise input_error(p, f"not a readable .npz file ({type(e).__name__}: {e})") from None
-    return iter(_npz_scanlines(p, data))
+    try:
+        return iter(_npz_scanlines(p, data))
+    except InputError:
+        raise
+    except ValueError as e:  # values that make no scanline (a NaN angle of a valid beam)
+        raise input_error(p, str(e)) from None
 
 
 def _npz_scanlines(p: Path, data: dict[str, np.ndarray]) -> list[Scanline]:
@@ -138,10 +143,13 @@ def read_csv(path: str | Path) -> Iterator[Scanline]:
         except ValueError:
             raise input_error(p, f"line {j}: non-numeric value in {','.join(row)[:60]}") from None
     times = values[:, cols["time"]] if "time" in cols else None
-    if polar:
-        line = Scanline.from_ranges(values[:, cols["range"]], values[:, cols["angle"]], times, scanner_id=p.stem)
-    else:
-        line = Scanline.from_points(values[:, [cols["x"], cols["y"]]], times, scanner_id=p.stem)
+    try:
+        if polar:
+            line = Scanline.from_ranges(values[:, cols["range"]], values[:, cols["angle"]], times, scanner_id=p.stem)
+        else:
+            line = Scanline.from_points(values[:, [cols["x"], cols["y"]]], times, scanner_id=p.stem)
+    except ValueError as e:  # values that make no scanline (a NaN angle of a valid beam)
+        raise input_error(p, str(e)) from None
     return iter([line])
 
 
