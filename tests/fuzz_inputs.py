@@ -52,6 +52,7 @@ N_BEAMS = 271
 LASERSCAN = "sensor_msgs/msg/LaserScan"
 MULTIECHO = "sensor_msgs/msg/MultiEchoLaserScan"
 IMU = "sensor_msgs/msg/Imu"
+CUSTOM = "fuzz_msgs/msg/Custom"
 RUN_FILES = ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json")
 
 
@@ -336,7 +337,7 @@ class BagMessages:
         self.ts = typestore_for(fmt)
         self.items = items
         self.latched = latched
-        self.extra_types: dict[str, str] = {}
+        self.silent: dict[str, str] = {}  # topic -> type of connections written without messages
 
     @classmethod
     def read(cls, path: Path, fmt: str) -> BagMessages:
@@ -393,6 +394,9 @@ class BagMessages:
                     if self.fmt == "ros1" and item.topic in self.latched:
                         kw["latching"] = 1
                     conns[key] = w.add_connection(item.topic, item.msgtype, **kw)
+            for topic, msgtype in self.silent.items():
+                if (topic, msgtype) not in conns:
+                    conns[(topic, msgtype)] = w.add_connection(topic, msgtype, typestore=self.ts)
             for item in sorted(self.items, key=lambda i: i.log_ns):
                 data = item.raw if item.obj is None else ser(item.obj, item.msgtype)
                 w.write(conns[(item.topic, item.msgtype)], max(int(item.log_ns), 1), data)
@@ -520,11 +524,13 @@ def mutate_gap(bm: BagMessages, p: dict[str, Any], rng: random.Random) -> None:
 
 
 def mutate_topic_stops(bm: BagMessages, p: dict[str, Any], rng: random.Random) -> None:
-    """A topic's messages after ``at`` dropped (``at`` 0: it never starts; with ``keep_connection``
-    one message remains... no: the connection stays only when a message does)."""
+    """A topic's messages after ``at`` (fraction of the recording) dropped; ``at`` 0: it never
+    starts (with ``keep_connection`` its connection is still in the bag, without messages)."""
     t0 = min(i.log_ns for i in bm.items)
     t1 = max(i.log_ns for i in bm.items)
     cut = t0 + p["at"] * (t1 - t0)
+    if p.get("keep_connection"):
+        bm.silent.update({i.topic: i.msgtype for i in bm.items if i.topic in p["topics"]})
     bm.items = [i for i in bm.items if not (i.topic in p["topics"] and i.log_ns >= cut)]
 
 
@@ -583,6 +589,12 @@ def mutate_extra_topics(bm: BagMessages, p: dict[str, Any], rng: random.Random) 
                 bm, t, "extra", np.full(N_BEAMS, 1.0 + k * 0.01, dtype=np.float32))))
         elif what == "imu":
             bm.items.append(Item("/imu2", IMU, t, obj=_imu_msg(bm, t, "body")))
+        elif what == "custom":  # a type the readers' typestore does not know
+            from rosbags.typesys import get_types_from_msg
+
+            if CUSTOM not in bm.ts.types:
+                bm.ts.register(get_types_from_msg("int32 a\nstring b\nfloat64[] c", CUSTOM))
+            bm.items.append(Item("/custom", CUSTOM, t, obj=bm.new(CUSTOM, a=k, b="x", c=np.arange(k, dtype=np.float64))))
         elif what == "tf":
             bm.items.append(Item("/tf", "tf2_msgs/msg/TFMessage", t, obj=_tf_msg(bm, t, [("odom", "body", (k * 0.1, 0, 0), (0, 0, 0, 1))])))
 
@@ -785,12 +797,13 @@ def draw_bag_mutation(ch: Chooser, name: str | None = None) -> dict[str, Any]:
         p.update(topics=ch.choice((list(RIG_TOPICS), [*RIG_TOPICS, "/imu", "/ground_truth"], topics)),
                  at=round(ch.uniform(0.05, 0.95), 3), seconds=ch.choice((1.0, 2.5, 5.0, 20.0, 600.0)))
     elif name == "topic_stops":
-        p.update(topics=ch.choice((topics, ["/imu"], list(RIG_TOPICS))), at=ch.choice((0.0, round(ch.uniform(0, 1), 3))))
+        p.update(topics=ch.choice((topics, ["/imu"], list(RIG_TOPICS))), at=ch.choice((0.0, round(ch.uniform(0, 1), 3))),
+                 keep_connection=ch.chance(0.5))
     elif name == "wrong_type":
         p.update(topic=ch.choice((*RIG_TOPICS, "/imu", "/tf_static")), alongside=ch.chance(0.3),
                  type=ch.choice(("std_msgs/msg/String", IMU, "geometry_msgs/msg/PoseStamped", LASERSCAN)))
     elif name == "extra_topics":
-        p.update(what=ch.choice(("string", "scan", "imu", "tf")), count=ch.integer(1, 40))
+        p.update(what=ch.choice(("string", "scan", "imu", "tf", "custom")), count=ch.integer(1, 40))
     elif name == "imu":
         p.update(fraction=_fraction(ch), how=ch.choice(("nan", "inf", "absurd", "zero", "frame", "backwards",
                                                          "duplicate", "orientation_zero", "drop_half", "drop")))
