@@ -95,7 +95,8 @@ class FrontEndConfig(StrictModel):
         "(slam.frontend.initial_motion); 0 = assume the walk starts at rest")
     initial_motion_min_speed: float = Field(
         0.05, ge=0, description="m/s; a start slower than this (and turning slower than initial_motion_min_rate_deg) "
-        "is at rest")
+        "is at rest; both stated for the reference noise (noise.reference) and raised in proportion for a noisier "
+        "scanner")
     initial_motion_min_rate_deg: float = Field(3.0, ge=0, description="deg/s, see initial_motion_min_speed")
     transient_check: bool = Field(
         True, description="take planes of things that move (people walking by) out of the map: young planes that "

@@ -219,7 +219,8 @@ def initial_motion_params(cfg: SlamConfig) -> InitialMotionParams:
     """The start's motion from the first scans (``frontend.initial_motion_*``)."""
     fe = cfg.frontend
     return InitialMotionParams(window=fe.initial_motion_window, min_speed=fe.initial_motion_min_speed,
-                               min_rate=np.radians(fe.initial_motion_min_rate_deg))
+                               min_rate=np.radians(fe.initial_motion_min_rate_deg),
+                               reference_sigma=cfg.noise.reference)
 
 
 def transient_params(cfg: SlamConfig) -> TransientParams:

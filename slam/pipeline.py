@@ -171,7 +171,8 @@ class SlamRunner:
         assert self._start_scans is not None
         scans, self._start_scans = self._start_scans, None
         t0 = self.knots.time(0)
-        start = estimate_initial_motion(scans, self._T_body_scanner, t0, self.dt, self.params.initial_motion)
+        start = estimate_initial_motion(scans, self._T_body_scanner, t0, self.dt, self.params.initial_motion,
+                                        list(self.noise.sigma))
         self.stats.initial_motion = start.as_dict()
         T0 = self.motion.initial_pose(t0)
         v0 = None

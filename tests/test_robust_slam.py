@@ -111,6 +111,7 @@ def test_the_noise_is_estimated_and_the_run_follows_it(noisy_walk: SimulationRes
         rec = noise["scanners"][name]
         assert rec["source"] == "estimated" and rec["range_sigma"] == pytest.approx(0.02, rel=0.2), rec
     assert summary["config"]["noise"]["scanners"]["top"] == noise["scanners"]["top"]["range_sigma"]
+    assert not summary["start"]["moving"], summary["start"]  # the walk starts standing, noise or not
     counts = summary["counts"]
     assert counts["segments_associated"] > 0.8 * counts["segments"], counts
     assert counts["planes_merged"] < counts["planes"], counts  # no merge storm
