@@ -25,6 +25,7 @@ from tqdm import tqdm
 from common.rig import Rig
 from segmentation import Scanline
 from slam.export import CloudPlyWriter, cloud_ply_writer
+from slam.frontend.transients import TRANSIENT
 from slam.io.source import BagSource, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
 from slam.prefetch import can_fork_reader, get_from_children
@@ -168,7 +169,9 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
         k = s * (1 << 40) + si
         lo_k, hi_k = np.searchsorted(key_sorted, [k, k + 1])
         for r in order[lo_k:hi_k]:
-            if rows["plane_id"][r] >= 0:
+            if rows["plane_id"][r] == TRANSIENT:  # a thing that moved (a person): marked, in no plane
+                plane[(beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r])] = TRANSIENT
+            elif rows["plane_id"][r] >= 0:
                 m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
                 if m.size:
                     plane[m] = rows["plane_id"][r]

@@ -96,8 +96,22 @@ class FrontEndConfig(StrictModel):
         "refuses a corridor's unobserved direction: tests/test_slam_pipeline.py's door corridor runs off with it)")
     initial_motion_min_speed: float = Field(
         0.05, ge=0, description="m/s; a start slower than this (and turning slower than initial_motion_min_rate_deg) "
-        "is at rest")
+        "is at rest; both stated for the reference noise (noise.reference) and raised in proportion for a noisier "
+        "scanner")
     initial_motion_min_rate_deg: float = Field(3.0, ge=0, description="deg/s, see initial_motion_min_speed")
+    transient_check: bool = Field(
+        True, description="take planes of things that move (people walking by) out of the map: young planes that "
+        "later scans pass through (slam.frontend.transients)")
+    transient_probation: int = Field(
+        60, ge=1, description="segments below which a plane is tested for being seen through")
+    transient_margin: float = Field(
+        0.1, gt=0, description="m, a beam crossing a plane this far before its return passes through it")
+    transient_near: float = Field(
+        0.02, gt=0, description="m, a beam crosses a plane where it was seen when it crosses it this near one of its "
+        "points")
+    transient_min_through: int = Field(40, ge=1, description="beams through a plane that make it a transient ...")
+    transient_ratio: float = Field(1.0, ge=0, description="... when more than this times the beams returned from it")
+    transient_beam_step: int = Field(2, ge=1, description="every n-th beam of a scan is tested")
     extent_cell: float = Field(0.25, gt=0, description="cell size of plane extents (m)")
     extent_margin_cells: int = Field(4, ge=0, description="cells by which a plane's extent is grown for association")
     min_support: int = Field(6, ge=2, description="segments a new plane needs")

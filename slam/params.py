@@ -28,6 +28,7 @@ from slam.frontend.initial_motion import InitialMotionParams
 from slam.frontend.map_builder import MapParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
+from slam.frontend.transients import TransientParams
 from slam.imu_feed import ImuMotionParams
 from slam.motion import ImuConfig, MotionPriorConfig
 
@@ -218,7 +219,17 @@ def initial_motion_params(cfg: SlamConfig) -> InitialMotionParams:
     """The start's motion from the first scans (``frontend.initial_motion_*``)."""
     fe = cfg.frontend
     return InitialMotionParams(window=fe.initial_motion_window, min_speed=fe.initial_motion_min_speed,
-                               min_rate=np.radians(fe.initial_motion_min_rate_deg))
+                               min_rate=np.radians(fe.initial_motion_min_rate_deg),
+                               reference_sigma=cfg.noise.reference)
+
+
+def transient_params(cfg: SlamConfig) -> TransientParams:
+    """The see-through test of young planes (``frontend.transient_*``)."""
+    fe = cfg.frontend
+    return TransientParams(use=fe.transient_check, probation=fe.transient_probation, margin=fe.transient_margin,
+                           near=fe.transient_near,
+                           min_through=fe.transient_min_through, ratio=fe.transient_ratio,
+                           beam_step=fe.transient_beam_step)
 
 
 def imu_motion_params(cfg: SlamConfig) -> ImuMotionParams:
@@ -302,6 +313,7 @@ class Components:
     edges: EdgeParams | None
     tracking: TrackingParams
     initial_motion: InitialMotionParams
+    transients: TransientParams
     imu: ImuConfig | None
     imu_motion: ImuMotionParams | None
     backend: BackendConfig
@@ -317,6 +329,7 @@ def components(cfg: SlamConfig, with_imu: bool) -> Components:
         edges=edge_params(cfg) if cfg.edges.use else None,
         tracking=tracking_params(cfg),
         initial_motion=initial_motion_params(cfg),
+        transients=transient_params(cfg),
         imu=imu_config(cfg) if with_imu else None,
         imu_motion=imu_motion_params(cfg) if with_imu else None,
         backend=backend_config(cfg, with_imu),

@@ -51,6 +51,7 @@ from slam.frontend.pending import PendingScan, ScanQueues
 from slam.frontend.plane_init import SegmentPool
 from slam.frontend.planemap import KIND_NAMES, PlaneMap
 from slam.frontend.scan_prep import PreparedScan, ScanPreparer, knot_deskew
+from slam.frontend.transients import TRANSIENT, TransientFilter
 from slam.frontend.window_tracker import WindowTracker
 from slam.imu_feed import ImuSamples, motion_model
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
@@ -84,7 +85,8 @@ class SlamRunner:
         self._timer = StageTimer()
         self.knots = KnotMirror(self.dt)
         self.queues = ScanQueues()
-        self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell)
+        self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell,
+                             samples_until=cfg.frontend.transient_probation if cfg.frontend.transient_check else 0)
         self.pool = SegmentPool(self.params.plane_init)
         self.maps = MapBuilder(self.params.map, self.pmap, self.pool, self.knots, self.backend, self.stats)
         # the optional features: the IMU's motion model or constant velocity, edges or none
@@ -95,6 +97,10 @@ class SlamRunner:
         self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
                                          cfg.frontend.min_segment_points, children,
                                          line_direction=self.noise.shared > 1.0)
+        def fixed(pid: int) -> bool:  # merged with another or a host of ties: not taken out alone
+            return self.pmap.has_merged(pid) or pid in children().values()
+
+        self.transients = TransientFilter(self.params.transients, self.pmap, self.knots, T_body_scanner, fixed)
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
                                      self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
@@ -165,7 +171,8 @@ class SlamRunner:
         assert self._start_scans is not None
         scans, self._start_scans = self._start_scans, None
         t0 = self.knots.time(0)
-        start = estimate_initial_motion(scans, self._T_body_scanner, t0, self.dt, self.params.initial_motion)
+        start = estimate_initial_motion(scans, self._T_body_scanner, t0, self.dt, self.params.initial_motion,
+                                        list(self.noise.sigma))
         self.stats.initial_motion = start.as_dict()
         T0 = self.motion.initial_pose(t0)
         v0 = None
@@ -202,6 +209,10 @@ class SlamRunner:
     def _associate_and_observe(self, ready: list[PendingScan]) -> None:
         """Associate the ready scans with the tight gates; their segments and breaks observe the
         map (the rest goes to the pool)."""
+        for pid in self.transients.check(ready):
+            self.backend.remove_plane(pid)
+            self.pmap.remove_transient(pid)
+            self.stats.planes_transient += 1
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
@@ -261,7 +272,7 @@ class SlamRunner:
         ids, normals, offsets = ids[real], normals[real], offsets[real]
         for pid, n, d in zip(ids, normals, offsets, strict=True):
             self.pmap.set_estimate(int(pid), n, float(d))
-        rows = self.queues.segment_rows(self.pmap.resolve)
+        rows = self.queues.segment_rows(self._resolve)
         stats = replace(
             self.stats,
             knots=self.knots.n,
@@ -293,6 +304,12 @@ class SlamRunner:
             timings=dict(self._timer.t),
             deskew=self.knots.deskew,
         )
+
+    def _resolve(self, pid: int) -> int:
+        """A segment's plane id at the end: followed through the merges, ``TRANSIENT`` for a
+        plane taken out as a thing that moved."""
+        j = self.pmap.resolve(pid)
+        return TRANSIENT if self.pmap.planes[j].transient else j
 
     def kind_name(self, pid: int) -> str:
         """The kind (wall, floor, ceiling, other) of map plane ``pid``."""

@@ -7,7 +7,8 @@ output):
 - ``trajectory.tum``: ``T_world_body`` at every knot (evo-compatible TUM);
 - ``planes.json``: id, normal, d (``n . x + d = 0``), extent polygon, number
   of segments, 3x3 covariance (normal tangent, d), kind;
-- ``segments.npz``: one row per segment with its plane (-1 = unassociated);
+- ``segments.npz``: one row per segment with its plane (-1 = unassociated, -2 = a thing that
+  moved: ``slam.frontend.transients``);
 - ``cloud.ply``: every valid point placed by the final trajectory and the
   rig's extrinsics (world frame), with scanner index, time and plane id;
 - ``map.rrd``: the rerun recording; ``summary.json``: config, counts,

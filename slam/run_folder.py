@@ -121,6 +121,7 @@ class RunCounts:
     planes: int
     planes_created: int
     planes_merged: int
+    planes_transient: int
     planes_rejected: int
     planes_rejected_oblique: int
     observation_blocks: int

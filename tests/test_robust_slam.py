@@ -7,14 +7,18 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 import segmentation
 from common.rig import resolve_rig
+from simulation.people import PERSON
 from simulation.run import SimulationConfig, SimulationResult, simulate
 from slam import params
-from slam.config import SlamConfig
-from slam.evaluate import evaluate
+from slam.config import OutputConfig, SlamConfig
+from slam.evaluate import evaluate, load_ground_truth
+from slam.export import read_cloud_ply, read_segments_npz
+from slam.frontend.transients import TRANSIENT
 from slam.run import run_slam
 
 # an 8 x 6 m box room (2.8 m ceiling) with a pillar, and a walk across it
@@ -107,6 +111,7 @@ def test_the_noise_is_estimated_and_the_run_follows_it(noisy_walk: SimulationRes
         rec = noise["scanners"][name]
         assert rec["source"] == "estimated" and rec["range_sigma"] == pytest.approx(0.02, rel=0.2), rec
     assert summary["config"]["noise"]["scanners"]["top"] == noise["scanners"]["top"]["range_sigma"]
+    assert not summary["start"]["moving"], summary["start"]  # the walk starts standing, noise or not
     counts = summary["counts"]
     assert counts["segments_associated"] > 0.8 * counts["segments"], counts
     assert counts["planes_merged"] < counts["planes"], counts  # no merge storm
@@ -117,3 +122,39 @@ def test_the_noise_is_estimated_and_the_run_follows_it(noisy_walk: SimulationRes
     assert summary_fixed["noise"]["scanners"]["top"]["source"] == "rig"
     assert (summary_fixed["counts"]["segments_associated"] < 0.8 * summary_fixed["counts"]["segments"]
             or ate_fixed > 2 * ate), (summary_fixed["counts"], ate_fixed)
+
+
+@pytest.fixture(scope="module")
+def people_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    """6 s of the demo walk with walkers and standing groups (two walkers pass the operator)."""
+    cfg = SimulationConfig.model_validate({"duration": 6.0, "seed": 1, "people": {"walkers": 6, "groups": 2}})
+    return simulate("demo", "itc_backpack", out=tmp_path_factory.mktemp("people") / "people.bag", config=cfg,
+                    progress=False)
+
+
+def _person_segments(run: Path, gt: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment of ``run``: whether most of its beams are a person's (plane id -3 in the ground
+    truth's beams.npz), and its plane id."""
+    segs = read_segments_npz(run / "segments.npz")
+    ids, _ = load_ground_truth(gt).beams(segs.scanner_names)
+    person = np.array([np.mean(ids[segs.scanner_names[s]][k, a : b + 1] == PERSON) > 0.5 for s, k, a, b in
+                       zip(segs.scanner, segs.scan_index, segs.first_beam, segs.last_beam, strict=True)])
+    return person, segs.plane_id
+
+
+def test_people_walking_by_stay_out_of_the_map(people_walk: SimulationResult, tmp_path: Path) -> None:
+    cfg = _cfg().model_copy(update={"output": OutputConfig(cloud=True, rerun=False)})
+    summary, ate, _ = _run(people_walk, cfg, tmp_path / "run")
+    person, plane = _person_segments(tmp_path / "run", people_walk.gt)
+    assert person.sum() > 100
+    assert not np.any(plane[person] >= 0), f"{np.count_nonzero(plane[person] >= 0)} person segments on planes"
+    assert summary["counts"]["planes_transient"] >= 1
+    marked = plane == TRANSIENT
+    assert marked.any() and person[marked].mean() > 0.9  # what is marked is people
+    assert ate < 0.005, f"ATE {1000 * ate:.1f} mm"
+    cloud = read_cloud_ply(tmp_path / "run" / "cloud.ply")
+    assert np.any(cloud.plane_id == TRANSIENT)  # their points are marked in the cloud
+    # without the test the walkers' planes stay in the map
+    _, _, _ = _run(people_walk, _cfg(transient_check=False), tmp_path / "off")
+    person_off, plane_off = _person_segments(tmp_path / "off", people_walk.gt)
+    assert np.any(plane_off[person_off] >= 0)

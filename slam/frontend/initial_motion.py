@@ -55,7 +55,8 @@ ITERATIONS = 6
 MIN_POINTS = 10  # segments with fewer points are not used
 MIN_MATCHES = 4  # matched segments a fit needs
 OVERLAP_MARGIN = 0.3  # m, a matched segment's end points lie within the target's extent grown by this
-HUBER = 0.01  # m, Huber width of the point-to-line distances
+HUBER = 0.01  # m, Huber width of the point-to-line distances (at least the range noise)
+SE_SIGMAS = 3.0  # a start is moving only when its speed or turn rate is this many standard errors from rest
 PRIOR_SIGMAS = np.array([3.0, 3.0, 3.0])  # m/s, m/s, rad/s: the rest test's weak prior towards rest
 MAP_SCANS = 4  # odometry: the previous scans whose lines a scan is registered against (with the first)
 ODOMETRY_GATE = (0.03, 3.0)  # m, deg: odometry's matching gates
@@ -69,11 +70,13 @@ ODOMETRY_SIGMAS = np.array([np.radians(1.0), np.radians(1.0), np.radians(0.05), 
 @dataclass(frozen=True, eq=False)
 class InitialMotionParams:
     """``window`` s of scans registered (0: the walk starts at rest); the start counts as at
-    rest below ``min_speed`` (m/s) and ``min_rate`` (rad/s)."""
+    rest below ``min_speed`` (m/s) and ``min_rate`` (rad/s), stated for a scanner of
+    ``reference_sigma`` (m) range noise and raised in proportion for a noisier one."""
 
     window: float
     min_speed: float
     min_rate: float
+    reference_sigma: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -251,9 +254,9 @@ def _match_one(lines: _Lines, placed: FloatArray, gate: float, sin_gate: float) 
     return int(np.flatnonzero(ok)[np.argmin(d[ok])])
 
 
-def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: FloatArray) -> FloatArray:
-    """One Huber-weighted Gauss-Newton step of the residuals ``f(x)`` (numeric Jacobian) from
-    ``x0``, with the prior ``prior_w (x - prior_x)^2`` (weights in units of HUBER^2)."""
+def _normal_equations(f: Residuals, x0: FloatArray, huber: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The Huber-weighted normal equations of the residuals ``f(x)`` at ``x0`` (numeric
+    Jacobian): ``J^T W J``, ``J^T W r``, the residuals and their weights."""
     r = f(x0)
     J = np.empty((r.size, x0.size))
     for k in range(x0.size):
@@ -261,20 +264,38 @@ def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: Fl
         h[k] = 1e-5
         J[:, k] = (f(x0 + h) - f(x0 - h)) / 2e-5
     a = np.abs(r)
-    w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
-    A = (J * w[:, None]).T @ J + np.diag(prior_w) * HUBER**2
-    g = (J * w[:, None]).T @ r + prior_w * (x0 - prior_x) * HUBER**2
-    return x0 - np.linalg.solve(A, g)
+    w = np.where(a <= huber, 1.0, huber / np.maximum(a, 1e-12))
+    return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, r, w
+
+
+def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: FloatArray,
+                  huber: float = HUBER) -> FloatArray:
+    """One Huber-weighted Gauss-Newton step of the residuals ``f(x)`` from ``x0``, with the prior
+    ``prior_w (x - prior_x)^2`` (weights in units of ``huber``^2)."""
+    A, g, _, _ = _normal_equations(f, x0, huber)
+    return x0 - np.linalg.solve(A + np.diag(prior_w) * huber**2, g + prior_w * (x0 - prior_x) * huber**2)
 
 
 # ---- 1: at rest or moving ------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class Fit:
+    """The rest test's fit: the 2D twist ``xi`` (v_x, v_y m/s, w rad/s), its covariance ``cov``
+    (3, 3), the matched segments and the points' RMS distance (m)."""
+
+    xi: FloatArray
+    cov: FloatArray
+    matches: int
+    rms: float
+
+
 def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, span: float,
-             ) -> tuple[FloatArray, int, float] | None:
+             sigma: float = 0.0) -> Fit | None:
     """The constant 2D twist (v_x, v_y, w) of the scanner frame over ``scans`` (one scanner's,
-    time order, the first one the target; those within ``span`` s of ``t0``), with the matched
-    segments and the RMS distance (m); None when too few segments match."""
+    time order, the first one the target; those within ``span`` s of ``t0``) with its
+    covariance; None when too few segments match. ``sigma`` (m) is the scanner's range noise:
+    the Huber width and the distance gates are at least 1 and 3 of it."""
     segs = _segments(scans, T_body_scanner)
     if len(segs) < 2 or not segs[0]:
         return None
@@ -286,10 +307,12 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
     def residuals(x: FloatArray) -> FloatArray:
         return np.concatenate([se2_place(seg.points, seg.dt + dt, x) @ n + d for seg, dt, n, d in matches])
 
-    for reach, gate, angle in STAGES:
+    huber = max(HUBER, sigma)
+    for reach, stage_gate, angle in STAGES:
         sources = [i for i in range(1, len(segs)) if float(dts[i]) <= min(reach, span) + 1e-9]
         if not sources:
             continue
+        gate = max(stage_gate, 3.0 * sigma)
         sin_gate = np.sin(np.radians(angle))
         for _ in range(ITERATIONS):
             target = _Lines.of([se2_place(s.points, s.dt + dts[0], xi) for s in segs[0]])
@@ -301,19 +324,26 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
                         matches.append((seg, float(dts[i]), target.n[j], -float(target.n[j] @ target.c[j])))
             if len(matches) < MIN_MATCHES:
                 return None
-            new = _gauss_newton(residuals, xi, np.zeros(3), w_prior)
+            new = _gauss_newton(residuals, xi, np.zeros(3), w_prior, huber)
             done = np.abs(new - xi).max() < 1e-5
             xi = new
             if done:
                 break
-    r = residuals(xi)
-    return xi, len(matches), float(np.sqrt(np.mean(r * r)))
+    A, _, r, w = _normal_equations(residuals, xi, huber)
+    # the weighted residuals' scale; the points of one segment share its line's errors, so the
+    # segments (not the points) count as the independent samples
+    scale2 = float(np.sum(w * r * r) / max(np.sum(w) - 3.0, 1.0)) * r.size / max(len(matches), 4)
+    try:
+        cov = np.asarray(np.linalg.inv(A), dtype=np.float64) * scale2
+    except np.linalg.LinAlgError:
+        cov = np.diag(PRIOR_SIGMAS**2)
+    return Fit(xi, cov, len(matches), float(np.sqrt(np.mean(r * r))))
 
 
 # ---- 2: odometry ---------------------------------------------------------------------------------
 
 
-def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatArray,
+def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatArray, sigma: float = 0.0,
              ) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
     """The scanner's pose (3, 3) at each scan's stamp relative to the first scan's, with the
     twist (v_x, v_y, w) of the interval before it (the first: ``xi0``): the stamps (s,), the
@@ -325,7 +355,7 @@ def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatAr
     placed = [_Lines.of([se2_place(s.points, s.dt, twists[0]) for s in segs[0]])]
     for i in range(1, len(segs)):
         target = _Lines.concat([placed[0], *placed[max(1, len(placed) - MAP_SCANS):]])
-        P, xi = _register_scan(segs[i], target, poses[-1], twists[-1], float(stamps[i] - stamps[i - 1]))
+        P, xi = _register_scan(segs[i], target, poses[-1], twists[-1], float(stamps[i] - stamps[i - 1]), sigma)
         poses.append(P)
         twists.append(xi)
         placed.append(_Lines.of([se2_place(s.points, s.dt, xi, P) for s in segs[i]]))
@@ -333,13 +363,14 @@ def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatAr
 
 
 def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: FloatArray, h: float,
-                   ) -> tuple[FloatArray, FloatArray]:
+                   sigma: float = 0.0) -> tuple[FloatArray, FloatArray]:
     """The pose (3, 3) of a scan ``h`` s after the one at ``prev`` (whose interval's twist was
     ``xi_prev``) against the ``target`` lines, and the twist of the interval between them; the
     constant-velocity prediction when too few segments match."""
     pred = prev @ se2_exp(xi_prev * h)
     prev_inv = np.linalg.inv(prev)
-    gate, sin_gate = ODOMETRY_GATE[0], np.sin(np.radians(ODOMETRY_GATE[1]))
+    gate, sin_gate = max(ODOMETRY_GATE[0], 3.0 * sigma), np.sin(np.radians(ODOMETRY_GATE[1]))
+    huber = max(HUBER, sigma)
     w_prior = 1.0 / ODOMETRY_PRIOR**2
 
     def pose_of(x: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -356,7 +387,7 @@ def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: 
                 matches.append((seg, target.n[j], -float(target.n[j] @ target.c[j])))
         if len(matches) < MIN_MATCHES:
             break
-        new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior)
+        new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior, huber)
         done = np.abs(new - x).max() < 1e-6
         x = new
         if done:
@@ -405,28 +436,39 @@ def knot_increments(t0: float, dt: float, t_end: float, stamps: FloatArray, pose
 
 
 def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: float, dt: float,
-             params: InitialMotionParams) -> InitialMotion:
+             params: InitialMotionParams, sigma: list[float] | None = None) -> InitialMotion:
     """How the walk starts, from the scans of the first ``params.window`` s (any scanners, time
-    order; see the module doc) with knots every ``dt`` s from ``t0``; at rest when the start is
-    below the thresholds or cannot be measured."""
+    order; see the module doc) with knots every ``dt`` s from ``t0``; ``sigma`` (m) is each
+    scanner's range noise. At rest when the start is below the thresholds (raised with the
+    noise), within ``SE_SIGMAS`` standard errors of rest, or cannot be measured."""
     if params.window <= 0:
         return InitialMotion.rest()
     s = level_scanner(T_body_scanner)
+    noise = 0.0 if sigma is None else float(sigma[s])
     own = [p for p in scans if p.scanner == s and p.stamp <= t0 + params.window]
     span = min(REST_SPAN, params.window)
     first = [p for p in own if p.stamp <= t0 + span]
-    fit = register(first, T_body_scanner[s], t0, span) if len(first) >= 2 else None
+    fit = register(first, T_body_scanner[s], t0, span, noise) if len(first) >= 2 else None
     if fit is None:
         return InitialMotion.rest(s)
-    xi, n, rms = fit
+    xi = fit.xi
     speed, rate = float(np.hypot(xi[0], xi[1])), abs(float(xi[2]))
-    if speed < params.min_speed and rate < params.min_rate:
-        return InitialMotion(np.zeros(6), False, s, xi, n, rms)
+    # the first scan's lines are every match's target: their errors, which the standard errors
+    # do not see, grow with the noise (30 mm: 0.1-0.2 m/s and 3-6 deg/s on a standing start)
+    k = max(1.0, noise / params.reference_sigma)
+    # the speed's and the turn rate's standard errors (the speed's along its direction)
+    u = xi[:2] / max(speed, 1e-12)
+    se_speed = float(np.sqrt(max(float(u @ fit.cov[:2, :2] @ u), 0.0)))
+    se_rate = float(np.sqrt(max(float(fit.cov[2, 2]), 0.0)))
+    if (speed < max(k * params.min_speed, SE_SIGMAS * se_speed)
+            and rate < max(k * params.min_rate, SE_SIGMAS * se_rate)):
+        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms)
     twist_scan = np.array([0.0, 0.0, xi[2], xi[0], xi[1], 0.0])
     twist_body = adjoint(T_body_scanner[s]) @ twist_scan
-    stamps, poses, twists = odometry(own, T_body_scanner[s], xi)
+    stamps, poses, twists = odometry(own, T_body_scanner[s], xi, noise)
     increments = knot_increments(t0, dt, float(stamps[-1]), stamps, poses, twists, T_body_scanner[s])
-    return InitialMotion(twist_body, True, s, xi, n, rms, increments, body_sigmas(T_body_scanner[s]), len(own))
+    return InitialMotion(twist_body, True, s, xi, fit.matches, fit.rms, increments, body_sigmas(T_body_scanner[s]),
+                         len(own))
 
 
 def body_sigmas(T_body_scanner: FloatArray) -> FloatArray:

@@ -85,6 +85,9 @@ class Plane:
     sigma_offset: float = 0.005
     active: bool = True
     merged_into: int = -1
+    transient: bool = False  # taken out of the map as a thing that moved (``frontend.transients``)
+    # while young (``PlaneMap.samples_until`` segments): the points its extent was grown by (world frame)
+    samples: list[FloatArray] = field(default_factory=list)
     # time buckets (``PlaneMap.bucket`` s) in which the plane had a segment: two planes seen in one
     # bucket were measured from (nearly) one pose, without drift between them
     seen_buckets: set[int] = field(default_factory=set)
@@ -93,9 +96,10 @@ class Plane:
 class PlaneMap:
     """Planes with extents; ids are stable (a merged plane stays, inactive, pointing to its survivor)."""
 
-    def __init__(self, cell_size: float = 0.25, bucket: float = 0.5) -> None:
+    def __init__(self, cell_size: float = 0.25, bucket: float = 0.5, samples_until: int = 0) -> None:
         self.cell_size = cell_size
         self.bucket = bucket
+        self.samples_until = samples_until  # planes with fewer segments keep their extent's points
         self.planes: list[Plane] = []
         self.merges = 0  # merges so far: what :meth:`resolve` gives changes only with it
         self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
@@ -185,7 +189,10 @@ class PlaneMap:
         """Add the cells of ``points_world`` (m, 3), world frame, to the plane's extent."""
         cells = self.cells_of(pid, points_world)
         # the set takes the duplicates (np.unique over rows costs ten times more)
-        self.planes[pid].cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
+        p = self.planes[pid]
+        p.cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
+        if p.n_segments < self.samples_until:
+            p.samples.append(np.array(points_world, dtype=np.float64))
 
     def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
         """Whether any of the points' (m, 3), world frame, cells is within ``dilate`` cells of the
@@ -284,6 +291,18 @@ class PlaneMap:
         self.merges += 1
         self._active = None
         self._version += 1
+
+    def remove_transient(self, pid: int) -> None:
+        """Take plane ``pid`` out of the map: a thing that moved (``frontend.transients``)."""
+        p = self.planes[pid]
+        p.active = False
+        p.transient = True
+        self._active = None
+        self._version += 1
+
+    def has_merged(self, pid: int) -> bool:
+        """Whether another plane was merged into plane ``pid``."""
+        return any(q.merged_into == pid for q in self.planes)
 
     def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
         """Copy a back-end estimate in, keeping the in-plane basis continuous."""
