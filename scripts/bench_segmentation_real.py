@@ -220,7 +220,9 @@ Every segmenter's fixed defaults are stated for a UTM-30LX indoors: about 3 mm r
 own scans (range noise and its growth with range, range quantisation, angular step; see the
 module docstring), and `segmentation.get(name, noise=model)` derives every parameter not given
 explicitly from it: thresholds scale with the noise (RoR's sigma is 9.5 mm / 3 mm = 3.17 times
-the noise), segment sizes with the angular step (the same metric length at 5 m: RoR's 15 points
+the noise, times the noise's independent share when the range errors are correlated along the
+scan: `segmentation.base.independent_share`, the beam-to-beam over the lagged noise, counted as
+white above 0.8; the URG bag's topics: about 0.8 and 0.55), segment sizes with the angular step (the same metric length at 5 m: RoR's 15 points
 at 0.25 deg are 8 at 1 deg, never fewer than 8), `max_gap` with the beam spacing. With the
 reference model (3 mm, 0.25 deg) the derived parameters are the fixed defaults exactly, and
 without a model nothing changes (the SLAM configuration passes explicit parameters).

@@ -67,6 +67,26 @@ def noise_ratio(model: NoiseModel) -> float:
     return model.sigma0 / REFERENCE_SIGMA
 
 
+#: beam-to-beam over lagged noise at or above which the noise counts as white: the two estimates
+#: of white noise scatter by up to about 15 % on a single scan (1 cm quantisation, 2.5 cm noise: 0.86)
+WHITE_SHARE = 0.8
+
+
+def independent_share(model: NoiseModel) -> float:
+    """The share of the model's noise that is independent from beam to beam: ``beam_sigma`` over
+    ``sigma_ref`` relative to ``WHITE_SHARE``, at most 1 (1 when the model has no beam-to-beam
+    estimate).
+
+    White noise gives 1 (both estimates agree within their scatter). Real scanners' range errors
+    are often correlated along the scan (segmentation.noise, "Lag"): neighbouring points then
+    share most of their error, and a test that compares consecutive points' residuals sees only
+    the independent part.
+    """
+    if not model.beam_sigma > 0:
+        return 1.0
+    return min(1.0, model.beam_sigma / model.sigma_ref / WHITE_SHARE)
+
+
 def scaled_threshold(default: float, model: NoiseModel) -> float:
     """A metric threshold stated for the reference noise, scaled to the model's noise."""
     return default * noise_ratio(model)

@@ -269,3 +269,30 @@ def test_segment_command_prints_and_uses_the_model(tmp_path: Path, capsys: pytes
     assert "noise model" not in capsys.readouterr().out
     fixed = json.loads(out_json.read_text())
     assert fixed["params"] == sg.segmenter_class("ror").defaults() and fixed["noise_models"] == {}
+
+
+def _correlated(lines: list[sg.Scanline], sigma: float, rho: float, seed: int = 0) -> list[sg.Scanline]:
+    """``lines`` with AR(1) range errors along the scan: stationary std ``sigma``, neighbour correlation ``rho``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for line in lines:
+        e = np.empty(line.ranges.size)
+        e[0] = rng.normal(0.0, sigma)
+        kick = rng.normal(0.0, sigma * np.sqrt(1.0 - rho * rho), e.size)
+        for i in range(1, e.size):
+            e[i] = rho * e[i - 1] + kick[i]
+        out.append(dataclasses.replace(line, ranges=line.ranges + e))
+    return out
+
+
+def test_ror_follows_the_independent_share_of_correlated_noise() -> None:
+    white = estimate(_rooms(0.006))
+    correlated = estimate(_correlated(_rooms(0.0), 0.006, 0.9))
+    assert sg.base.independent_share(white) > 0.9
+    assert sg.base.independent_share(correlated) < 0.8
+    for model in (white, correlated):
+        sigma = sg.get("ror", noise=model).params.sigma  # type: ignore[attr-defined]
+        plain = sg.base.scaled_threshold(0.0095, model)
+        assert sigma == pytest.approx(plain * sg.base.independent_share(model))
+    # a model stated by hand has no beam-to-beam estimate: the paper's ratio
+    assert sg.base.independent_share(NoiseModel.of(0.02, 1.0 * DEG)) == 1.0
