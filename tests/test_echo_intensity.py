@@ -15,7 +15,12 @@ import backpack_slam as bs
 from backpack_slam.cli import main
 from common.config import ConfigError
 from slam.config import SlamConfig, load_slam_config
-from slam.export import cloud_ply_has_intensity, read_cloud_ply, write_cloud_ply, write_trajectory_tum
+from slam.export import (
+    cloud_ply_has_intensity,
+    read_cloud_ply,
+    write_cloud_ply,
+    write_trajectory_tum,
+)
 from slam.io.source import LASERSCAN, MULTIECHO, BagSource
 from slam.survey import export_cloud, las_intensity, las_intensity_scale
 
