@@ -314,5 +314,6 @@ def calibrate_bag(bag: str | Path, rig: Rig, slam_cfg: SlamConfig,
     """:func:`calibrate` on a ROS bag (the rig's scanner topics)."""
     from slam.io.bag import read_scans
 
-    read_scans(bag, rig=rig)  # checks the bag and its topics before the work starts
-    return calibrate(lambda r: read_scans(bag, rig=r), rig, slam_cfg, options, progress, on_round)
+    echo = slam_cfg.input.echo
+    read_scans(bag, rig=rig, echo=echo)  # checks the bag and its topics before the work starts
+    return calibrate(lambda r: read_scans(bag, rig=r, echo=echo), rig, slam_cfg, options, progress, on_round)

@@ -4,7 +4,9 @@ Frame ``scanner_i``: x along the 0-rad beam, y at +90 deg, scan plane z = 0.
 Beam ``i`` has angle ``angles[i]`` (rad, counter-clockwise from x), range
 ``ranges[i]`` (m) and its own timestamp ``times[i]`` (s). Returns that are
 NaN, inf, 0, below ``range_min`` or above ``range_max`` are invalid: they are
-masked by ``valid`` and never turned into points.
+masked by ``valid`` and never turned into points. ``intensities`` holds each beam's return
+intensity (float32, the sensor's units; NaN where a beam has none) when the source carries them,
+else None.
 """
 
 from __future__ import annotations
@@ -25,6 +27,15 @@ def validity_mask(ranges: ArrayLike, range_min: float = 0.0, range_max: float = 
         return np.isfinite(r) & (r > 0.0) & (r >= range_min) & (r <= range_max)
 
 
+def _beam_intensities(msg: Any, n: int) -> NDArray[np.float32] | None:
+    """A LaserScan-like record's intensities (float32), one per beam, or None."""
+    raw = getattr(msg, "intensities", None)
+    if raw is None or n == 0 or len(raw) != n:
+        return None
+    with np.errstate(invalid="ignore"):
+        return np.asarray(raw, dtype=np.float32).ravel()
+
+
 @dataclass(frozen=True, eq=False)
 class Scanline:
     """A scanline: per-beam angles, ranges, times and validity, plus its scanner's id.
@@ -40,14 +51,15 @@ class Scanline:
     scanner_id: str = "scanner"
     range_min: float = 0.0
     range_max: float = float("inf")
+    intensities: NDArray[np.float32] | None = field(default=None, repr=False)
     points_xy: FloatArray = field(init=False, repr=False)
     valid_index: NDArray[np.intp] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n = self.angles.shape[0]
-        for name in ("ranges", "times", "valid"):
+        for name in ("ranges", "times", "valid", "intensities"):
             arr = getattr(self, name)
-            if arr.shape != (n,):
+            if arr is not None and arr.shape != (n,):
                 raise ValueError(f"Scanline.{name} has shape {arr.shape}, expected ({n},) like angles")
         idx = np.flatnonzero(self.valid)
         r = self.ranges[idx]
@@ -82,8 +94,10 @@ class Scanline:
         range_min: float = 0.0,
         range_max: float = float("inf"),
         time_increment: float = 0.0,
+        intensities: ArrayLike | None = None,
     ) -> Scanline:
-        """Build from ranges and beam angles; ``times`` per beam, or a start time plus ``time_increment``."""
+        """Build from ranges and beam angles; ``times`` per beam, or a start time plus ``time_increment``;
+        ``intensities`` per beam, or None."""
         r = np.asarray(ranges, dtype=np.float64).ravel()
         a = np.asarray(angles, dtype=np.float64).ravel()
         if r.shape != a.shape:
@@ -94,14 +108,17 @@ class Scanline:
         else:
             t = np.asarray(times, dtype=np.float64).ravel()
         valid = validity_mask(r, range_min, range_max)
-        return cls(a, r, t, valid, scanner_id, float(range_min), float(range_max))
+        inten = None if intensities is None else np.asarray(intensities, dtype=np.float32).ravel()
+        return cls(a, r, t, valid, scanner_id, float(range_min), float(range_max), inten)
 
     @classmethod
     def from_laserscan(cls, msg: Any, stamp: float | None = None, scanner_id: str | None = None) -> Scanline:
         """Build from a ``sensor_msgs/LaserScan``-like record (attribute access).
 
         The header stamp is the time of the first beam; beam i is taken at
-        ``stamp + i * time_increment`` (a non-finite ``time_increment`` is a ValueError).
+        ``stamp + i * time_increment`` (a non-finite ``time_increment`` is a ValueError). The
+        message's ``intensities`` are kept when there is one per beam (ROS leaves the list empty
+        for a sensor without them; a list of another length is taken as none).
         """
         if not np.isfinite(float(msg.time_increment)):
             raise ValueError(f"time_increment {float(msg.time_increment)} is not finite")
@@ -121,6 +138,7 @@ class Scanline:
             range_min=float(msg.range_min),
             range_max=float(msg.range_max),
             time_increment=float(msg.time_increment),
+            intensities=_beam_intensities(msg, n),
         )
 
     @classmethod
@@ -153,6 +171,7 @@ class Scanline:
             self.scanner_id,
             self.range_min,
             self.range_max,
+            None if self.intensities is None else self.intensities[::-1].copy(),
         )
         object.__setattr__(line, "points_xy", np.ascontiguousarray(self.points_xy[::-1]))
         return line

@@ -1,7 +1,7 @@
 """The cloud's second pass over the bag: every valid point placed in the world with the final
 trajectory and written to a cloud.ply as it comes (so the cloud is never held), with the plane
-id of the associated segment covering its beam, and those segments' end points (world frame)
-for display.
+id of the associated segment covering its beam (and its return's intensity when the recording's
+scans carry intensities), and those segments' end points (world frame) for display.
 
 The pass can be cut into consecutive parts of the scan stream, by stamp windows
 (``slam.io.source.StampWindow``): this process writes the first into the cloud.ply, forked
@@ -26,7 +26,7 @@ from common.rig import Rig
 from segmentation import Scanline
 from slam.export import CloudPlyWriter, cloud_ply_writer
 from slam.frontend.transients import TRANSIENT
-from slam.io.source import BagSource, StampWindow, StreamIndex
+from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
 from slam.prefetch import can_fork_reader, get_from_children
 from slam.rerun_map import SegmentLines
@@ -46,15 +46,20 @@ class _CloudBatch:
         self._kt, self._T = res.knot_times, res.T_world_body
         self._writer = writer
         self._cols: list[tuple[FloatArray, NDArray[np.uint8], FloatArray, NDArray[np.int32]]] = []
+        self._intensity: list[NDArray[np.float32]] = []
         self._ends: list[int] = []  # the batch's segments' first and last point indices
         self.n = 0  # points in the batch
         self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
 
     def add(self, points_body: FloatArray, scanner: int, times: FloatArray, plane_id: NDArray[np.int32],
-            ends: list[int]) -> None:
-        """A scan's points (body frame) with their times (s) and plane ids; ``ends`` indexes
-        its segments' first and last points in the scan."""
+            ends: list[int], intensity: NDArray[np.float32] | None = None) -> None:
+        """A scan's points (body frame) with their times (s), plane ids and, for a writer with
+        intensities, their intensities; ``ends`` indexes its segments' first and last points in
+        the scan."""
         self._cols.append((points_body, np.full(times.shape[0], scanner, dtype=np.uint8), times, plane_id))
+        if self._writer.intensity:
+            self._intensity.append(intensity if intensity is not None
+                                   else np.full(times.shape[0], np.nan, dtype=np.float32))
         self._ends.extend(self.n + e for e in ends)
         self.n += times.shape[0]
         if self.n >= _EXPORT_BATCH:
@@ -68,9 +73,9 @@ class _CloudBatch:
         for a in range(0, self.n, _PLACE_CHUNK):
             b = min(a + _PLACE_CHUNK, self.n)
             pw[a:b] = place_points(self._kt, self._T, tm[a:b], pb[a:b])
-        self._writer.write(pw, sc, tm, pid)
+        self._writer.write(pw, sc, tm, pid, np.concatenate(self._intensity) if self._writer.intensity else None)
         self.endpoints_world.append(pw[np.asarray(self._ends, dtype=np.int64)])
-        self._cols, self._ends, self.n = [], [], 0
+        self._cols, self._ends, self._intensity, self.n = [], [], [], 0
 
 
 @dataclass(frozen=True)
@@ -178,7 +183,8 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
                     seg_stamp.append(line.stamp)
                     ends.extend((int(m[0]), int(m[-1])))
                     seg_pid.append(int(rows["plane_id"][r]))
-        batch.add(p_b, s, times[inside], plane, ends)
+        batch.add(p_b, s, times[inside], plane, ends,
+                  None if line.intensities is None else line.intensities[beams])
     batch.flush()
     if part.hi is not None and n_scans != part.hi - part.lo:
         raise RuntimeError(f"cloud pass: scans {part.lo}:{part.hi} of the stream came back as {n_scans} scans")
@@ -186,14 +192,15 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
     return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints)
 
 
-def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any) -> None:
+def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any,
+                  echo: Echo, intensity: bool) -> None:
     """A forked export process: part ``i`` of the cloud pass, read from its own ``BagSource`` of
-    ``bag``, written as bare PLY rows to ``rows_path``; ``(i, its CloudPartResult or the
-    exception)`` goes on ``q``."""
+    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path``; ``(i, its
+    CloudPartResult or the exception)`` goes on ``q``."""
     try:
         with BagSource(bag) as source, rows_path.open("wb") as f:
-            writer = CloudPlyWriter(f, str(rows_path), header=False)
-            q.put((i, cloud_part(source.scans(rig=rig, window=part.window), part, rig, res, writer)))
+            writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
+            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo), part, rig, res, writer)))
     except BaseException as e:  # raised in the parent
         q.put((i, e))
 
@@ -206,17 +213,34 @@ def _next_part(bag: Path, q: Any, procs: list[Any]) -> tuple[int, CloudPartResul
     return i, result
 
 
+def scans_have_intensities(source: BagSource, rig: Rig, echo: Echo) -> bool:
+    """Whether the first scan of any of the rig's topics carries intensities."""
+    for s in rig.scanners:
+        stream = source.scans(topics=[s.topic], rig=rig, echo=echo)
+        try:
+            first = next(stream, None)
+        finally:
+            stream.close()
+        if first is not None and first.intensities is not None:
+            return True
+    return False
+
+
 def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: StreamIndex | None,
-                progress: bool, processes: int = 1) -> tuple[int, SegmentLines]:
-    """The second pass over ``source``'s scans (their stream's ``index``, see :func:`plan_parts`):
-    every valid point placed in the world and written to the cloud.ply ``ply``; returns the
-    number of points and the associated segments' end points (world frame).
+                progress: bool, processes: int = 1, *, echo: Echo) -> tuple[int, SegmentLines]:
+    """The second pass over ``source``'s scans (their stream's ``index``, see :func:`plan_parts`;
+    a MultiEchoLaserScan's ``echo`` of each beam, the run's ``input.echo``): every valid point
+    placed in the world and written to the cloud.ply ``ply``, with an intensity property when the
+    scans carry intensities (``index.intensities``; without an index, when the first scan of a
+    topic does); returns the number of points and the associated segments' end points (world
+    frame).
 
     With ``processes`` > 1 (and fork available, see ``slam.prefetch.can_fork_reader``) the pass
     is cut into that many parts, the first written here and the others by forked processes."""
     names = res.scanner_names
     if len(names) > 256:
         raise ValueError(f"{source.path}: {len(names)} scanners, at most 256 fit a cloud's scanner index")
+    intensity = index.intensities if index is not None else scans_have_intensities(source, rig, echo)
     parts = plan_parts(index, names, processes if can_fork_reader() else 1)
     ctx = mp.get_context("fork") if len(parts) > 1 else None
     q: Any = ctx.Queue() if ctx is not None else None
@@ -225,16 +249,16 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     try:
         if ctx is not None:
             for i, path in enumerate(row_files, start=1):
-                p = ctx.Process(target=_part_process, args=(i, parts[i], source.path, rig, res, path, q),
+                p = ctx.Process(target=_part_process, args=(i, parts[i], source.path, rig, res, path, q, echo, intensity),
                                 name=f"backpack-slam-cloud-{i}", daemon=True)
                 p.start()
                 procs.append(p)
-        with cloud_ply_writer(ply) as writer:
+        with cloud_ply_writer(ply, intensity=intensity) as writer:
             first = parts[0]
             desc = "cloud" if len(parts) == 1 else f"cloud (part 1 of {len(parts)})"
             total = None if first.hi is None else first.hi - first.lo
             with tqdm(total=total, desc=desc, disable=not progress, leave=False) as bar:
-                found = [cloud_part(source.scans(rig=rig, window=first.window), first, rig, res, writer, bar)]
+                found = [cloud_part(source.scans(rig=rig, window=first.window, echo=echo), first, rig, res, writer, bar)]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
             for i in range(1, len(parts)):
                 writer.append_rows(row_files[i - 1], others[i].count)

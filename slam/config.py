@@ -358,6 +358,15 @@ class NoiseSection(StrictModel):
         return self
 
 
+class InputSection(StrictModel):
+    """How the recording's messages are read."""
+
+    echo: Literal["first", "last", "strongest"] = Field(
+        "first", description="the return of each beam of a sensor_msgs/MultiEchoLaserScan: its first echo, its "
+        "last, or the strongest (by the echoes' intensities; the first where a beam has none); the chosen echo's "
+        "intensity goes into the cloud. LaserScan topics have one return per beam")
+
+
 class OutputConfig(StrictModel):
     cloud: bool = True
     voxel: float = Field(0.0, ge=0, description="voxel size of cloud.ply (m), 0 = every point")
@@ -373,6 +382,7 @@ class ParallelSection(StrictModel):
 
 
 class SlamConfig(StrictModel):
+    input: InputSection = Field(default_factory=InputSection)
     segmenter: SegmenterConfig = Field(default_factory=SegmenterConfig)
     trajectory: TrajectoryConfig = Field(default_factory=TrajectoryConfig)
     frontend: FrontEndConfig = Field(default_factory=FrontEndConfig)

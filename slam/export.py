@@ -8,7 +8,9 @@ Files of a run folder ``DIR``:
   The ground truth's ``planes.json`` reads with the same reader.
 - ``cloud.ply``: every valid point in the world frame with per-point ``scanner`` (int32),
   ``time`` (float64, s) and ``plane_id`` (int32, -1 = unassociated): a binary PLY in open3d's
-  layout (x, y, z, scanner, time, plane_id; open3d's tensor API reads it). Its header has a
+  layout (x, y, z, scanner, time, plane_id; open3d's tensor API reads it); when the recording's
+  scans carry intensities, a last property ``intensity`` (float32, the sensor's units as the
+  messages give them; NaN for a point whose message had none), else no such property. Its header has a
   fixed length (the comment line is padded), so a run writes the points as they come and the
   header last; it is read back with numpy, whole or a chunk at a time.
 - ``segments.npz``: one row per segment (scanner index, scan index, stamp, inclusive beam range,
@@ -186,19 +188,22 @@ def read_planes_json(path: str | Path) -> list[PlaneRecord]:
 
 @dataclass(frozen=True)
 class CloudRecord:
-    """Points in the world frame with per-point scanner index, time (s) and plane id."""
+    """Points in the world frame with per-point scanner index, time (s) and plane id, and the
+    returns' intensities (float32, NaN: none) when the cloud has them (else None)."""
 
     points_world: FloatArray
     scanner: IntArray
     time: FloatArray
     plane_id: IntArray
+    intensity: NDArray[np.float32] | None = None
 
     def __len__(self) -> int:
         return int(self.points_world.shape[0])
 
 
 def _as_cloud(
-    points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike, what: str
+    points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike, what: str,
+    intensity: ArrayLike | None = None,
 ) -> CloudRecord:
     pts = np.asarray(points_world, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -207,12 +212,13 @@ def _as_cloud(
     sc = np.asarray(scanner).astype(np.int32, copy=False)
     tm = np.asarray(time, dtype=np.float64)
     pid = np.asarray(plane_id).astype(np.int32, copy=False)
-    for name, col in (("scanner", sc), ("time", tm), ("plane_id", pid)):
-        if col.shape != (n,):
+    inten = None if intensity is None else np.asarray(intensity).astype(np.float32, copy=False)
+    for name, col in (("scanner", sc), ("time", tm), ("plane_id", pid), ("intensity", inten)):
+        if col is not None and col.shape != (n,):
             raise OutputFileError(f"{what}: {name} must be ({n},), got {col.shape}")
     if not np.all(np.isfinite(pts)):
         raise OutputFileError(f"{what}: non-finite points (invalid returns must be masked)")
-    return CloudRecord(pts, sc, tm, pid)
+    return CloudRecord(pts, sc, tm, pid, inten)
 
 
 def voxel_thin(points_world: FloatArray, voxel: float) -> NDArray[np.int64]:
@@ -249,22 +255,33 @@ _PLY_PROPERTIES = (
     ("time", "<f8", "double"),
     ("plane_id", "<i4", "int"),
 )
+_PLY_INTENSITY = ("intensity", "<f4", "float")  # the last property of a cloud with intensities
 _PLY_VERTEX = np.dtype([(name, dtype) for name, dtype, _ in _PLY_PROPERTIES])
+_PLY_VERTEX_INTENSITY = np.dtype([(name, dtype) for name, dtype, _ in (*_PLY_PROPERTIES, _PLY_INTENSITY)])
 _PLY_CHUNK = 1 << 20  # points packed and written, or read, at a time
 _PLY_COUNT_DIGITS = 15  # the header has room for a point count of up to this many digits
 _PLY_END = b"end_header\n"
 _PLY_MAX_HEADER = 1 << 16  # bytes searched for the end of a header
 
 
-def _ply_header(n: int) -> bytes:
-    """The header of a binary little-endian PLY of ``n`` cloud points.
+def _ply_properties(intensity: bool) -> tuple[tuple[str, str, str], ...]:
+    return (*_PLY_PROPERTIES, _PLY_INTENSITY) if intensity else _PLY_PROPERTIES
+
+
+def _ply_vertex(intensity: bool) -> np.dtype[np.void]:
+    return _PLY_VERTEX_INTENSITY if intensity else _PLY_VERTEX
+
+
+def _ply_header(n: int, intensity: bool = False) -> bytes:
+    """The header of a binary little-endian PLY of ``n`` cloud points (with the ``intensity``
+    property or without).
 
     Its length does not depend on ``n`` (the comment line is padded with spaces), so that the
     points can be written after room for the header and the header, with the count, last."""
     digits = len(str(n))
     if digits > _PLY_COUNT_DIGITS:
         raise OutputFileError(f"{n} points: too many for a cloud.ply")
-    props = "".join(f"property {ply} {name}\n" for name, _, ply in _PLY_PROPERTIES)
+    props = "".join(f"property {ply} {name}\n" for name, _, ply in _ply_properties(intensity))
     return (
         "ply\nformat binary_little_endian 1.0\ncomment written by backpack-slam (slam.export)"
         f"{' ' * (_PLY_COUNT_DIGITS - digits)}\nelement vertex {n}\n{props}end_header\n"
@@ -279,29 +296,38 @@ def _write_ply_rows(f: BinaryIO, cloud: CloudRecord, start: int, stop: int, buf:
     rows["scanner"] = cloud.scanner[start:stop]
     rows["time"] = cloud.time[start:stop]
     rows["plane_id"] = cloud.plane_id[start:stop]
+    if cloud.intensity is not None:
+        rows["intensity"] = cloud.intensity[start:stop]
     f.write(rows.data)
 
 
 class CloudPlyWriter:
     """Writes cloud points (world frame) into an open binary file, a chunk at a time, in
-    :func:`write_cloud_ply`'s layout; the header, with the final count, is written by
-    :meth:`finish`. Made by :func:`cloud_ply_writer`."""
+    :func:`write_cloud_ply`'s layout (with the ``intensity`` property when ``intensity``); the
+    header, with the final count, is written by :meth:`finish`. Made by :func:`cloud_ply_writer`."""
 
-    def __init__(self, f: BinaryIO, what: str, header: bool = True) -> None:
+    def __init__(self, f: BinaryIO, what: str, header: bool = True, intensity: bool = False) -> None:
         self._f = f
         self._what = what
-        self._buf = np.empty(0, dtype=_PLY_VERTEX)
+        self.intensity = intensity
+        self._vertex = _ply_vertex(intensity)
+        self._buf = np.empty(0, dtype=self._vertex)
         self._header = header
         self.count = 0  # points written so far
         if header:
-            f.write(b" " * len(_ply_header(0)))  # room for the header
+            f.write(b" " * len(_ply_header(0, intensity)))  # room for the header
 
-    def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike) -> None:
-        """Append points (N,3) in the world frame with their scanner, time (s) and plane id (N,)."""
-        cloud = _as_cloud(points_world, scanner, time, plane_id, self._what)
+    def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike,
+              intensity: ArrayLike | None = None) -> None:
+        """Append points (N,3) in the world frame with their scanner, time (s) and plane id (N,),
+        and their intensities (N,) exactly when the writer was made with ``intensity``."""
+        if (intensity is not None) != self.intensity:
+            raise OutputFileError(f"{self._what}: intensities {'missing' if self.intensity else 'given'} for a cloud "
+                                  f"{'with' if self.intensity else 'without'} an intensity property")
+        cloud = _as_cloud(points_world, scanner, time, plane_id, self._what, intensity)
         n = len(cloud)
         if self._buf.shape[0] < min(n, _PLY_CHUNK):
-            self._buf = np.empty(min(n, _PLY_CHUNK), dtype=_PLY_VERTEX)
+            self._buf = np.empty(min(n, _PLY_CHUNK), dtype=self._vertex)
         for start in range(0, n, _PLY_CHUNK):
             _write_ply_rows(self._f, cloud, start, min(n, start + _PLY_CHUNK), self._buf)
         self.count += n
@@ -311,8 +337,8 @@ class CloudPlyWriter:
         ``path`` (a part of the cloud written in another process); checked by size."""
         src = Path(path)
         size = src.stat().st_size
-        if size != count * _PLY_VERTEX.itemsize:
-            raise OutputFileError(f"{src}: {size} bytes, expected {count} cloud rows of {_PLY_VERTEX.itemsize}")
+        if size != count * self._vertex.itemsize:
+            raise OutputFileError(f"{src}: {size} bytes, expected {count} cloud rows of {self._vertex.itemsize}")
         self._f.flush()
         end = self._f.seek(0, os.SEEK_END)
         with src.open("rb") as fin:
@@ -338,17 +364,18 @@ class CloudPlyWriter:
         (nothing for a writer of bare rows)."""
         if self._header:
             self._f.seek(0)
-            self._f.write(_ply_header(self.count))
+            self._f.write(_ply_header(self.count, self.intensity))
 
 
 @contextmanager
-def cloud_ply_writer(path: str | Path) -> Iterator[CloudPlyWriter]:
-    """A :class:`CloudPlyWriter` onto a temporary name beside ``path``, renamed onto ``path``
-    when the block succeeds (and removed on any exception): a cloud written as it comes,
-    without holding it, e.g. ``with cloud_ply_writer(p) as w: w.write(...)``."""
+def cloud_ply_writer(path: str | Path, intensity: bool = False) -> Iterator[CloudPlyWriter]:
+    """A :class:`CloudPlyWriter` onto a temporary name beside ``path`` (with the ``intensity``
+    property or without), renamed onto ``path`` when the block succeeds (and removed on any
+    exception): a cloud written as it comes, without holding it, e.g.
+    ``with cloud_ply_writer(p) as w: w.write(...)``."""
     target = Path(path)
     with atomic_path(target) as tmp, tmp.open("wb") as f:
-        writer = CloudPlyWriter(f, str(target))
+        writer = CloudPlyWriter(f, str(target), intensity=intensity)
         yield writer
         writer.finish()
 
@@ -360,8 +387,10 @@ def write_cloud_ply(
     time: ArrayLike,
     plane_id: ArrayLike,
     voxel: float | None = None,
+    intensity: ArrayLike | None = None,
 ) -> int:
-    """Atomically write a binary PLY with attributes scanner, time, plane_id; return the count.
+    """Atomically write a binary PLY with attributes scanner, time, plane_id (and intensity,
+    when given); return the count.
 
     ``voxel`` (m) thins the cloud to one real point per voxel (see :func:`voxel_thin`). The file
     has open3d's layout (x, y, z and time as doubles, scanner and plane_id as ints); it is
@@ -369,16 +398,17 @@ def write_cloud_ply(
     import alone half a second); :func:`cloud_ply_writer` writes the same file from chunks.
     """
     target = Path(path)
-    cloud = _as_cloud(points_world, scanner, time, plane_id, str(target))
+    cloud = _as_cloud(points_world, scanner, time, plane_id, str(target), intensity)
     if voxel is not None:
         if not voxel > 0:
             raise OutputFileError(f"{target}: voxel size must be > 0, got {voxel}")
         keep = voxel_thin(cloud.points_world, voxel)
         cloud = CloudRecord(
-            cloud.points_world[keep], cloud.scanner[keep], cloud.time[keep], cloud.plane_id[keep]
+            cloud.points_world[keep], cloud.scanner[keep], cloud.time[keep], cloud.plane_id[keep],
+            None if cloud.intensity is None else cloud.intensity[keep],
         )
-    with cloud_ply_writer(target) as w:
-        w.write(cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id)
+    with cloud_ply_writer(target, intensity=cloud.intensity is not None) as w:
+        w.write(cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id, cloud.intensity)
     return len(cloud)
 
 
@@ -386,6 +416,18 @@ def cloud_ply_layout(path: str | Path) -> tuple[int, int]:
     """(number of points, byte offset of the first) of a cloud.ply; a file that is not a binary
     little-endian PLY with :func:`write_cloud_ply`'s vertex properties (open3d's layout), or is
     truncated, is an OutputFileError naming it."""
+    n, offset, _ = cloud_ply_format(path)
+    return n, offset
+
+
+def cloud_ply_has_intensity(path: str | Path) -> bool:
+    """Whether a cloud.ply has the ``intensity`` property (see :func:`cloud_ply_layout`)."""
+    return cloud_ply_format(path)[2]
+
+
+def cloud_ply_format(path: str | Path) -> tuple[int, int, bool]:
+    """(number of points, byte offset of the first, whether it has the ``intensity`` property)
+    of a cloud.ply, checked as :func:`cloud_ply_layout` says."""
     p = Path(path)
     if not p.is_file():
         raise OutputFileError(f"{p}: no such file")
@@ -401,20 +443,22 @@ def cloud_ply_layout(path: str | Path) -> tuple[int, int]:
     ]
     want = [f"property {ply} {name}" for name, _, ply in _PLY_PROPERTIES]
     fmt, element, props = (lines[0] if lines else ""), (lines[1].split() if len(lines) > 1 else []), lines[2:]
+    intensity = props == [*want, f"property {_PLY_INTENSITY[2]} {_PLY_INTENSITY[0]}"]
+    if intensity:
+        props = props[:-1]
     if fmt != "format binary_little_endian 1.0":
         raise OutputFileError(f"{p}: '{fmt}' is not cloud.ply's format (binary_little_endian 1.0)")
     if len(element) != 3 or element[:2] != ["element", "vertex"] or not element[2].isdigit() or props != want:
         raise OutputFileError(
             f"{p}: not cloud.ply's layout (one vertex element of {', '.join(w.split()[2] for w in want)} "
-            f"as {', '.join(w.split()[1] for w in want)})"
+            f"as {', '.join(w.split()[1] for w in want)}, then optionally intensity as float)"
         )
     n, offset = int(element[2]), end + len(_PLY_END)
     size = p.stat().st_size
-    if size != offset + n * _PLY_VERTEX.itemsize:
-        raise OutputFileError(
-            f"{p}: {size - offset} bytes of points where {n} points take {n * _PLY_VERTEX.itemsize} (truncated?)"
-        )
-    return n, offset
+    row = _ply_vertex(intensity).itemsize
+    if size != offset + n * row:
+        raise OutputFileError(f"{p}: {size - offset} bytes of points where {n} points take {n * row} (truncated?)")
+    return n, offset, intensity
 
 
 def _cloud_of_rows(rows: NDArray[np.void]) -> CloudRecord:
@@ -422,17 +466,20 @@ def _cloud_of_rows(rows: NDArray[np.void]) -> CloudRecord:
     n = rows.shape[0]
     x = rows["x"]
     points = np.lib.stride_tricks.as_strided(x, shape=(n, 3), strides=(x.strides[0], x.itemsize), writeable=False)
-    return CloudRecord(points_world=points, scanner=rows["scanner"], time=rows["time"], plane_id=rows["plane_id"])
+    intensity = rows["intensity"] if "intensity" in (rows.dtype.names or ()) else None
+    return CloudRecord(points_world=points, scanner=rows["scanner"], time=rows["time"], plane_id=rows["plane_id"],
+                       intensity=intensity)
 
 
 def _ply_rows(path: str | Path, chunk: int) -> Iterator[NDArray[np.void]]:
     """The rows of a cloud.ply, ``chunk`` at a time (each read into its own array)."""
-    n, offset = cloud_ply_layout(path)
+    n, offset, intensity = cloud_ply_format(path)
+    vertex = _ply_vertex(intensity)
     with Path(path).open("rb") as f:
         f.seek(offset)
         for start in range(0, n, chunk):
             want = min(chunk, n - start)
-            rows = np.fromfile(f, dtype=_PLY_VERTEX, count=want)
+            rows = np.fromfile(f, dtype=vertex, count=want)
             if rows.shape[0] != want:
                 raise OutputFileError(f"{path}: truncated at point {start + rows.shape[0]} of {n}")
             yield rows
@@ -451,10 +498,10 @@ def read_cloud_ply(path: str | Path, step: int = 1, chunk: int = _PLY_CHUNK) -> 
     """Read a cloud written by :func:`write_cloud_ply` (points in the world frame): every point,
     or with ``step`` > 1 every ``step``-th one (points 0, step, 2 step, ...), read ``chunk``
     points at a time so that only the kept points are held. The columns are views into one
-    array of the file's rows (40 bytes a point)."""
+    array of the file's rows (40 bytes a point, 44 with intensities)."""
     if step < 1 or chunk < 1:
         raise ValueError(f"step and chunk must be >= 1, got {step} and {chunk}")
-    n, _ = cloud_ply_layout(path)
+    n, _, intensity = cloud_ply_format(path)
     if step == 1:
         kept = list(_ply_rows(path, max(n, 1)))  # one read of all the rows
     else:
@@ -464,7 +511,7 @@ def read_cloud_ply(path: str | Path, step: int = 1, chunk: int = _PLY_CHUNK) -> 
             start += rows.shape[0]
     if len(kept) == 1:
         return _cloud_of_rows(kept[0])
-    return _cloud_of_rows(np.concatenate(kept) if kept else np.zeros(0, dtype=_PLY_VERTEX))
+    return _cloud_of_rows(np.concatenate(kept) if kept else np.zeros(0, dtype=_ply_vertex(intensity)))
 
 
 # -------------------------------------------------------------------------------- segments

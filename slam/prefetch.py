@@ -86,7 +86,7 @@ def prepared_scans(
     checked before this returns."""
     if not (process and can_fork_reader()):
         preparer = ScanPreparer(rig, cfg, imu)
-        stream = source.scans(rig=rig)
+        stream = source.scans(rig=rig, echo=cfg.input.echo)
         return PreparedScans((preparer.prepare(line) for line in stream), stream.index)
     source.scan_plan(rig=rig)  # checks the bag's topics now, in this process
     index = StreamIndex()
@@ -101,7 +101,7 @@ def _reader(bag: Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk:
         preparer = ScanPreparer(rig, cfg, imu)
         batch: list[PreparedScan] = []
         with BagSource(bag) as source:
-            stream = source.scans(rig=rig)
+            stream = source.scans(rig=rig, echo=cfg.input.echo)
             for line in stream:
                 batch.append(preparer.prepare(line))
                 if len(batch) >= chunk:
@@ -128,6 +128,7 @@ def _from_reader(
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _DONE:
                 done: StreamIndex = item[1]
                 index.stamps, index.scanner_ids, index.lag_ns = done.stamps, done.scanner_ids, done.lag_ns
+                index.intensities = done.intensities
                 break
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:
                 raise item[1]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.rig import Rig
-from slam.io.source import BagSource
+from slam.io.source import BagSource, Echo
 from slam.rig_builder import (
     FrameTree,
     RigError,
@@ -36,11 +36,11 @@ class RigCheck:
     notes: list[str] = field(default_factory=list)
 
 
-def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None) -> RigCheck:
+def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None, echo: Echo) -> RigCheck:
     """The run's rig: ``rig`` checked against the recording's transforms (or ``urdf``), or, when
-    None, built from them."""
+    None, built from them (MultiEchoLaserScan noise measured on the run's ``echo``)."""
     if rig is None:
-        built = rig_from_source(src, urdf=urdf)
+        built = rig_from_source(src, urdf=urdf, echo=echo)
         where = f"the URDF {urdf}" if urdf is not None else "the recording's transforms"
         return RigCheck(built, f"built from {where}", [
             f"rig built from {where} of {src.path}: " + ", ".join(f"{s.name} on {s.topic}" for s in built.scanners)])

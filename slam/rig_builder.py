@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from common.rig import Extrinsic, ImuMount, MessageType, Rig, ScannerConfig, ScannerModel
 from common.rotations import matrix_to_rpy
-from slam.io.source import MULTIECHO, SCAN_TYPES, BagSource
+from slam.io.source import MULTIECHO, SCAN_TYPES, BagSource, Echo
 
 FloatArray = NDArray[np.float64]
 Transforms = Mapping[tuple[str, str], FloatArray]  # (parent, child) -> T_parent_child
@@ -287,8 +287,9 @@ def static_transforms(src: BagSource) -> dict[tuple[str, str], FloatArray]:
 
 
 def rig_from_source(src: BagSource, urdf: str | Path | None = None, base: str | None = None,
-                    name: str | None = None) -> Rig:
-    """The rig of a recording: its scan topics, mounted as its transforms (or ``urdf``) say."""
+                    name: str | None = None, *, echo: Echo) -> Rig:
+    """The rig of a recording: its scan topics, mounted as its transforms (or ``urdf``) say; the
+    range noise measured on each MultiEchoLaserScan beam's ``echo`` (the run's ``input.echo``)."""
     scans = scan_topics(src)
     if not scans:
         raise RigError(f"{src.path}: no LaserScan or MultiEchoLaserScan topic with messages")
@@ -303,18 +304,19 @@ def rig_from_source(src: BagSource, urdf: str | Path | None = None, base: str | 
                            "give the rig (--rig) or a URDF (--urdf)")
         tree = FrameTree(transforms, f"the transforms of {src.path}")
     imu = src.imu_topic()
-    return build_rig(name or f"{Path(src.path).stem}_rig", scans, tree, base, imu, measured_noise(src, scans))
+    return build_rig(name or f"{Path(src.path).stem}_rig", scans, tree, base, imu, measured_noise(src, scans, echo=echo))
 
 
-def measured_noise(src: BagSource, scans: Sequence[ScanTopic], n_scans: int = 200) -> dict[str, float]:
+def measured_noise(src: BagSource, scans: Sequence[ScanTopic], n_scans: int = 200, *,
+                   echo: Echo) -> dict[str, float]:
     """Each scan topic's range noise (m, at its median range) from its first ``n_scans`` scans
-    (``segmentation.noise``); topics whose scans do not hold enough straight stretches are left
+    (``segmentation.noise``; a MultiEchoLaserScan's ``echo`` of each beam); topics whose scans do not hold enough straight stretches are left
     out (the rig then takes the default)."""
     from segmentation.noise import estimate
 
     out: dict[str, float] = {}
     for s in scans:
-        stream = src.scans(topics=[s.topic])
+        stream = src.scans(topics=[s.topic], echo=echo)
         try:
             lines = [line for _, line in zip(range(n_scans), stream, strict=False)]
         finally:

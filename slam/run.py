@@ -108,7 +108,7 @@ def estimate_noise(source: BagSource, rig: Rig, cfg: SlamConfig) -> tuple[SlamCo
     todo = [s.name for s in rig.scanners if s.name not in nc.scanners] if nc.estimate else []
     lines: dict[str, list[Scanline]] = {name: [] for name in todo}
     if todo:
-        stream = source.scans(rig=rig)
+        stream = source.scans(rig=rig, echo=cfg.input.echo)
         t_first = None
         for line in stream:
             t_first = line.stamp if t_first is None else t_first
@@ -173,7 +173,7 @@ def run_slam(
     single line segment is an ``InputError`` (no usable returns), with no output written."""
     t_wall = time.perf_counter()
     with BagSource(bag) as source:
-        check = check_rig(source, rig, urdf)
+        check = check_rig(source, rig, urdf, cfg.input.echo)
         rig = check.rig
         source.scan_plan(rig=rig)  # checks the bag and its topics before anything is written
         t_range = source.time_range()

@@ -95,14 +95,16 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
     # every point goes to a file as it is placed; the recording and the voxel thinning read it
     # back (the recording a chunk at a time)
     every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
-    n_every, lines = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes)
+    n_every, lines = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes,
+                                 echo=cfg.input.echo)
     view = view_of_cloud_ply(every, MapOptions()) if cfg.output.rerun and n_every > 0 else None
     n_cloud = 0
     if cfg.output.cloud:
         n_cloud = n_every
         if v is not None:
             c = read_cloud_ply(every)
-            n_cloud = write_cloud_ply(out / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id, voxel=v)
+            n_cloud = write_cloud_ply(out / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id, voxel=v,
+                                      intensity=c.intensity)
     if every.name != "cloud.ply":
         every.unlink()
     return CloudOutputs(n_cloud, view, lines)

@@ -9,16 +9,21 @@ coordinates as they are).
 - **LAS / LAZ** (laspy, LAZ through lazrs): LAS 1.4, point format 6. ``gps_time`` holds the
   point's time (the recording's stamps in seconds, not GPS time: the global-encoding bit for
   adjusted standard GPS time stays clear), ``point_source_id`` the scanner index (the rig's
-  order), ``intensity`` the return's intensity when the run has them (else 0), and an extra
-  dimension ``plane_id`` (int32, -1 = no plane). Scale 0.1 mm; the offset is the first chunk's
-  minimum corner, rounded to a metre.
+  order), and an extra dimension ``plane_id`` (int32, -1 = no plane). Scale 0.1 mm; the offset
+  is the first chunk's minimum corner, rounded to a metre. When cloud.ply has intensities: the
+  extra dimension ``raw_intensity`` (float32, the sensor's values as recorded, NaN = none) and
+  the standard ``intensity`` field scaled to uint16 as ``round(raw * 65535 / max)``, ``max``
+  the cloud's largest intensity (a separate pass over cloud.ply finds it), negative and missing
+  values 0; without intensities both are absent or 0.
 - **E57** (pye57): one E57 scan per chunk of the cloud, its points in the body frame of the
   trajectory's pose at the chunk's median time and that pose as the scan's pose (a reader that
   applies scan poses gets world coordinates). pye57 writes no per-point time stamps: a scan's
-  name gives its pose's time; use LAS/LAZ or PCD for per-point times, scanners and planes.
+  name gives its pose's time; use LAS/LAZ or PCD for per-point times, scanners and planes. With
+  intensities: the E57 ``intensity`` field (float32, the sensor's values; a missing one 0).
 - **PCD**: binary, fields ``x y z`` (float64), ``scanner`` (int32), ``time`` (float64),
-  ``plane_id`` (int32); written by this module because open3d writes only a whole cloud held in
-  memory (open3d's tensor reader opens it).
+  ``plane_id`` (int32), and ``intensity`` (float32, NaN = none) when the cloud has them;
+  written by this module because open3d writes only a whole cloud held in memory (open3d's
+  tensor reader opens it).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.atomic import OutputFileError, atomic_path
-from slam.export import CloudRecord, cloud_ply_layout, iter_cloud_ply, read_trajectory_tum
+from slam.export import CloudRecord, cloud_ply_format, iter_cloud_ply, read_trajectory_tum
 from slam.trajectory.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
@@ -58,20 +63,20 @@ def export_cloud(cloud_ply: str | Path, out: str | Path, fmt: SurveyFormat | Non
     number of points written; ``progress`` is called with each chunk's size."""
     src, dst = Path(cloud_ply), Path(out)
     f = survey_format(fmt or dst.suffix)
-    n, _ = cloud_ply_layout(src)
+    n, _, intensity = cloud_ply_format(src)
     if n == 0:
         raise OutputFileError(f"{src}: the cloud has no points; nothing to export")
     chunks = _counted(iter_cloud_ply(src, E57_CHUNK) if f == "e57" else iter_cloud_ply(src), progress)
     with atomic_path(dst) as tmp:
         if f in ("las", "laz"):
-            _write_las(tmp, chunks, compress=f == "laz")
+            _write_las(tmp, chunks, compress=f == "laz", intensity_scale=las_intensity_scale(src) if intensity else None)
         elif f == "e57":
             if trajectory_tum is None:
                 raise OutputFileError(f"{dst}: E57 needs the run's trajectory.tum for the scan poses")
             times, T_world_body = read_trajectory_tum(trajectory_tum)
             _write_e57(tmp, chunks, times, T_world_body)
         else:
-            _write_pcd(tmp, chunks, n)
+            _write_pcd(tmp, chunks, n, intensity)
     return n
 
 
@@ -85,7 +90,26 @@ def _counted(chunks: Iterator[CloudRecord], progress: Progress | None) -> Iterat
 # ------------------------------------------------------------------------------ LAS / LAZ
 
 
-def _write_las(path: Path, chunks: Iterator[CloudRecord], compress: bool) -> None:
+def las_intensity_scale(cloud_ply: str | Path) -> float:
+    """The factor from a cloud's intensities to LAS's uint16 ``intensity``: 65535 over the
+    cloud's largest finite intensity (1 when none is positive)."""
+    top = 0.0
+    for chunk in iter_cloud_ply(cloud_ply):
+        if chunk.intensity is not None:
+            finite = chunk.intensity[np.isfinite(chunk.intensity)]
+            if finite.size:
+                top = max(top, float(finite.max()))
+    return 65535.0 / top if top > 0 else 1.0
+
+
+def las_intensity(raw: NDArray[np.float32], scale: float) -> NDArray[np.uint16]:
+    """LAS ``intensity`` of raw intensities: ``round(raw * scale)`` within [0, 65535], 0 where
+    there is none (NaN)."""
+    v = np.nan_to_num(raw.astype(np.float64) * scale, nan=0.0, posinf=65535.0, neginf=0.0)
+    return np.clip(np.rint(v), 0, 65535).astype(np.uint16)
+
+
+def _write_las(path: Path, chunks: Iterator[CloudRecord], compress: bool, intensity_scale: float | None) -> None:
     import laspy
 
     first = next(chunks, None)
@@ -94,6 +118,9 @@ def _write_las(path: Path, chunks: Iterator[CloudRecord], compress: bool) -> Non
     header = laspy.LasHeader(version="1.4", point_format=6)
     header.add_extra_dim(laspy.ExtraBytesParams(name="plane_id", type=np.int32,
                                                 description="plane id, -1 = none"))
+    if intensity_scale is not None:
+        header.add_extra_dim(laspy.ExtraBytesParams(name="raw_intensity", type=np.float32,
+                                                    description="sensor intensity, NaN = none"))
     header.offsets = np.floor(first.points_world.min(axis=0))
     header.scales = np.full(3, LAS_SCALE)
     header.generating_software = "backpack-slam"
@@ -107,6 +134,9 @@ def _write_las(path: Path, chunks: Iterator[CloudRecord], compress: bool) -> Non
             rec.gps_time = chunk.time
             rec.point_source_id = chunk.scanner.astype(np.uint16)
             rec.plane_id = chunk.plane_id
+            if intensity_scale is not None and chunk.intensity is not None:
+                rec.raw_intensity = chunk.intensity
+                rec.intensity = las_intensity(chunk.intensity, intensity_scale)
             writer.write_points(rec)
 
 
@@ -130,9 +160,12 @@ def _write_e57(path: Path, chunks: Iterator[CloudRecord], times: FloatArray, T_w
             R, t = T[:3, :3], T[:3, 3]
             local = (chunk.points_world - t) @ R  # R^T (p - t), row vectors
             x, y, z, w = Rotation.from_matrix(R).as_quat()
+            data = {"cartesianX": np.ascontiguousarray(local[:, 0]), "cartesianY": np.ascontiguousarray(local[:, 1]),
+                    "cartesianZ": np.ascontiguousarray(local[:, 2])}
+            if chunk.intensity is not None:
+                data["intensity"] = np.nan_to_num(chunk.intensity, nan=0.0).astype(np.float32)
             e57.write_scan_raw(
-                {"cartesianX": np.ascontiguousarray(local[:, 0]), "cartesianY": np.ascontiguousarray(local[:, 1]),
-                 "cartesianZ": np.ascontiguousarray(local[:, 2])},
+                data,
                 name=f"chunk {i} (body frame at t = {t_mid:.3f} s)",
                 rotation=np.array([w, x, y, z]), translation=t.copy(),
             )
@@ -142,28 +175,39 @@ def _write_e57(path: Path, chunks: Iterator[CloudRecord], times: FloatArray, T_w
 
 # ------------------------------------------------------------------------------ PCD
 
-_PCD_ROW = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("scanner", "<i4"), ("time", "<f8"),
-                     ("plane_id", "<i4")])
+_PCD_FIELDS = (("x", "<f8", "F"), ("y", "<f8", "F"), ("z", "<f8", "F"), ("scanner", "<i4", "I"),
+               ("time", "<f8", "F"), ("plane_id", "<i4", "I"))
+_PCD_INTENSITY = ("intensity", "<f4", "F")
 
 
-def _pcd_header(n: int) -> bytes:
+def _pcd_fields(intensity: bool) -> tuple[tuple[str, str, str], ...]:
+    return (*_PCD_FIELDS, _PCD_INTENSITY) if intensity else _PCD_FIELDS
+
+
+def _pcd_header(n: int, intensity: bool) -> bytes:
+    fields = _pcd_fields(intensity)
     return (
         "# .PCD v0.7 - backpack-slam cloud, SLAM world frame (m)\n"
-        "VERSION 0.7\nFIELDS x y z scanner time plane_id\nSIZE 8 8 8 4 8 4\nTYPE F F F I F I\n"
-        f"COUNT 1 1 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+        f"VERSION 0.7\nFIELDS {' '.join(f[0] for f in fields)}\n"
+        f"SIZE {' '.join(str(np.dtype(f[1]).itemsize) for f in fields)}\nTYPE {' '.join(f[2] for f in fields)}\n"
+        f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
+        "DATA binary\n"
     ).encode("ascii")
 
 
-def _write_pcd(path: Path, chunks: Iterator[CloudRecord], n: int) -> None:
+def _write_pcd(path: Path, chunks: Iterator[CloudRecord], n: int, intensity: bool) -> None:
     written = 0
+    row = np.dtype([(name, dtype) for name, dtype, _ in _pcd_fields(intensity)])
     with path.open("wb") as f:
-        f.write(_pcd_header(n))
+        f.write(_pcd_header(n, intensity))
         for chunk in chunks:
-            rows = np.empty(len(chunk), dtype=_PCD_ROW)
+            rows = np.empty(len(chunk), dtype=row)
             rows["x"], rows["y"], rows["z"] = chunk.points_world.T
             rows["scanner"] = chunk.scanner
             rows["time"] = chunk.time
             rows["plane_id"] = chunk.plane_id
+            if intensity and chunk.intensity is not None:
+                rows["intensity"] = chunk.intensity
             rows.tofile(f)
             written += len(chunk)
     if written != n:

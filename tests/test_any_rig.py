@@ -102,7 +102,27 @@ def test_rig_command_builds_the_rig_from_the_bag_or_a_urdf(cartographer, tmp_pat
     urdf = Path(__file__).parent / "data" / "backpack_2d.urdf"
     assert main(["rig", str(bag), "--urdf", str(urdf), "--base", "base_link"]) == 0
     assert main(["rig", str(bag), "--urdf", str(urdf), "--base", "nowhere"]) == 2
-    assert "unknown frame 'nowhere'" in capsys.readouterr().err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown frame 'nowhere'" in err[0]
+
+
+def test_a_bag_without_transforms_or_frames_unknown_to_the_urdf_is_one_line(renamed, tmp_path: Path, capsys) -> None:
+    from fuzz_inputs import BagMessages
+
+    bag, _, _ = renamed
+    bm = BagMessages.read(bag, "ros1")
+    bm.items = [i for i in bm.items if i.topic not in ("/tf_static", "/tf")]
+    bare = tmp_path / "no_tf.bag"
+    bm.write(bare)
+    assert main(["run", str(bare), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no_tf.bag" in err[0] and "no /tf_static" in err[0] and "--rig" in err[0]
+    assert not (tmp_path / "o").exists()
+    urdf = Path(__file__).parent / "data" / "backpack_2d.urdf"  # the Cartographer frames, not this bag's laser_0_link
+    assert main(["run", str(bag), "--urdf", str(urdf), "--out", str(tmp_path / "u"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "backpack_2d.urdf" in err[0] and "unknown frame 'laser_0_link'" in err[0]
+    assert not (tmp_path / "u").exists()
 
 
 def test_a_rig_whose_scanner_geometry_is_not_the_bags_is_one_line(renamed, tmp_path: Path, capsys) -> None:

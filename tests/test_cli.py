@@ -159,8 +159,13 @@ def test_demo_runs_the_whole_chain_on_a_short_walk(tmp_path: Path, capsys: pytes
     assert main(["demo", "--out", str(out), "--duration", "4"]) == 0
     text = capsys.readouterr().out
     assert "ATE RMSE" in text
-    for name in ("trajectory.tum", "planes.json", "cloud.ply", "map.rrd", "summary.json", "eval.json"):
+    for name in ("trajectory.tum", "planes.json", "cloud.ply", "cloud.laz", "map.rrd", "summary.json", "eval.json"):
         assert (out / "slam" / name).is_file(), name
+    import laspy
+
+    from slam.export import cloud_ply_layout
+
+    assert laspy.read(out / "slam" / "cloud.laz").header.point_count == cloud_ply_layout(out / "slam" / "cloud.ply")[0]
     ate = json.loads((out / "slam" / "eval.json").read_text())["trajectory"]
     assert ate["ate_m"]["start_aligned"]["rmse"] < 0.02
 

@@ -255,7 +255,8 @@ def _reference_cloud(bag: Path, res: SlamResult) -> tuple[CloudRecord, np.ndarra
 def _streamed(walk: SimulationResult, res: SlamResult, ply: Path, index: StreamIndex | None = None,
               processes: int = 1) -> tuple[int, Any]:
     with BagSource(walk.bag) as source:
-        return slam.cloud_pass.write_cloud(source, resolve_rig("itc_backpack"), res, ply, index, False, processes)
+        return slam.cloud_pass.write_cloud(source, resolve_rig("itc_backpack"), res, ply, index, False, processes,
+                                           echo="first")
 
 
 def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, estimate: SlamResult, tmp_path: Path,

@@ -25,6 +25,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--base", default=None, help="body frame (default: the IMU's frame, else the tf tree's root)")
     p.add_argument("--name", default=None, help="rig name (default: from the bag's name)")
     p.add_argument("--check", metavar="RIG", default=None, help="check a rig (name or YAML) instead")
+    p.add_argument("--echo", choices=("first", "last", "strongest"), default=None,
+                   help="MultiEchoLaserScan: the echo of each beam the range noise is measured on (default: the "
+                   "SLAM config's input.echo default); a run reads the echo its config's input.echo names")
     return p
 
 
@@ -54,11 +57,13 @@ def run(args: argparse.Namespace) -> int:
     else:
         if args.bag is None:
             raise ValueError("give a BAG to build the rig from, or --check RIG")
+        from slam.config import SlamConfig
         from slam.io.source import BagSource
         from slam.rig_builder import rig_from_source
 
+        echo = args.echo or SlamConfig().input.echo
         with BagSource(args.bag) as src:
-            rig = rig_from_source(src, urdf=args.urdf, base=args.base, name=args.name)
+            rig = rig_from_source(src, urdf=args.urdf, base=args.base, name=args.name, echo=echo)
     print("\n".join(describe(rig)))
     print(rig_observability(rig).summary())
     if args.out is not None:

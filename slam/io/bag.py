@@ -11,7 +11,7 @@ from pathlib import Path
 
 from common.rig import Rig
 from slam.io.errors import InputError
-from slam.io.source import BagSource, FloatArray, ImuSeries, PoseSeries, ScanStream, is_bag
+from slam.io.source import BagSource, Echo, FloatArray, ImuSeries, PoseSeries, ScanStream, is_bag
 
 
 def read_scans(
@@ -20,13 +20,14 @@ def read_scans(
     rig: Rig | None = None,
     *,
     reorder_window: float = 1.0,
+    echo: Echo = "first",
 ) -> ScanStream:
-    """Stream the ``sensor_msgs/LaserScan`` messages of a bag as Scanlines ordered by header stamp
-    (see :meth:`BagSource.scans`); the bag and its topics are checked before this returns, and
+    """Stream the ``sensor_msgs/LaserScan`` (and ``MultiEchoLaserScan``: each beam's ``echo``)
+    messages of a bag as Scanlines ordered by header stamp (see :meth:`BagSource.scans`); the bag and its topics are checked before this returns, and
     the bag is closed when the stream is closed or exhausted."""
     source = BagSource(path)
     try:
-        return source.scans(topics, rig, reorder_window=reorder_window, owned=True)
+        return source.scans(topics, rig, reorder_window=reorder_window, owned=True, echo=echo)
     except BaseException:
         source.close()
         raise

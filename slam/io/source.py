@@ -36,6 +36,7 @@ LASERSCAN = "sensor_msgs/msg/LaserScan"
 MULTIECHO = "sensor_msgs/msg/MultiEchoLaserScan"
 SCAN_TYPES = (LASERSCAN, MULTIECHO)
 Echo = Literal["first", "last", "strongest"]
+ECHOES: tuple[Echo, ...] = ("first", "last", "strongest")
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 POSESTAMPED = "geometry_msgs/msg/PoseStamped"
 IMU = "sensor_msgs/msg/Imu"
@@ -88,12 +89,13 @@ class ImuSeries:
 @dataclass
 class StreamIndex:
     """What a :class:`ScanStream` yielded, in its order: each scan's stamp (s) and scanner id;
-    and ``lag_ns``, the (least, greatest) log time minus header stamp (ns) over every scan
-    message read (None before the first)."""
+    ``lag_ns``, the (least, greatest) log time minus header stamp (ns) over every scan
+    message read (None before the first); ``intensities``, whether any scan carried them."""
 
     stamps: list[float] = field(default_factory=list)
     scanner_ids: list[str] = field(default_factory=list)
     lag_ns: tuple[int, int] | None = None
+    intensities: bool = False
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -298,7 +300,8 @@ class BagSource:
         echo: Echo = "first",
     ) -> ScanStream:
         """The ``sensor_msgs/LaserScan`` (and ``MultiEchoLaserScan``: the ``echo`` of each beam,
-        see :func:`single_echo`) messages as Scanlines ordered by header stamp (topics as in
+        see :func:`single_echo`; a SLAM run passes its ``input.echo``) messages as Scanlines (with
+        their intensities when the messages carry them) ordered by header stamp (topics as in
         :meth:`scan_plan`; checked before this returns).
 
         ``scanner_id`` is the rig's scanner name for the topic, else the message's frame id, else
@@ -311,6 +314,8 @@ class BagSource:
         ``InputError`` where its stamps jump ahead by more than :data:`MAX_SCAN_GAP` s (broken
         header stamps, such as zero or far-future ones: the trajectory would span them)."""
         plan = self.scan_plan(topics, rig)
+        if echo not in ECHOES:
+            raise ValueError(f"echo must be one of {', '.join(ECHOES)}, got {echo!r}")
         if reorder_window < 0:
             raise ValueError(f"reorder_window must be >= 0, got {reorder_window}")
         return ScanStream(self, plan, int(reorder_window * 1e9), window, owned, echo,
@@ -418,24 +423,29 @@ class ScanStream:
 def single_echo(msg: Any, echo: Echo) -> SimpleNamespace:
     """A ``MultiEchoLaserScan`` as a LaserScan-like record: per beam its first, last or strongest
     echo (strongest: by the echoes' intensities, the first echo where there are none); a beam
-    without echoes has no return (inf)."""
+    without echoes has no return (inf). Intensities, when the message has one list of them per
+    beam: the chosen echo's (NaN where a beam's list does not match its echoes); else none."""
     n = len(msg.ranges)
     ranges = np.full(n, np.inf, dtype=np.float32)
     inten = msg.intensities if len(msg.intensities) == n else None
+    values = np.full(n, np.nan, dtype=np.float32) if inten is not None and n else None
     for k, e in enumerate(msg.ranges):
         ech = e.echoes
         if len(ech) == 0:
             continue
+        ii = inten[k].echoes if inten is not None else ()
         if echo == "first":
-            ranges[k] = ech[0]
+            j = 0
         elif echo == "last":
-            ranges[k] = ech[-1]
+            j = len(ech) - 1
         else:
-            ii = inten[k].echoes if inten is not None else ()
-            ranges[k] = ech[int(np.argmax(ii))] if len(ii) == len(ech) else ech[0]
+            j = int(np.argmax(ii)) if len(ii) == len(ech) else 0
+        ranges[k] = ech[j]
+        if values is not None and len(ii) == len(ech):
+            values[k] = ii[j]
     return SimpleNamespace(header=msg.header, angle_min=msg.angle_min, angle_increment=msg.angle_increment,
                            time_increment=msg.time_increment, range_min=msg.range_min, range_max=msg.range_max,
-                           ranges=ranges)
+                           ranges=ranges, intensities=values if values is not None else ())
 
 
 def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reorder_ns: int,
@@ -476,6 +486,7 @@ def _recorded(index: StreamIndex, line: Scanline, max_gap: float | None = None, 
                           f"{max_gap:g} s without a scan; broken header stamps")
     index.stamps.append(line.stamp)
     index.scanner_ids.append(line.scanner_id)
+    index.intensities = index.intensities or line.intensities is not None
     return line
 
 
