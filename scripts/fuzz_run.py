@@ -12,6 +12,11 @@ Usage:
     .venv/bin/python scripts/fuzz_run.py --cases 1000 --seed 1 [--out out/fuzz] [--timeout-scale 1.0]
         [--kinds bag,rig,...] [--jobs 1] [--duration 3.0]
     .venv/bin/python scripts/fuzz_run.py --replay out/fuzz/violations/case-17
+    .venv/bin/python scripts/fuzz_run.py --report-only out/fuzz/summary-seed1-0.json --docs docs
+
+``--docs DIR`` writes the campaign's figures there: ``fuzz_campaign.json`` (the summary),
+``fuzz_campaign.md`` (count per outcome, per command and per input kind, the wall time) and
+``figures/fuzz_outcomes.png`` (outcomes per input kind).
 """
 
 from __future__ import annotations
@@ -64,6 +69,79 @@ def run_case(i: int, spec: dict[str, Any], materials: Materials, work: Path, vio
     return results
 
 
+OUTCOME_MEANING = {
+    "ok": "exit 0, outputs complete, verdict ok/degraded",
+    "refused": "exit 2, one line naming the input",
+    "failed": "exit 3, outputs complete, verdict failed",
+    "interrupted": "exit 130/143 after SIGINT/SIGTERM, outputs complete or absent",
+    "violation": "anything else (traceback, exit 0 over no data, leftovers, hang)",
+}
+
+
+def _table(rows: list[tuple[str, Counter[str] | dict[str, int]]]) -> list[str]:
+    lines = ["| commands | " + " | ".join(OUTCOMES) + " | total |", "|---|" + "---:|" * (len(OUTCOMES) + 1)]
+    for name, c in rows:
+        lines.append(f"| {name} | " + " | ".join(f"{c.get(o, 0):,}" for o in OUTCOMES)
+                     + f" | {sum(c.values()):,} |")
+    return lines
+
+
+def write_report(summary: dict[str, Any], docs: Path) -> None:
+    """``docs/fuzz_campaign.json``, ``docs/fuzz_campaign.md`` and ``docs/figures/fuzz_outcomes.png``
+    of a campaign's summary (module doc)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    docs.mkdir(parents=True, exist_ok=True)
+    (docs / "fuzz_campaign.json").write_text(json.dumps(summary, indent=1) + "\n")
+    wall = summary["wall_s"]
+    md = [
+        "# Fuzz campaign (issue 24)",
+        "",
+        f"`scripts/fuzz_run.py --cases {summary['cases']} --seed {summary['seed']} --jobs {summary.get('jobs', 1)} "
+        f"--duration {summary.get('duration', 3.0):g}`: {summary['cases']:,} generated cases, "
+        f"{summary['commands']:,} commands, wall time {wall / 60:.1f} min ({wall:.0f} s) on the shared 2-core "
+        "machine. Every command runs in a subprocess as a user runs it and is judged by the invariant of "
+        "`tests/fuzz_invariant.py`.",
+        "",
+        "Outcomes:",
+        "",
+        *[f"- `{o}`: {OUTCOME_MEANING[o]}" for o in OUTCOMES],
+        "",
+        "Per command:",
+        "",
+        *_table([("**all**", summary["outcomes"]), *sorted(summary["by_command"].items())]),
+        "",
+        "Per input kind:",
+        "",
+        *_table(sorted(summary["by_kind"].items())),
+        "",
+        "![outcomes per input kind](figures/fuzz_outcomes.png)",
+        "",
+    ]
+    (docs / "fuzz_campaign.md").write_text("\n".join(md))
+
+    kinds = sorted(summary["by_kind"])
+    colours = {"ok": "#4c9a2a", "refused": "#3b75af", "failed": "#e08b28", "interrupted": "#8c6bb1",
+               "violation": "#c0392b"}
+    fig = Figure(figsize=(8, 3.6))
+    ax = fig.add_subplot()
+    bottom = [0] * len(kinds)
+    for o in OUTCOMES:
+        counts = [summary["by_kind"][k].get(o, 0) for k in kinds]
+        ax.bar(kinds, counts, bottom=bottom, label=f"{o} ({sum(counts)})", color=colours[o])
+        bottom = [b + c for b, c in zip(bottom, counts, strict=True)]
+    ax.set_ylabel("commands")
+    ax.set_title(f"{summary['cases']:,} fuzz cases, {summary['commands']:,} commands: outcome per input kind")
+    ax.legend(fontsize=8)
+    ax.tick_params(axis="x", labelsize=8)
+    fig.tight_layout()
+    (docs / "figures").mkdir(exist_ok=True)
+    fig.savefig(docs / "figures" / "fuzz_outcomes.png", dpi=110)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", type=int, default=100)
@@ -75,7 +153,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="cases run at the same time")
     ap.add_argument("--duration", type=float, default=3.0, help="s of the simulated recordings")
     ap.add_argument("--replay", type=Path, default=None, help="a violation folder: run its spec.json again")
+    ap.add_argument("--docs", type=Path, default=None, help="write the campaign's report there (module doc)")
+    ap.add_argument("--report-only", type=Path, default=None, help="a summary JSON: write its report to --docs")
     args = ap.parse_args(argv)
+    if args.report_only is not None:
+        write_report(json.loads(args.report_only.read_text()), args.docs or ROOT / "docs")
+        return 0
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -140,9 +223,12 @@ def main(argv: list[str] | None = None) -> int:
     for name, c in [("all", by_outcome), *sorted(by_command.items()), *sorted((f"[{k}]", v) for k, v in by_kind.items())]:
         print(f"{name:12s} " + " ".join(f"{c.get(o, 0):11d}" for o in OUTCOMES))
     summary = {"cases": len(specs), "commands": n_cmd, "seed": args.seed, "start": args.start, "wall_s": wall,
+               "jobs": args.jobs, "duration": args.duration,
                "outcomes": dict(by_outcome), "by_command": {k: dict(v) for k, v in by_command.items()},
                "by_kind": {k: dict(v) for k, v in by_kind.items()}}
     (out / f"summary-seed{args.seed}-{args.start}.json").write_text(json.dumps(summary, indent=1))
+    if args.docs is not None:
+        write_report(summary, args.docs)
     if by_outcome.get("violation"):
         print(f"violations kept in {violations}/")
         return 1
