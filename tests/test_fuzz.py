@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def materials(tmp_path_factory: pytest.TempPathFactory) -> Materials:
-    return build_materials(tmp_path_factory.mktemp("fuzz") / "materials", duration=1.5)
+    return build_materials(tmp_path_factory.mktemp("fuzz") / "materials", duration=1.0)
 
 
 def _run_case(spec: dict[str, Any], materials: Materials, folder: Path) -> list[Any]:
@@ -38,7 +38,7 @@ def _run_case(spec: dict[str, Any], materials: Materials, folder: Path) -> list[
 QUICK_KINDS = tuple(k for k in KINDS if k != "run_dir")  # run_dir's evaluate needs seconds per case
 
 
-@settings(max_examples=10, deadline=None, derandomize=True,
+@settings(max_examples=8, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
                                  HealthCheck.data_too_large])
 @given(data=st.data())
