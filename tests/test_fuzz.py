@@ -151,6 +151,15 @@ REGRESSIONS: list[tuple[str, dict[str, Any], list[tuple[str, str]]]] = [
      {"kind": "run_dir", "seed": 1, "how": "traj_far", "format": "las", "plots": False, "at": 0.5,
       "commands": ["evaluate"]},
      [("refused", "trajectory.tum: positions beyond")]),
+    ("an .npz scanline of complex numbers: numpy's ComplexWarning on stderr, the imaginary part dropped",
+     {"kind": "scanline", "seed": 835967584, "fmt": "npz", "how": "complex", "n": 3, "scans": 3,
+      "method": "split_and_merge", "noise": "auto", "plot": False, "commands": ["segment"]},
+     [("refused", "case.npz: key 'ranges' is complex")]),
+    ("a trajectory of one pose: evaluate's and export's errors named no file",
+     {"kind": "run_dir", "seed": 1769711564, "how": "traj_one", "format": "e57", "plots": False, "at": 0.7741,
+      "commands": ["evaluate", "export"]},
+     [("refused", "trajectory.tum against the ground truth"),
+      ("refused", "trajectory.tum: 1 pose(s); E57's scan poses are interpolated between at least 2")]),
 ]
 
 
