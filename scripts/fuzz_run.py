@@ -39,7 +39,16 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):  # before numpy: the fo
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT))
 
-from fuzz_inputs import KINDS, Materials, RandomChooser, build_case, build_materials, draw_spec  # noqa: E402
+from fuzz_inputs import (  # noqa: E402
+    KINDS,
+    Materials,
+    RandomChooser,
+    build_case,
+    build_materials,
+    calibrate_command,
+    draw_spec,
+    run_command,
+)
 from fuzz_invariant import OUTCOMES, Result, preload, run_subprocess  # noqa: E402
 
 
@@ -146,6 +155,24 @@ def write_report(summary: dict[str, Any], docs: Path) -> None:
     fig.savefig(docs / "figures" / "fuzz_outcomes.png", dpi=110)
 
 
+def warm_up(materials: Materials, folder: Path) -> float:
+    """Run and calibrate the materials' bag once, outside the count: numba compiles the kernels
+    into its on-disk cache the first time (a minute of CPU), which every case would otherwise
+    pay until one finished. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    if folder.exists():
+        shutil.rmtree(folder)
+    (folder / "out").mkdir(parents=True)
+    for cmd in (run_command(materials.bags["ros1"], materials.rig, folder, []),
+                calibrate_command(materials.bags["ros1"], materials.rig, folder, [])):
+        r = run_subprocess(cmd, folder, timeout_scale=10.0)
+        if r.outcome != "ok":
+            print(f"warm-up {cmd.name}: {r.outcome} rc={r.rc} {'; '.join(r.violations)} "
+                  f"{r.stderr.strip()[-300:]}", file=sys.stderr)
+    shutil.rmtree(folder, ignore_errors=True)
+    return time.perf_counter() - t0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", type=int, default=100)
@@ -175,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     work, violations = out / "work", out / "violations"
     work.mkdir(exist_ok=True)
     violations.mkdir(exist_ok=True)
+    print(f"warm-up (numba's cache): {warm_up(materials, out / 'warmup'):.1f} s", flush=True)
 
     if args.replay is not None:
         spec = json.loads((args.replay / "spec.json").read_text())
