@@ -223,6 +223,10 @@ class Forked:
                     f = os.open(path, flags, 0o644)
                     os.dup2(f, fd)
                     os.close(f)
+                # whatever stood for them (a test runner's capture) goes; the files take their place
+                sys.stdin = sys.__stdin__ = open(0, closefd=False)
+                sys.stdout = sys.__stdout__ = open(1, "w", closefd=False)
+                sys.stderr = sys.__stderr__ = open(2, "w", closefd=False)
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
                 from backpack_slam.cli import main

@@ -251,6 +251,16 @@ def test_campaign_runner_judges_a_signal_case(materials: Materials, tmp_path: Pa
     assert r.outcome in ("interrupted", "ok"), (r.violations, r.stderr[-1500:])
 
 
+def test_fork_runner_judges_a_forked_command(materials: Materials, tmp_path: Path) -> None:
+    """The long campaign's default runner: the command forked from this process, its stderr, exit
+    code and outputs judged as a subprocess's."""
+    spec = {"kind": "cli", "seed": 1, "command": "run", "option": "--voxel", "value": "inf", "fmt": "ros1"}
+    case = build_case(spec, materials, tmp_path)
+    (r,) = [run_subprocess(cmd, tmp_path, fork=True) for cmd in case.commands]
+    assert (r.outcome, r.rc) == ("refused", 2), (r.violations, r.stderr)
+    assert r.stderr.strip() == "backpack-slam: error: --voxel inf: must be finite and > 0"
+
+
 def test_judge_flags_what_breaks_the_invariant(tmp_path: Path) -> None:
     from fuzz_inputs import Command, Output
 
