@@ -115,8 +115,10 @@ def write_report(summary: dict[str, Any], docs: Path) -> None:
         "",
         f"`scripts/fuzz_run.py --cases {summary['cases']} --seed {summary['seed']} --jobs {summary.get('jobs', 1)} "
         f"--duration {summary.get('duration', 3.0):g}`: {summary['cases']:,} generated cases, "
-        f"{summary['commands']:,} commands, wall time {wall / 60:.1f} min ({wall:.0f} s) on the shared 2-core "
-        "machine. Every command runs in a subprocess as a user runs it and is judged by the invariant of "
+        f"{summary['commands']:,} commands, wall time {wall / 60:.1f} min ({wall:.0f} s; the cases "
+        f"{summary.get('cases_s', wall) / 60:.1f} min, the warm-up {summary.get('warm_up_s', 0.0):.0f} s) on the "
+        "shared 2-core machine (other work on it too). Every command runs in its own process "
+        f"({summary.get('runner', 'subprocess')} runner) and is judged by the invariant of "
         "`tests/fuzz_invariant.py`.",
         "",
         "Outcomes:",
@@ -198,11 +200,13 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     materials = build_materials(out / "materials", duration=args.duration)
-    print(f"materials: {materials.root} ({time.perf_counter() - t0:.1f} s)", flush=True)
+    materials_s = time.perf_counter() - t0
+    print(f"materials: {materials.root} ({materials_s:.1f} s)", flush=True)
     work, violations = out / "work", out / "violations"
     work.mkdir(exist_ok=True)
     violations.mkdir(exist_ok=True)
-    print(f"warm-up (numba's cache): {warm_up(materials, out / 'warmup'):.1f} s", flush=True)
+    warm_s = 0.0 if args.replay is not None else warm_up(materials, out / "warmup")
+    print(f"warm-up (numba's cache): {warm_s:.1f} s", flush=True)
 
     if args.replay is not None:
         spec = json.loads((args.replay / "spec.json").read_text())
@@ -252,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{n_done}/{len(specs)} cases, {el / 60:.1f} min: {dict(by_outcome)}", flush=True)
     log.close()
     wall = time.perf_counter() - t0
+    cases_s = time.perf_counter() - t_cases
     n_cmd = sum(by_outcome.values())
     print(f"\n{len(specs)} cases, {n_cmd} commands, seed {args.seed}, wall time {wall / 60:.1f} min "
           f"({wall:.0f} s)")
@@ -259,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, c in [("all", by_outcome), *sorted(by_command.items()), *sorted((f"[{k}]", v) for k, v in by_kind.items())]:
         print(f"{name:12s} " + " ".join(f"{c.get(o, 0):11d}" for o in OUTCOMES))
     summary = {"cases": len(specs), "commands": n_cmd, "seed": args.seed, "start": args.start, "wall_s": wall,
+               "cases_s": cases_s, "warm_up_s": warm_s, "materials_s": materials_s,
                "jobs": args.jobs, "duration": args.duration, "runner": args.runner,
                "outcomes": dict(by_outcome), "by_command": {k: dict(v) for k, v in by_command.items()},
                "by_kind": {k: dict(v) for k, v in by_kind.items()}}
