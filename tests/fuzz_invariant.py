@@ -7,8 +7,8 @@ For every command over a case's inputs (``tests/fuzz_inputs.py``), one of:
 - ``refused``: exit 2 with one line ``backpack-slam: error: ...`` on stderr naming the input
   (besides the run's ``note:`` lines), nothing written;
 - ``failed``: exit 3 from ``run``, its outputs complete and marked ``failed`` in ``summary.json``;
-- ``interrupted``: exit 130 (SIGINT) or 143 (SIGTERM) after the case's signal, the outputs
-  complete or absent;
+- ``interrupted``: exit 130 (SIGINT) or 143 (SIGTERM) after the case's signal (or an exit by
+  that signal, before the CLI's handlers are in place), the outputs complete or absent;
 
 and never a traceback, another exit code, stray lines on stderr, a temporary file left behind
 (``.tmp-``, ``.old-``, ``.partN.rows``), or a hang (the command's time limit). Anything else is
@@ -35,6 +35,7 @@ from fuzz_inputs import Command, Output
 ROOT = Path(__file__).resolve().parents[1]
 OUTCOMES = ("ok", "refused", "failed", "interrupted", "violation")
 EXIT_SIGNAL = {"INT": 130, "TERM": 143}
+SIGNUM = {"INT": int(signal.SIGINT), "TERM": int(signal.SIGTERM)}
 _PROGRESS = re.compile(r"\d+%\||\[\d+:\d+(:\d+)?[<,]")
 _ALLOWED = {
     0: ("note: ", "warning: ", "backpack-slam: warning: "),
@@ -161,7 +162,9 @@ def judge(cmd: Command, rc: int | None, stderr: str, folder: Path, timed_out: bo
         for out in cmd.outputs:
             if out.path.exists():
                 bad.append(f"exit 2 but {out.path} was written")
-    elif cmd.signal is not None and rc == EXIT_SIGNAL[cmd.signal[0]]:
+    elif cmd.signal is not None and rc in (EXIT_SIGNAL[cmd.signal[0]], -SIGNUM[cmd.signal[0]]):
+        # exit by the signal itself (a shell's status 128 + n, as the CLI's own exit code) happens when it
+        # lands before the CLI's handlers are in place (the interpreter's start-up)
         outcome = "interrupted"
         for out in cmd.outputs:
             why = check_complete(out) if out.path.exists() else None

@@ -205,7 +205,7 @@ def test_simulated_ros2_bag_names_its_storage_file_after_itself(materials: Mater
 # ---- signals: a subprocess, as a user's shell sends them ----------------------------------------------
 def _signalled_run(materials: Materials, folder: Path, sig: signal.Signals, group: bool) -> tuple[int, str, Path]:
     """``run`` on the materials' bag, signalled once it is writing its outputs (its temporary
-    folder exists) or after 20 s."""
+    folder exists; polled, no fixed sleep) or after 90 s without it (a loaded machine)."""
     out = folder / "run"
     proc = subprocess.Popen([sys.executable, "-m", "backpack_slam.cli", "run", str(materials.bags["ros1"]), "--rig",
                              str(materials.rig), "--out", str(out), "--quiet"], cwd=folder, env=python_env(),
@@ -231,7 +231,8 @@ def test_a_signal_leaves_no_half_written_output(materials: Materials, tmp_path: 
     else:
         assert rc == code, err
         assert err.strip().splitlines()[-1] == ("backpack-slam: terminated" if code == 143 else "backpack-slam: interrupted")
-        assert not out.exists()
+        # absent, or complete when the signal landed between the folder's commit and the exit
+        assert not out.exists() or (out / "summary.json").is_file()
     assert temporaries(tmp_path) == []
     deadline = time.monotonic() + 10
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
