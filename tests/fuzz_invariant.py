@@ -272,15 +272,31 @@ class Forked:
             os.kill(self.pid, sig)
 
 
+# what the commands import lazily, in the fork server: everything but the modules that start threads at
+# import (rerun, through slam.run_folder), which a forked child would inherit without their threads
+PRELOAD = ("gtsam", "slam.pipeline", "slam.prefetch", "slam.io.source", "slam.io.bag", "slam.io.carmen",
+           "slam.io.scanfile", "slam.health", "slam.preflight", "slam.evaluate", "slam.survey",
+           "calibration.estimator", "rosbags.highlevel", "evo.core.metrics", "laspy", "pye57", "matplotlib.figure")
+
+
 def preload() -> None:
-    """Import what every command imports, once, before :class:`Forked` children are made."""
+    """Import what the commands import, once, before :class:`Forked` children are made (a
+    worker's initializer); the process must stay single-threaded for them."""
+    import importlib
+
     for k, v in python_env().items():
         if k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             os.environ.setdefault(k, v)
     os.environ.pop("BACKPACK_SLAM_DEBUG", None)
-    import gtsam  # noqa: F401
+    from backpack_slam.cli import build_parser
 
-    import backpack_slam.cli  # noqa: F401
+    build_parser()  # imports every command's module
+    for name in PRELOAD:
+        with contextlib.suppress(ImportError):
+            importlib.import_module(name)
+    threads = len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else 1
+    if threads != 1:
+        print(f"warning: the fork server runs {threads} threads after its imports", file=sys.stderr)
 
 
 def run_subprocess(cmd: Command, folder: Path, timeout_scale: float = 1.0, fork: bool = False) -> Result:
