@@ -160,6 +160,12 @@ REGRESSIONS: list[tuple[str, dict[str, Any], list[tuple[str, str]]]] = [
       "commands": ["evaluate", "export"]},
      [("refused", "trajectory.tum against the ground truth"),
       ("refused", "trajectory.tum: 1 pose(s); E57's scan poses are interpolated between at least 2")]),
+    ("run --out '': PosixPath('.') has an empty name, naming no option",
+     {"kind": "cli", "seed": 1, "command": "run", "option": "--out", "value": "", "fmt": "ros1"},
+     [("refused", "argument --out: '' names no file or folder to write")]),
+    ("export --out .: the same",
+     {"kind": "cli", "seed": 1, "command": "export", "option": "--out", "value": ".", "fmt": "ros2"},
+     [("refused", "argument --out: '.' names no file or folder to write")]),
 ]
 
 

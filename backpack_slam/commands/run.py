@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from backpack_slam.commands import output_path
 from common.rig import resolve_rig
 from slam.config import load_slam_config, with_segmenter
 from slam.health import EXIT_FAILED
@@ -42,7 +43,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--segmenter", default=None, help="segmenter name (overrides the config)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="segmenter parameter (repeatable)")
     p.add_argument("--voxel", type=float, default=None, help="thin cloud.ply to one point per voxel of this size (m)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=output_path, help="output folder")
     p.add_argument("--cloud-format", default=None, metavar="FMT",
                    help="also write the cloud as FMT for survey tools: laz, las, e57 or pcd (OUT/cloud.FMT)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
