@@ -1639,7 +1639,7 @@ def build_run_dir(spec: dict[str, Any], materials: Materials, folder: Path) -> l
         else:
             out = folder / "out" / f"cloud.{spec['format']}"
             cmds.append(Command("export", ["export", str(run_dir), "--format", spec["format"], "--out", str(out)],
-                                [Output(out)], culprits, no_usable and how != "traj_nan"))
+                                [Output(out)], culprits, how == "cloud_no_points"))  # only E57 reads the trajectory
     return cmds
 
 
