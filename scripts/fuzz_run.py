@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="fork: each command a child forked from a worker that imported the package once "
                          "(default, ~1.6 s of CPU less a command); subprocess: python -m backpack_slam.cli")
     ap.add_argument("--replay", type=Path, default=None, help="a violation folder: run its spec.json again")
+    ap.add_argument("--only", default=None, help="comma-separated case indices of the seed to run (re-run a campaign's cases)")
     ap.add_argument("--docs", type=Path, default=None, help="write the campaign's report there (module doc)")
     ap.add_argument("--report-only", type=Path, default=None, help="a summary JSON: write its report to --docs")
     args = ap.parse_args(argv)
@@ -223,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown kinds {sorted(unknown)}; known: {', '.join(KINDS)}")
     specs = []
-    for i in range(args.start, args.start + args.cases):
+    indices = ([int(k) for k in args.only.split(",") if k.strip()] if args.only
+               else range(args.start, args.start + args.cases))
+    for i in indices:
         ch = RandomChooser(case_seed(args.seed, i))
         specs.append((i, draw_spec(ch, ch.choice(kinds))))
 
