@@ -120,6 +120,13 @@ def write_report(summary: dict[str, Any], docs: Path) -> None:
         "shared 2-core machine (other work on it too). Every command runs in its own process "
         f"({summary.get('runner', 'subprocess')} runner) and is judged by the invariant of "
         "`tests/fuzz_invariant.py`.",
+        *([] if not summary.get("rerun_cases") else [
+            "",
+            f"With the code at the campaign's start, {summary['base_outcomes'].get('violation', 0)} commands broke the "
+            "invariant (see the closing note of issue 24 and the regression cases in `tests/test_fuzz.py`). After "
+            f"the fixes, the {len(summary['rerun_cases'])} cases whose inputs reach the changed code (every "
+            "violation among them) were run again (`--only`, same seed); the tables count the re-runs in place "
+            "of the first runs (`--merge`), the wall time is both together."]),
         "",
         "Outcomes:",
         "",
@@ -157,6 +164,30 @@ def write_report(summary: dict[str, Any], docs: Path) -> None:
     fig.savefig(docs / "figures" / "fuzz_outcomes.png", dpi=110)
 
 
+def merged_summary(base: Path, rerun: Path) -> dict[str, Any]:
+    """The summary of ``base``'s results (a campaign's ``results.jsonl``) where the cases in
+    ``rerun`` (the same seed's cases run again, ``--only``) take their re-run's rows; the
+    times are the base campaign's (``BASE/summary-*.json``) plus the re-run's."""
+    rows = [json.loads(ln) for ln in base.read_text().splitlines() if ln.strip()]
+    again = [json.loads(ln) for ln in rerun.read_text().splitlines() if ln.strip()]
+    redone = {r["case"] for r in again}
+    rows = [r for r in rows if r["case"] not in redone] + again
+    by_outcome: Counter[str] = Counter(r["outcome"] for r in rows)
+    by_command: dict[str, Counter[str]] = {}
+    by_kind: dict[str, Counter[str]] = {}
+    for r in rows:
+        by_command.setdefault(r["command"], Counter())[r["outcome"]] += 1
+        by_kind.setdefault(r["kind"], Counter())[r["outcome"]] += 1
+    summaries = [json.loads(p.read_text()) for p in (*base.parent.glob("summary-*.json"), *rerun.parent.glob("summary-*.json"))]
+    first = json.loads(next(base.parent.glob("summary-*.json")).read_text())
+    return {**first, "cases": len({r["case"] for r in rows}), "commands": len(rows),
+            "wall_s": sum(x["wall_s"] for x in summaries), "cases_s": sum(x.get("cases_s", x["wall_s"]) for x in summaries),
+            "warm_up_s": sum(x.get("warm_up_s", 0.0) for x in summaries), "outcomes": dict(by_outcome),
+            "by_command": {k: dict(v) for k, v in by_command.items()}, "by_kind": {k: dict(v) for k, v in by_kind.items()},
+            "rerun_cases": sorted(redone),
+            "base_outcomes": dict(Counter(json.loads(ln)["outcome"] for ln in base.read_text().splitlines() if ln.strip()))}
+
+
 def warm_up(materials: Materials, folder: Path) -> float:
     """Run and calibrate the materials' bag once, outside the count: numba compiles the kernels
     into its on-disk cache the first time (a minute of CPU), which every case would otherwise
@@ -190,9 +221,18 @@ def main(argv: list[str] | None = None) -> int:
                          "(default, ~1.6 s of CPU less a command); subprocess: python -m backpack_slam.cli")
     ap.add_argument("--replay", type=Path, default=None, help="a violation folder: run its spec.json again")
     ap.add_argument("--only", default=None, help="comma-separated case indices of the seed to run (re-run a campaign's cases)")
+    ap.add_argument("--merge", nargs=2, type=Path, default=None, metavar=("BASE_JSONL", "RERUN_JSONL"),
+                    help="a campaign's results.jsonl with the rows of the cases re-run (--only) replaced by the "
+                         "re-run's: print and report (--docs) the merged counts")
     ap.add_argument("--docs", type=Path, default=None, help="write the campaign's report there (module doc)")
     ap.add_argument("--report-only", type=Path, default=None, help="a summary JSON: write its report to --docs")
     args = ap.parse_args(argv)
+    if args.merge is not None:
+        summary = merged_summary(*args.merge)
+        print(json.dumps({k: summary[k] for k in ("cases", "commands", "outcomes", "rerun_cases")}))
+        if args.docs is not None:
+            write_report(summary, args.docs)
+        return 0
     if args.report_only is not None:
         write_report(json.loads(args.report_only.read_text()), args.docs or ROOT / "docs")
         return 0
