@@ -123,7 +123,7 @@ def write_report(summary: dict[str, Any], docs: Path) -> None:
         *([] if not summary.get("rerun_cases") else [
             "",
             f"With the code at the campaign's start, {summary['base_outcomes'].get('violation', 0)} commands broke the "
-            "invariant (see the closing note of issue 24 and the regression cases in `tests/test_fuzz.py`). After "
+            "invariant (each fixed and kept as a regression case in `tests/test_fuzz.py`). After "
             f"the fixes, the {len(summary['rerun_cases'])} cases whose inputs reach the changed code (every "
             "violation among them) were run again (`--only`, same seed); the tables count the re-runs in place "
             "of the first runs (`--merge`), the wall time is both together."]),
