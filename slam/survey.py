@@ -68,6 +68,9 @@ def export_cloud(cloud_ply: str | Path, out: str | Path, fmt: SurveyFormat | Non
         if len(times) < 2:
             raise OutputFileError(f"{trajectory_tum}: {len(times)} pose(s); E57's scan poses are interpolated "
                                   "between at least 2")
+        if not np.all(np.diff(times) > 0):
+            raise OutputFileError(f"{trajectory_tum}: times must be strictly increasing (E57's scan poses are "
+                                  "interpolated along them)")
     chunks = _counted(iter_cloud_ply(src, E57_CHUNK) if f == "e57" else iter_cloud_ply(src), progress)
     with atomic_path(dst) as tmp:
         if f in ("las", "laz"):
