@@ -12,3 +12,11 @@ def output_path(text: str) -> Path:
     if path.name in ("", "..") or not text.strip():
         raise argparse.ArgumentTypeError(f"{text!r} names no file or folder to write")
     return path
+
+
+def input_file(text: str) -> str:
+    """A value naming a file to read (or a rig by name): not empty (``''`` is the current folder
+    to the readers, whose error then names no option)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} names no file")
+    return text
