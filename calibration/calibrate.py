@@ -200,6 +200,9 @@ def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamCon
     """One round (steps 1-3) with the current ``rig``; priors around ``initial``; SLAM gates for
     an extrinsic ``uncertainty`` (rad, m; None: the plain configuration)."""
     res, log = run_slam(scans(rig), rig, slam_cfg, uncertainty)
+    if len(res.knot_times) < 2:
+        raise ValueError(f"no trajectory to calibrate along ({len(res.knot_times)} knot(s)): no usable scans on the "
+                         "topics " + ", ".join(s.topic for s in rig.scanners))
     obs = log.observations(rig, res.segment_rows)
     planes = {int(j): (n, float(d)) for j, n, d in
               zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True)}

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+MAX_SCAN_SPAN = 1.0  # s: beams of one 2D scan spread over longer than this are a corrupt time_increment
+
 FloatArray = NDArray[np.float64]
 
 
@@ -125,6 +127,10 @@ class Scanline:
         with np.errstate(invalid="ignore"):  # a signalling NaN (a corrupt message) is a NaN like any other
             ranges = np.asarray(msg.ranges, dtype=np.float64)
         n = ranges.size
+        span = abs(float(msg.time_increment)) * max(n - 1, 0)
+        if span > MAX_SCAN_SPAN:
+            raise ValueError(f"time_increment {float(msg.time_increment):g} s makes the {n} beams span {span:g} s "
+                             f"(a 2D scanner's sweep lasts under {MAX_SCAN_SPAN:g} s)")
         angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(n, dtype=np.float64)
         if stamp is None:
             st = msg.header.stamp

@@ -864,7 +864,10 @@ def evaluate(
         raise EvaluationError(f"{run}: run folder not found")
     gt = load_ground_truth(gt_dir)
     t_est, T_est = read_trajectory_tum(run / "trajectory.tum")
-    traj = trajectory_errors(t_est, T_est, gt.times, gt.T_world_body)
+    try:
+        traj = trajectory_errors(t_est, T_est, gt.times, gt.T_world_body)
+    except EvaluationError as e:
+        raise EvaluationError(f"{run / 'trajectory.tum'} against the ground truth {gt_dir}: {e}") from None
     T_map = {"start": traj.T_align_start, "se3": traj.T_align_se3, "none": np.eye(4)}[map_alignment]
     skipped: dict[str, str] = {}
 

@@ -66,14 +66,21 @@ def export_cloud(cloud_ply: str | Path, out: str | Path, fmt: SurveyFormat | Non
     n, _, intensity = cloud_ply_format(src)
     if n == 0:
         raise OutputFileError(f"{src}: the cloud has no points; nothing to export")
+    if f == "e57":
+        if trajectory_tum is None:
+            raise OutputFileError(f"{dst}: E57 needs the run's trajectory.tum for the scan poses")
+        times, T_world_body = read_trajectory_tum(trajectory_tum)
+        if len(times) < 2:
+            raise OutputFileError(f"{trajectory_tum}: {len(times)} pose(s); E57's scan poses are interpolated "
+                                  "between at least 2")
+        if not np.all(np.diff(times) > 0):
+            raise OutputFileError(f"{trajectory_tum}: times must be strictly increasing (E57's scan poses are "
+                                  "interpolated along them)")
     chunks = _counted(iter_cloud_ply(src, E57_CHUNK) if f == "e57" else iter_cloud_ply(src), progress)
     with atomic_path(dst) as tmp:
         if f in ("las", "laz"):
             _write_las(tmp, chunks, compress=f == "laz", intensity_scale=las_intensity_scale(src) if intensity else None)
         elif f == "e57":
-            if trajectory_tum is None:
-                raise OutputFileError(f"{dst}: E57 needs the run's trajectory.tum for the scan poses")
-            times, T_world_body = read_trajectory_tum(trajectory_tum)
             _write_e57(tmp, chunks, times, T_world_body)
         else:
             _write_pcd(tmp, chunks, n, intensity)

@@ -1633,11 +1633,13 @@ def build_run_dir(spec: dict[str, Any], materials: Materials, folder: Path) -> l
     for c in spec["commands"]:
         if c == "evaluate":
             argv = ["evaluate", str(run_dir), "--gt", str(gt)] + ([] if spec["plots"] else ["--no-plots"])
-            cmds.append(Command("evaluate", argv, [Output(run_dir / "eval.json", check="json")], culprits, no_usable))
+            # evaluate skips (and names) a cloud without points: only a trajectory without poses leaves it nothing
+            cmds.append(Command("evaluate", argv, [Output(run_dir / "eval.json", check="json")], culprits,
+                                no_usable and how in ("traj_nan", "traj_empty")))
         else:
             out = folder / "out" / f"cloud.{spec['format']}"
             cmds.append(Command("export", ["export", str(run_dir), "--format", spec["format"], "--out", str(out)],
-                                [Output(out)], culprits, no_usable and how != "traj_nan"))
+                                [Output(out)], culprits, how == "cloud_no_points"))  # only E57 reads the trajectory
     return cmds
 
 

@@ -7,8 +7,8 @@ For every command over a case's inputs (``tests/fuzz_inputs.py``), one of:
 - ``refused``: exit 2 with one line ``backpack-slam: error: ...`` on stderr naming the input
   (besides the run's ``note:`` lines), nothing written;
 - ``failed``: exit 3 from ``run``, its outputs complete and marked ``failed`` in ``summary.json``;
-- ``interrupted``: exit 130 (SIGINT) or 143 (SIGTERM) after the case's signal, the outputs
-  complete or absent;
+- ``interrupted``: exit 130 (SIGINT) or 143 (SIGTERM) after the case's signal (or an exit by
+  that signal, before the CLI's handlers are in place), the outputs complete or absent;
 
 and never a traceback, another exit code, stray lines on stderr, a temporary file left behind
 (``.tmp-``, ``.old-``, ``.partN.rows``), or a hang (the command's time limit). Anything else is
@@ -35,6 +35,7 @@ from fuzz_inputs import Command, Output
 ROOT = Path(__file__).resolve().parents[1]
 OUTCOMES = ("ok", "refused", "failed", "interrupted", "violation")
 EXIT_SIGNAL = {"INT": 130, "TERM": 143}
+SIGNUM = {"INT": int(signal.SIGINT), "TERM": int(signal.SIGTERM)}
 _PROGRESS = re.compile(r"\d+%\||\[\d+:\d+(:\d+)?[<,]")
 _ALLOWED = {
     0: ("note: ", "warning: ", "backpack-slam: warning: "),
@@ -161,7 +162,9 @@ def judge(cmd: Command, rc: int | None, stderr: str, folder: Path, timed_out: bo
         for out in cmd.outputs:
             if out.path.exists():
                 bad.append(f"exit 2 but {out.path} was written")
-    elif cmd.signal is not None and rc == EXIT_SIGNAL[cmd.signal[0]]:
+    elif cmd.signal is not None and rc in (EXIT_SIGNAL[cmd.signal[0]], -SIGNUM[cmd.signal[0]]):
+        # exit by the signal itself (a shell's status 128 + n, as the CLI's own exit code) happens when it
+        # lands before the CLI's handlers are in place (the interpreter's start-up)
         outcome = "interrupted"
         for out in cmd.outputs:
             why = check_complete(out) if out.path.exists() else None
@@ -201,10 +204,106 @@ def _group_alive(pgid: int) -> bool:
     return True
 
 
-def run_subprocess(cmd: Command, folder: Path, timeout_scale: float = 1.0) -> Result:
-    """``cmd`` as a user runs it (``python -m backpack_slam.cli``, its own session), with its
-    signal; stdout and stderr go to files, so that a helper process left behind cannot hold the
-    command open. Processes of its session still alive after it exited are a violation."""
+class Forked:
+    """``backpack_slam.cli.main(argv)`` in a child forked from this process (its own session, cwd
+    ``folder``, stdout and stderr to files), as ``python -m backpack_slam.cli`` would run it but
+    without the interpreter's start-up and imports (about 1.6 s of CPU a command): the part of
+    :class:`subprocess.Popen` that :func:`run_subprocess` uses. An exception ``main`` lets through
+    is printed as a traceback with exit 1, as Python does."""
+
+    def __init__(self, argv: list[str], folder: Path, out_path: Path, err_path: Path) -> None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child
+            code = 1
+            try:
+                os.setsid()
+                os.chdir(folder)
+                for fd, path, flags in ((0, os.devnull, os.O_RDONLY),
+                                        (1, str(out_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC),
+                                        (2, str(err_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC)):
+                    f = os.open(path, flags, 0o644)
+                    os.dup2(f, fd)
+                    os.close(f)
+                # whatever stood for them (a test runner's capture) goes; the files take their place
+                sys.stdin = sys.__stdin__ = open(0, closefd=False)
+                sys.stdout = sys.__stdout__ = open(1, "w", closefd=False)
+                sys.stderr = sys.__stderr__ = open(2, "w", closefd=False)
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+                from backpack_slam.cli import main
+
+                try:
+                    code = main(argv)
+                except SystemExit as e:
+                    code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+                except BaseException:
+                    import traceback
+
+                    traceback.print_exc()
+                    code = 1
+            finally:
+                with contextlib.suppress(Exception):
+                    sys.stdout.flush()
+                    sys.stderr.flush()
+                os._exit(code & 0xFF)
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        t0 = time.perf_counter()
+        while self.poll() is None:
+            if timeout is not None and time.perf_counter() - t0 > timeout:
+                raise subprocess.TimeoutExpired("backpack_slam.cli.main", timeout)
+            time.sleep(0.02)
+        assert self.returncode is not None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            os.kill(self.pid, sig)
+
+
+# what the commands import lazily, in the fork server: everything but the modules that start threads at
+# import (rerun, through slam.run_folder), which a forked child would inherit without their threads
+PRELOAD = ("gtsam", "slam.pipeline", "slam.prefetch", "slam.io.source", "slam.io.bag", "slam.io.carmen",
+           "slam.io.scanfile", "slam.health", "slam.preflight", "slam.evaluate", "slam.survey",
+           "calibration.estimator", "rosbags.highlevel", "evo.core.metrics", "laspy", "pye57", "matplotlib.figure")
+
+
+def preload() -> None:
+    """Import what the commands import, once, before :class:`Forked` children are made (a
+    worker's initializer); the process must stay single-threaded for them."""
+    import importlib
+
+    for k, v in python_env().items():
+        if k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+            os.environ.setdefault(k, v)
+    os.environ.pop("BACKPACK_SLAM_DEBUG", None)
+    from backpack_slam.cli import build_parser
+
+    build_parser()  # imports every command's module
+    for name in PRELOAD:
+        with contextlib.suppress(ImportError):
+            importlib.import_module(name)
+    threads = len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else 1
+    if threads != 1:
+        print(f"warning: the fork server runs {threads} threads after its imports", file=sys.stderr)
+
+
+def run_subprocess(cmd: Command, folder: Path, timeout_scale: float = 1.0, fork: bool = False) -> Result:
+    """``cmd`` as a user runs it (``python -m backpack_slam.cli``, its own session; with ``fork``
+    a :class:`Forked` child of this process instead), with its signal; stdout and stderr go to
+    files, so that a helper process left behind cannot hold the command open. Processes of its
+    session still alive after it exited are a violation."""
     argv = [sys.executable, "-m", "backpack_slam.cli", *cmd.argv]
     timeout = cmd.timeout * timeout_scale
     logs = folder / "logs"
@@ -212,8 +311,12 @@ def run_subprocess(cmd: Command, folder: Path, timeout_scale: float = 1.0) -> Re
     k = len(list(logs.glob("*.stdout")))
     out_path, err_path = logs / f"{k}-{cmd.name}.stdout", logs / f"{k}-{cmd.name}.stderr"
     t0 = time.perf_counter()
-    with out_path.open("w") as fo, err_path.open("w") as fe:
-        proc = subprocess.Popen(argv, cwd=folder, stdout=fo, stderr=fe, env=python_env(), start_new_session=True)
+    proc: subprocess.Popen[bytes] | Forked
+    if fork:
+        proc = Forked(list(cmd.argv), folder, out_path, err_path)
+    else:
+        with out_path.open("w") as fo, err_path.open("w") as fe:
+            proc = subprocess.Popen(argv, cwd=folder, stdout=fo, stderr=fe, env=python_env(), start_new_session=True)
     timed_out = False
     left_behind = False
     try:

@@ -9,6 +9,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from backpack_slam.commands import input_file, output_path
+
 DESCRIPTION = """Run SLAM on BAG with the initial rig, then refine the non-reference scanners'
 T_body_scanner (and with --time-offsets their clock offsets) in one factor graph with poses and
 planes; repeat with the updated rig until the extrinsics settle. Writes OUT (a rig YAML with the
@@ -21,9 +23,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p: argparse.ArgumentParser = sub.add_parser("calibrate", help="calibrate the scanners' extrinsics from a recording",
                                                 description=DESCRIPTION)
     p.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder with the rig's LaserScan topics")
-    p.add_argument("--rig", required=True, help="initial rig: name (configs/rig/NAME.yaml) or YAML path")
-    p.add_argument("--out", required=True, type=Path, help="calibrated rig YAML to write")
-    p.add_argument("--config", default=None, help="SLAM config YAML (default: built-in defaults)")
+    p.add_argument("--rig", required=True, type=input_file, help="initial rig: name (configs/rig/NAME.yaml) or YAML path")
+    p.add_argument("--out", required=True, type=output_path, help="calibrated rig YAML to write")
+    p.add_argument("--config", default=None, type=input_file, help="SLAM config YAML (default: built-in defaults)")
     p.add_argument("--time-offsets", action="store_true", help="also estimate a clock offset per scanner")
     p.add_argument("--report", type=Path, default=None, metavar="DIR", help="write the report folder DIR")
     p.add_argument("--rounds", type=int, default=3, help="maximum SLAM + batch rounds (default 3)")

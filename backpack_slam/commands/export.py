@@ -8,6 +8,8 @@ from typing import Any
 
 from tqdm import tqdm
 
+from backpack_slam.commands import output_path
+
 DESCRIPTION = """Stream DIR/cloud.ply (world frame) into LAS/LAZ 1.4 (time, scanner as point source
 id, plane id as an extra dimension), E57 (scan poses from the trajectory) or PCD. The frame is the
 SLAM world frame (metres, z up, origin at the first pose): a local frame without a CRS."""
@@ -19,7 +21,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("dir", type=Path, metavar="RUN_DIR", help="SLAM output folder (holding cloud.ply)")
     p.add_argument("--format", dest="fmt", default=None, help="las, laz, e57 or pcd (default: from --out, else laz)")
-    p.add_argument("--out", type=Path, default=None, help="output file (default: RUN_DIR/cloud.<format>)")
+    p.add_argument("--out", type=output_path, default=None, help="output file (default: RUN_DIR/cloud.<format>)")
     return p
 
 

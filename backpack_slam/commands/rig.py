@@ -8,6 +8,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from backpack_slam.commands import output_path
+
 DESCRIPTION = """With BAG: build the rig from the recording itself (scanners from its LaserScan /
 MultiEchoLaserScan topics and their messages' geometry, range noise measured from the first scans,
 extrinsics from /tf_static and the static part of /tf, or from --urdf), print it and write it to
@@ -20,7 +22,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "rig", help="build a rig from a bag (tf or URDF), or check a rig's observability", description=DESCRIPTION
     )
     p.add_argument("bag", nargs="?", default=None, help="ROS1 .bag or ROS2 bag folder")
-    p.add_argument("--out", type=Path, default=None, help="write the rig YAML here")
+    p.add_argument("--out", type=output_path, default=None, help="write the rig YAML here")
     p.add_argument("--urdf", type=Path, default=None, help="take the extrinsics from this URDF instead of the bag's tf")
     p.add_argument("--base", default=None, help="body frame (default: the IMU's frame, else the tf tree's root)")
     p.add_argument("--name", default=None, help="rig name (default: from the bag's name)")

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from backpack_slam.commands import input_file, output_path
 from common.rig import resolve_rig
 from slam.config import load_slam_config, with_segmenter
 from slam.health import EXIT_FAILED
@@ -35,14 +36,14 @@ def parse_params(items: list[str]) -> dict[str, Any]:
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     p: argparse.ArgumentParser = sub.add_parser("run", help="run SLAM on a bag and write trajectory, planes, cloud, map")
     p.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder with the rig's LaserScan topics")
-    p.add_argument("--rig", default=None,
+    p.add_argument("--rig", default=None, type=input_file,
                    help="rig name (configs/rig/NAME.yaml) or YAML path (default: built from the bag's /tf_static or --urdf)")
-    p.add_argument("--urdf", default=None, help="URDF with the rig's extrinsics (without --rig: the rig is built from it)")
-    p.add_argument("--config", default=None, help="SLAM config YAML (default: built-in defaults, see configs/slam/default.yaml)")
+    p.add_argument("--urdf", default=None, type=input_file, help="URDF with the rig's extrinsics (without --rig: the rig is built from it)")
+    p.add_argument("--config", default=None, type=input_file, help="SLAM config YAML (default: built-in defaults, see configs/slam/default.yaml)")
     p.add_argument("--segmenter", default=None, help="segmenter name (overrides the config)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="segmenter parameter (repeatable)")
     p.add_argument("--voxel", type=float, default=None, help="thin cloud.ply to one point per voxel of this size (m)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=output_path, help="output folder")
     p.add_argument("--cloud-format", default=None, metavar="FMT",
                    help="also write the cloud as FMT for survey tools: laz, las, e57 or pcd (OUT/cloud.FMT)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -7,6 +7,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from backpack_slam.commands import output_path
+
 DESCRIPTION = """Simulate an operator walking WORLD with the rig's 2D scanners (per-beam timing,
 range noise, dropouts, mixed pixels) and write a real ROS bag (LaserScan per scanner, /tf_static,
 /ground_truth, optional /imu) and beside it OUT.gt/ (trajectory.tum, mesh.ply, planes.json,
@@ -20,7 +22,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--rig", default=None, help="rig name (configs/rig/<name>.yaml) or YAML path (default: itc_backpack)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="seconds to simulate (default: 60)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
-    p.add_argument("--out", type=Path, required=True, metavar="OUT", help="the bag to write, e.g. run.bag")
+    p.add_argument("--out", type=output_path, required=True, metavar="OUT", help="the bag to write, e.g. run.bag")
     p.add_argument("--format", choices=("ros1", "ros2"), default=None, help="bag format (default: ros1)")
     p.add_argument("--imu", action="store_true", default=None, help="also write /imu (200 Hz)")
     p.add_argument("--noise", type=float, default=None, metavar="SIGMA", help="range noise std in m (default: the scanner's, 0.003)")

@@ -99,6 +99,8 @@ def _per_scan_times(p: Path, times: FloatArray | None, shape: tuple[int, ...]) -
 
 
 def _numeric(p: Path, data: dict[str, np.ndarray], key: str) -> FloatArray:
+    if np.iscomplexobj(data[key]):  # numpy would drop the imaginary part with a warning
+        raise input_error(p, f"key '{key}' is complex (dtype {data[key].dtype}); expected real numbers")
     try:
         return np.asarray(data[key], dtype=np.float64)
     except (TypeError, ValueError):

@@ -356,8 +356,13 @@ class BagSource:
         for _, _, msg in self.messages(self.connections(topic, TFMESSAGE)):
             for tf in msg.transforms:
                 tr, q = tf.transform.translation, tf.transform.rotation
+                xyzw = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+                if not (np.all(np.isfinite(xyzw)) and np.linalg.norm(xyzw) > 1e-9):
+                    raise input_error(self.path, f"transform {tf.header.frame_id} -> {tf.child_frame_id}: rotation "
+                                      f"quaternion (x y z w) {' '.join(f'{v:g}' for v in xyzw)} is not a rotation",
+                                      topic)
                 T = np.eye(4)
-                T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+                T[:3, :3] = Rotation.from_quat(xyzw).as_matrix()
                 T[:3, 3] = (tr.x, tr.y, tr.z)
                 yield (str(tf.header.frame_id), str(tf.child_frame_id)), T
 
