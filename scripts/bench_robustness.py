@@ -14,7 +14,7 @@ the one outcome that must never happen.
 
 Usage:
     .venv/bin/python scripts/bench_robustness.py [--world demo] [--duration 60] [--seed 1]
-        [--out out/robustness] [--cases walking,noise_10mm,...] [--markdown docs/bench_robustness.md]
+        [--out out/robustness] [--cases walking,noise_10mm,...] [--reuse] [--markdown docs/robustness.md]
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -109,9 +110,14 @@ def run_condition(c: Condition, world: str, duration: float, seed: int, out: Pat
     run_dir = out / f"{c.name}.out"
     cmd = [*EXE, "run", str(sim.bag), "--out", str(run_dir), "--quiet"] + (["--rig", run_rig] if run_rig else [])
     t0 = time.perf_counter()
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run(cmd, capture_output=True, text=True, env=os.environ | {"PYTHONPATH": str(ROOT)})
     wall = time.perf_counter() - t0
-    row: dict[str, Any] = {"name": c.name, "what": c.what, "exit": proc.returncode, "wall": wall,
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # the run's CPU seconds (user + system): on a loaded machine the wall clock measures the other load too
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    row: dict[str, Any] = {"name": c.name, "what": c.what, "exit": proc.returncode, "wall": wall, "cpu": cpu,
+                           "realtime_cpu": duration / max(cpu, 1e-9),
                            "stderr": " | ".join(ln for ln in proc.stderr.splitlines() if "error" in ln or "failure" in ln
                                                 or "warning" in ln)[:300]}
     summary_path = run_dir / "summary.json"
@@ -119,6 +125,12 @@ def run_condition(c: Condition, world: str, duration: float, seed: int, out: Pat
         summary = json.loads(summary_path.read_text())
         row["realtime"] = summary.get("realtime_factor")
         row["verdict"] = summary.get("health", {}).get("verdict", "?")
+        row["problems"] = [p["code"] for p in summary.get("health", {}).get("problems", [])]
+        counts = summary.get("counts", {})
+        row["associated"] = counts.get("segments_associated", 0) / max(counts.get("segments", 0), 1)
+        row["start_moving"] = summary.get("start", {}).get("moving")
+        row["noise_mm"] = {k: round(1000 * v["range_sigma"], 1) for k, v in summary.get("noise", {}).get("scanners", {}).items()
+                           if isinstance(v, dict) and v.get("range_sigma") is not None}
         res = evaluate(run_dir, sim.gt, max_cloud_points=500_000)
         row["ate"] = res.trajectory.ate["start_aligned"].rmse
         row["ate_se3"] = res.trajectory.ate["se3_aligned"].rmse
@@ -142,14 +154,17 @@ def _mm(row: dict[str, Any], key: str) -> str:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = ("| condition | goal | ATE start-aligned | ATE SE(3) | cloud median | x real time | verdict | exit | "
-            "goal met | never a silent wrong map |\n|---|---|---|---|---|---|---|---|---|---|\n")
+    head = ("| condition | goal | ATE start-aligned | ATE SE(3) | cloud median | segments associated | "
+            "x real time (wall / CPU) | verdict | exit | goal met | never a silent wrong map |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
-        rt = f"{r['realtime']:.2f}x" if r.get("realtime") else "-"
+        rt = f"{r['realtime']:.2f}x / {r['realtime_cpu']:.2f}x" if r.get("realtime") else "-"
+        assoc = f"{100 * r['associated']:.1f} %" if "associated" in r else "-"
         honest = "yes" if r.get("honest", r["goal_met"]) else "**NO**"
-        lines.append(f"| {r['what']} | {r['goal']} | {_mm(r, 'ate')} | {_mm(r, 'ate_se3')} | {_mm(r, 'cloud_median')} | {rt} | "
-                     f"{r['verdict']} | {r['exit']} | {'yes' if r['goal_met'] else 'no'} | {honest} |")
+        verdict = r["verdict"] + (f" ({', '.join(r['problems'])})" if r.get("problems") else "")
+        lines.append(f"| {r['what']} | {r['goal']} | {_mm(r, 'ate')} | {_mm(r, 'ate_se3')} | {_mm(r, 'cloud_median')} | "
+                     f"{assoc} | {rt} | {verdict} | {r['exit']} | {'yes' if r['goal_met'] else 'no'} | {honest} |")
     return head + "\n".join(lines) + "\n"
 
 
@@ -189,6 +204,8 @@ def main() -> int:
     ap.add_argument("--cases", default=None, help="comma-separated condition names (default: all)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "robustness")
     ap.add_argument("--markdown", type=Path, default=None, help="write the table (and the plot beside it)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take a case's row from an earlier run's OUT/CASE/row.json when there is one")
     args = ap.parse_args()
     todo = conditions(args.imu)
     if args.cases:
@@ -200,9 +217,15 @@ def main() -> int:
         todo = [c for c in todo if c.name in want]
     rows = []
     for i, c in enumerate(todo):
+        saved = args.out / c.name / "row.json"
+        if args.reuse and saved.is_file():
+            rows.append(json.loads(saved.read_text()))
+            print(f"[{i + 1}/{len(todo)}] {c.name}: reused {saved}", file=sys.stderr, flush=True)
+            continue
         print(f"[{i + 1}/{len(todo)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
         rows.append(run_condition(c, args.world, args.duration, args.seed, args.out / c.name))
         r = rows[-1]
+        saved.write_text(json.dumps(r, indent=1, default=str))
         print(f"    exit {r['exit']}, verdict {r['verdict']}, ATE {1000 * r.get('ate', float('nan')):.1f} mm, "
               f"goal met: {r['goal_met']}", file=sys.stderr, flush=True)
     text = table(rows)
