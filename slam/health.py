@@ -3,7 +3,8 @@
 Measured from what a run produces (world frame): the fraction of segments associated with
 planes, the point-to-plane residuals against the noise they were weighted with, the knots'
 speeds and turn rates (a walker does not move at 17 m/s), the translation directions the
-associated planes leave unobserved and for how long, and the number of planes. Each check that
+associated planes leave unobserved and for how long, the number of planes, and a walk that
+starts moving along a direction its first scans do not observe. Each check that
 fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
 problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
 exits with :data:`EXIT_FAILED` (the CLI), still writing its outputs, marked failed in
@@ -156,6 +157,21 @@ def silent_scanners(scanner_names: list[str], seg_scanner: NDArray[np.integer]) 
     return [Problem(f"silent_scanner_{name}", "warning", f"scanner '{name}' gave no line segment in the whole "
                     "recording (no usable returns on its topic): the run went on without it", 0.0, 1.0)
             for k, name in enumerate(scanner_names) if k not in seen]
+
+
+def start_problems(start: Mapping[str, Any]) -> list[Problem]:
+    """A failure when the walk starts moving (``start``: the summary's ``start`` block,
+    ``slam.frontend.initial_motion``) while its first scans leave a translation direction
+    unobserved: parallel walls (a corridor) say how fast the operator walks across them, not
+    along them, so the first knots' speed along it is a guess (at rest), and neither the planes
+    nor an IMU started from that guess can correct it (a corridor walked at 1.2 m/s ended 3 m
+    off with the IMU, 8 m without)."""
+    if not start.get("moving") or start.get("unobserved_direction") is None:
+        return []
+    return [Problem("start_unobserved", "failure",
+                    "the walk starts moving, but its first scans see only parallel walls (a corridor): the start's "
+                    "speed along them is unknown and the trajectory along them cannot be trusted (start the recording "
+                    "standing still, or where walls of two directions are in view)", 1.0, 0.0)]
 
 
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],

@@ -37,7 +37,7 @@ from segmentation.noise import estimate as estimate_noise_model
 from slam import params
 from slam.config import SlamConfig
 from slam.export import write_summary_json
-from slam.health import Health, assess, silent_scanners
+from slam.health import Health, assess, silent_scanners, start_problems
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import input_error
@@ -217,7 +217,7 @@ def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool) -> Health:
     residuals = res.stats.get("residuals") or {}
     return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
                   residuals.get("rms_whitened"), with_imu, cfg.health,
-                  extra=silent_scanners(res.scanner_names, rows["scanner"]))
+                  extra=silent_scanners(res.scanner_names, rows["scanner"]) + start_problems(res.stats.initial_motion))
 
 
 def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:

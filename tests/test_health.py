@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.health import HealthSection, assess, unobserved_spans
+from slam.health import HealthSection, assess, start_problems, unobserved_spans
 
 CFG = HealthSection()
 ROOM = {0: np.array([1.0, 0, 0]), 1: np.array([0, 1.0, 0]), 2: np.array([0, 0, 1.0])}
@@ -66,3 +66,19 @@ def test_a_corridor_leaves_its_direction_unobserved() -> None:
     assert h.failed and h.problems[0].code == "unobserved_x"
     with_imu = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG)
     assert with_imu.verdict == "degraded"
+
+
+def test_a_walk_starting_along_an_unobserved_direction_fails() -> None:
+    corridor = {"moving": True, "speed": 0.08, "unobserved_direction": [1.0, 0.0]}
+    problems = start_problems(corridor)
+    assert [p.code for p in problems] == ["start_unobserved"] and problems[0].severity == "failure"
+    assert "parallel walls" in problems[0].message
+    # standing in a corridor, or walking off in a room, is no problem
+    assert start_problems({**corridor, "moving": False}) == []
+    assert start_problems({**corridor, "unobserved_direction": None}) == []
+    assert start_problems({}) == []
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG,
+               extra=problems)
+    assert h.failed and "start" in h.lines()[0]

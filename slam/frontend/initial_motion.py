@@ -70,8 +70,10 @@ ODOMETRY_PRIOR = np.array([0.05, 0.05, 0.05])  # m, m, rad: the hold on the cons
 # sway, which the odometry does not see)
 ODOMETRY_SIGMAS = np.array([np.radians(1.0), np.radians(1.0), np.radians(0.05), 0.001, 0.001, 0.02])
 # a translation direction is observed when the matched segments' normals project on it as much as this
-# many segments square to it (the sum of (n . e)^2 over the matches, each segment counted once)
+# many segments square to it (the sum of (n . e)^2 over the matches, each segment counted once): in the
+# rest test over its scans (a wall across the walk is in each of them), in the odometry in one scan
 MIN_ACROSS = 3.0
+ODOMETRY_MIN_ACROSS = 0.8
 UNOBSERVED_SIGMA = 0.05  # m per knot interval: the hold of the odometry's motion along an unobserved direction
 HOLD_WEIGHT = 1e10  # prior weight (units of the Huber width^2) that keeps an unobserved component at its prior
 
@@ -291,14 +293,14 @@ def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_W: Fl
     return x0 - np.linalg.solve(A + prior_W * huber**2, g + prior_W @ (x0 - prior_x) * huber**2)
 
 
-def unobserved_directions(normals: FloatArray) -> FloatArray:
-    """The translation directions (k, 2; unit rows, k = 0-2; the normals' frame) that lines with
-    these unit normals (m, 2) do not observe: the eigenvectors of ``sum n n^T`` below
-    ``MIN_ACROSS`` (parallel walls observe only the direction across them)."""
+def unobserved_directions(normals: FloatArray, min_across: float) -> FloatArray:
+    """The translation directions (k, 2; unit rows, k = 0-2; the normals' frame) that matched
+    segments with these unit normals (m, 2) do not observe: the eigenvectors of ``sum n n^T``
+    below ``min_across`` (parallel walls observe only the direction across them)."""
     if normals.shape[0] == 0:
         return np.eye(2)
     w, V = np.linalg.eigh(normals.T @ normals)
-    return np.ascontiguousarray(V[:, w < MIN_ACROSS].T)
+    return np.ascontiguousarray(V[:, w < min_across].T)
 
 
 def _hold_directions(dirs: FloatArray) -> FloatArray:
@@ -346,7 +348,14 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
         return np.concatenate([se2_place(seg.points, seg.dt + dt, x) @ n + d for seg, dt, n, d in matches])
 
     huber = max(HUBER, sigma)
-    for reach, stage_gate, angle in STAGES:
+    # coarse to fine, free; then, when the final matches leave a direction unobserved, the fine
+    # stage again with the velocity along it held at zero (holding it from the start would keep
+    # the few lines across the walk, found only once the velocity is about right, out of reach)
+    stages = [(reach, gate, angle, False) for reach, gate, angle in STAGES]
+    k = 0
+    while k < len(stages):
+        reach, stage_gate, angle, held = stages[k]
+        k += 1
         sources = [i for i in range(1, len(segs)) if float(dts[i]) <= min(reach, span) + 1e-9]
         if not sources:
             continue
@@ -362,12 +371,16 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
                         matches.append((seg, float(dts[i]), target.n[j], -float(target.n[j] @ target.c[j])))
             if len(matches) < MIN_MATCHES:
                 return None
-            dirs = unobserved_directions(np.array([m[2] for m in matches]))
             new = _gauss_newton(residuals, xi, np.zeros(3), w_prior + _hold_directions(dirs), huber)
             done = np.abs(new - xi).max() < 1e-5
             xi = new
             if done:
                 break
+        if k == len(stages) and not held:
+            dirs = unobserved_directions(np.array([m[2] for m in matches]), MIN_ACROSS)
+            if dirs.shape[0]:
+                xi[:2] -= dirs.T @ (dirs @ xi[:2])
+                stages.append((reach, stage_gate, angle, True))
     A, _, r, w = _normal_equations(residuals, xi, huber)
     # the weighted residuals' scale; the points of one segment share its line's errors, so the
     # segments (not the points) count as the independent samples
@@ -444,7 +457,7 @@ def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: 
         if len(matches) < MIN_MATCHES:
             dirs = np.eye(2)
             break
-        dirs = unobserved_directions(np.array([m[1] for m in matches]))
+        dirs = unobserved_directions(np.array([m[1] for m in matches]), ODOMETRY_MIN_ACROSS)
         # the correction's translation is in the predicted pose's frame
         hold = _hold_directions(dirs @ pred[:2, :2])
         new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior + hold, huber)
