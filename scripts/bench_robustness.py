@@ -97,7 +97,7 @@ def _rig_variant(kind: str, out: Path, change: dict[str, Any]) -> Path:
     return path
 
 
-def run_condition(c: Condition, world: str, duration: float, seed: int, out: Path) -> dict[str, Any]:
+def run_condition(c: Condition, world: str, duration: float, seed: int, out: Path, cloud: bool = False) -> dict[str, Any]:
     from simulation.run import SimulationConfig, simulate
     from slam.evaluate import Stats, evaluate
 
@@ -109,6 +109,10 @@ def run_condition(c: Condition, world: str, duration: float, seed: int, out: Pat
     run_rig = str(_rig_variant("perturbed", out, c.rig_change)) if c.run_rig == "perturbed" else c.run_rig
     run_dir = out / f"{c.name}.out"
     cmd = [*EXE, "run", str(sim.bag), "--out", str(run_dir), "--quiet"] + (["--rig", run_rig] if run_rig else [])
+    if not cloud:  # the SLAM alone: no cloud pass, no rerun map
+        config = out / "slam.yaml"
+        config.write_text("output:\n  cloud: false\n  rerun: false\n")
+        cmd += ["--config", str(config)]
     t0 = time.perf_counter()
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run(cmd, capture_output=True, text=True, env=os.environ | {"PYTHONPATH": str(ROOT)})
@@ -204,6 +208,7 @@ def main() -> int:
     ap.add_argument("--cases", default=None, help="comma-separated condition names (default: all)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "robustness")
     ap.add_argument("--markdown", type=Path, default=None, help="write the table (and the plot beside it)")
+    ap.add_argument("--cloud", action="store_true", help="write and evaluate the cloud too (slower)")
     ap.add_argument("--reuse", action="store_true",
                     help="take a case's row from an earlier run's OUT/CASE/row.json when there is one")
     args = ap.parse_args()
@@ -223,7 +228,7 @@ def main() -> int:
             print(f"[{i + 1}/{len(todo)}] {c.name}: reused {saved}", file=sys.stderr, flush=True)
             continue
         print(f"[{i + 1}/{len(todo)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
-        rows.append(run_condition(c, args.world, args.duration, args.seed, args.out / c.name))
+        rows.append(run_condition(c, args.world, args.duration, args.seed, args.out / c.name, args.cloud))
         r = rows[-1]
         saved.write_text(json.dumps(r, indent=1, default=str))
         print(f"    exit {r['exit']}, verdict {r['verdict']}, ATE {1000 * r.get('ate', float('nan')):.1f} mm, "
