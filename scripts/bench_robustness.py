@@ -153,6 +153,26 @@ def run_condition(c: Condition, world: str, duration: float, seed: int, out: Pat
     return row
 
 
+EXPLAIN = """Made by `scripts/bench_robustness.py` (issue 21): each row is one simulated walk that breaks
+one of the simulator's defaults, run through the command line as a user runs it (`backpack-slam
+run BAG --rig itc_backpack`, no cloud pass), then evaluated against the ground truth. ATE is the
+RMSE of the positions after aligning the first pose (start-aligned) or the best rigid motion
+(SE(3)); *segments associated* is the fraction of line segments on planes of the map; *x real
+time* is the walk's duration over the run's wall-clock time and over its CPU time (both
+processes; on a shared machine the wall clock measures the other load too); the verdict is the
+run's own (`summary.json` `health`, problems in brackets) and the exit code what the command
+returned: 0 ok or degraded, 2 refused before processing (bad input, a rig that does not match the
+recording's `/tf_static`), 3 finished but failed (outputs written, marked failed). A cell meets
+its goal when the ATE is below it and the run exits 0, or, for the wrong rig, when the run is
+refused; *never a silent wrong map* is no only when a run missed its goal and exited 0.
+
+Re-run (one case at a time; `--reuse` keeps the cases already in OUT):
+
+    nice .venv/bin/python scripts/bench_robustness.py --duration 30 --out out/robustness \\
+        --markdown docs/robustness.md [--cases walking,noise_20mm] [--reuse] [--imu] [--cloud]
+"""
+
+
 def _mm(row: dict[str, Any], key: str) -> str:
     return f"{1000 * row[key]:.1f} mm" if key in row and math.isfinite(row[key]) else "-"
 
@@ -243,7 +263,8 @@ def main() -> int:
         png.parent.mkdir(parents=True, exist_ok=True)
         plot(rows, png)
         write_text(args.markdown, f"# Robustness ({args.world}, {args.duration:g} s, seed {args.seed}"
-                   f"{', IMU' if args.imu else ''})\n\n{text}\n![robustness]({png.relative_to(args.markdown.parent)})\n")
+                   f"{', IMU' if args.imu else ''})\n\n{EXPLAIN}\n{text}\n"
+                   f"![robustness]({png.relative_to(args.markdown.parent)})\n")
     return 0 if all(r.get("honest", r["goal_met"]) for r in rows) else 1
 
 
