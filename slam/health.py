@@ -45,6 +45,13 @@ class HealthSection(StrictModel):
         default=5.0, gt=0, description="a translation direction whose planes' normals all lie within this of "
         "perpendicular to it is unobserved")
     warn_unobserved_seconds: float = Field(default=10.0, gt=0, description="s unobserved in a row: degraded")
+    warn_rig_angle_deg: float = Field(
+        default=0.2, gt=0, description="deg: a given rig's scanner this far from the recording's /tf_static: degraded")
+    warn_rig_distance: float = Field(default=0.005, gt=0, description="m, likewise")
+    max_rig_angle_deg: float = Field(
+        default=0.5, gt=0, description="deg: ... this far: failed (1 deg / 2 cm on one scanner put the demo walk 18 mm "
+        "off; the rig is refused before processing from 3 deg / 5 cm)")
+    max_rig_distance: float = Field(default=0.01, gt=0, description="m, likewise")
     max_unobserved_seconds: float = Field(
         default=60.0, gt=0, description="s unobserved in a row without an IMU: failed (the door and board edges "
         "observe a corridor's direction too, so short spans are normal)")
@@ -157,6 +164,23 @@ def silent_scanners(scanner_names: list[str], seg_scanner: NDArray[np.integer]) 
     return [Problem(f"silent_scanner_{name}", "warning", f"scanner '{name}' gave no line segment in the whole "
                     "recording (no usable returns on its topic): the run went on without it", 0.0, 1.0)
             for k, name in enumerate(scanner_names) if k not in seen]
+
+
+def rig_problems(mismatches: list[tuple[str, float, float]], cfg: HealthSection) -> list[Problem]:
+    """A given rig against the recording's transforms (``mismatches``: scanner name, angle rad,
+    distance m; ``slam.preflight``): a scanner off by more than the warning limits degrades the
+    run, by more than the failure limits fails it (a mismatch large enough to refuse the rig
+    never gets here). One problem, for the worst scanner."""
+    warn = [m for m in mismatches if m[1] > math.radians(cfg.warn_rig_angle_deg) or m[2] > cfg.warn_rig_distance]
+    if not warn:
+        return []
+    name, angle, dist = max(warn, key=lambda m: m[1] / math.radians(cfg.max_rig_angle_deg) + m[2] / cfg.max_rig_distance)
+    fail = angle > math.radians(cfg.max_rig_angle_deg) or dist > cfg.max_rig_distance
+    return [Problem("rig_mismatch", "failure" if fail else "warning",
+                    f"the rig's scanner '{name}' differs from the recording's transforms by {math.degrees(angle):.2f} deg / "
+                    f"{dist:.3f} m: the map is off by about as much (run without --rig to use the recording's, or "
+                    "calibrate)", max(math.degrees(angle), 0.0),
+                    cfg.max_rig_angle_deg if fail else cfg.warn_rig_angle_deg)]
 
 
 def start_problems(start: Mapping[str, Any]) -> list[Problem]:

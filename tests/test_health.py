@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.health import HealthSection, assess, start_problems, unobserved_spans
+from slam.health import HealthSection, assess, rig_problems, start_problems, unobserved_spans
 
 CFG = HealthSection()
 ROOM = {0: np.array([1.0, 0, 0]), 1: np.array([0, 1.0, 0]), 2: np.array([0, 0, 1.0])}
@@ -82,3 +82,13 @@ def test_a_walk_starting_along_an_unobserved_direction_fails() -> None:
     h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG,
                extra=problems)
     assert h.failed and "start" in h.lines()[0]
+
+
+def test_a_rig_off_the_recordings_transforms_degrades_or_fails_the_run() -> None:
+    assert rig_problems([("top", 0.0, 0.0), ("left", np.radians(0.1), 0.002)], CFG) == []
+    mild = rig_problems([("left", np.radians(0.3), 0.004)], CFG)
+    assert [(p.code, p.severity) for p in mild] == [("rig_mismatch", "warning")]
+    # 1 deg / 2 cm on one scanner (the demo walk 18 mm off): failed, naming the scanner
+    off = rig_problems([("top", np.radians(0.3), 0.0), ("left", np.radians(1.0), 0.02)], CFG)
+    assert [(p.code, p.severity) for p in off] == [("rig_mismatch", "failure")]
+    assert "scanner 'left' differs from the recording's transforms by 1.00 deg / 0.020 m" in off[0].message
