@@ -206,7 +206,11 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(max(6.0, 0.7 * len(rows)), 4.0))
     ax.bar(names, [a if math.isfinite(a) else 0.0 for a in ate],
            color=[colour.get(r["verdict"], "black") for r in rows])
-    ax.axhline(10.0, color="k", lw=0.8, ls="--", label="1 cm goal")
+    goals = [float(r["goal"].split("<")[1].split()[0]) * 10.0 if "<" in r["goal"] else math.nan for r in rows]
+    ax.scatter(names, goals, marker="_", s=500, color="k", label="the row's ATE goal", zorder=3)
+    for i, r in enumerate(rows):
+        if r["verdict"] in ("refused", "crashed"):
+            ax.text(i, 0.5, r["verdict"], rotation=90, ha="center", va="bottom", fontsize=7)
     ax.set_yscale("symlog", linthresh=10.0)
     ax.set_ylabel("ATE RMSE, start-aligned (mm)")
     ax.set_title("robustness: bar colour = the run's own verdict (green ok, orange degraded, red failed, grey refused)",
