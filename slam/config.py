@@ -89,11 +89,11 @@ class FrontEndConfig(StrictModel):
     tracking_twist_sigma_position: float = Field(
         0.002, gt=0, description="m, the same for the translation")
     initial_motion_window: float = Field(
-        0.0, ge=0, description="s of the first scans registered against each other (in the scan plane of the most "
+        1.0, ge=0, description="s of the first scans registered against each other (in the scan plane of the most "
         "level scanner) before the first knot: a recording may start while the operator walks; then the first "
         "0.3 s give the start's motion and the 2D odometry of this window predicts its knots "
-        "(slam.frontend.initial_motion); 0 = assume the walk starts at rest (the default until the 2D odometry "
-        "refuses a corridor's unobserved direction: tests/test_slam_pipeline.py's door corridor runs off with it)")
+        "(slam.frontend.initial_motion; a direction the first scans' lines do not observe, such as a corridor's, is "
+        "held at rest); 0 = assume the walk starts at rest")
     initial_motion_min_speed: float = Field(
         0.05, ge=0, description="m/s; a start slower than this (and turning slower than initial_motion_min_rate_deg) "
         "is at rest; both stated for the reference noise (noise.reference) and raised in proportion for a noisier "

@@ -3,7 +3,8 @@
 Measured from what a run produces (world frame): the fraction of segments associated with
 planes, the point-to-plane residuals against the noise they were weighted with, the knots'
 speeds and turn rates (a walker does not move at 17 m/s), the translation directions the
-associated planes leave unobserved and for how long, and the number of planes. Each check that
+associated planes leave unobserved and for how long, the number of planes, and a walk that
+starts moving along a direction its first scans do not observe. Each check that
 fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
 problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
 exits with :data:`EXIT_FAILED` (the CLI), still writing its outputs, marked failed in
@@ -44,6 +45,13 @@ class HealthSection(StrictModel):
         default=5.0, gt=0, description="a translation direction whose planes' normals all lie within this of "
         "perpendicular to it is unobserved")
     warn_unobserved_seconds: float = Field(default=10.0, gt=0, description="s unobserved in a row: degraded")
+    warn_rig_angle_deg: float = Field(
+        default=0.2, gt=0, description="deg: a given rig's scanner this far from the recording's /tf_static: degraded")
+    warn_rig_distance: float = Field(default=0.005, gt=0, description="m, likewise")
+    max_rig_angle_deg: float = Field(
+        default=0.5, gt=0, description="deg: ... this far: failed (1 deg / 2 cm on one scanner put the demo walk 18 mm "
+        "off; the rig is refused before processing from 3 deg / 5 cm)")
+    max_rig_distance: float = Field(default=0.01, gt=0, description="m, likewise")
     max_unobserved_seconds: float = Field(
         default=60.0, gt=0, description="s unobserved in a row without an IMU: failed (the door and board edges "
         "observe a corridor's direction too, so short spans are normal)")
@@ -156,6 +164,38 @@ def silent_scanners(scanner_names: list[str], seg_scanner: NDArray[np.integer]) 
     return [Problem(f"silent_scanner_{name}", "warning", f"scanner '{name}' gave no line segment in the whole "
                     "recording (no usable returns on its topic): the run went on without it", 0.0, 1.0)
             for k, name in enumerate(scanner_names) if k not in seen]
+
+
+def rig_problems(mismatches: list[tuple[str, float, float]], cfg: HealthSection) -> list[Problem]:
+    """A given rig against the recording's transforms (``mismatches``: scanner name, angle rad,
+    distance m; ``slam.preflight``): a scanner off by more than the warning limits degrades the
+    run, by more than the failure limits fails it (a mismatch large enough to refuse the rig
+    never gets here). One problem, for the worst scanner."""
+    warn = [m for m in mismatches if m[1] > math.radians(cfg.warn_rig_angle_deg) or m[2] > cfg.warn_rig_distance]
+    if not warn:
+        return []
+    name, angle, dist = max(warn, key=lambda m: m[1] / math.radians(cfg.max_rig_angle_deg) + m[2] / cfg.max_rig_distance)
+    fail = angle > math.radians(cfg.max_rig_angle_deg) or dist > cfg.max_rig_distance
+    return [Problem("rig_mismatch", "failure" if fail else "warning",
+                    f"the rig's scanner '{name}' differs from the recording's transforms by {math.degrees(angle):.2f} deg / "
+                    f"{dist:.3f} m: the map is off by about as much (run without --rig to use the recording's, or "
+                    "calibrate)", max(math.degrees(angle), 0.0),
+                    cfg.max_rig_angle_deg if fail else cfg.warn_rig_angle_deg)]
+
+
+def start_problems(start: Mapping[str, Any]) -> list[Problem]:
+    """A failure when the walk starts moving (``start``: the summary's ``start`` block,
+    ``slam.frontend.initial_motion``) while its first scans leave a translation direction
+    unobserved: parallel walls (a corridor) say how fast the operator walks across them, not
+    along them, so the first knots' speed along it is a guess (at rest), and neither the planes
+    nor an IMU started from that guess can correct it (a corridor walked at 1.2 m/s ended 3 m
+    off with the IMU, 8 m without)."""
+    if not start.get("moving") or start.get("unobserved_direction") is None:
+        return []
+    return [Problem("start_unobserved", "failure",
+                    "the walk starts moving, but its first scans see only parallel walls (a corridor): the start's "
+                    "speed along them is unknown and the trajectory along them cannot be trusted (start the recording "
+                    "standing still, or where walls of two directions are in view)", 1.0, 0.0)]
 
 
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],

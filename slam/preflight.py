@@ -16,6 +16,7 @@ from slam.io.source import BagSource, Echo
 from slam.rig_builder import (
     FrameTree,
     RigError,
+    RigMismatch,
     ScanTopic,
     compare_rig,
     rig_from_source,
@@ -29,11 +30,14 @@ from slam.rig_check import rig_observability
 
 @dataclass
 class RigCheck:
-    """The rig a run uses, where it came from, and what the checks found (one line each)."""
+    """The rig a run uses, where it came from, what the checks found (one line each), and how
+    far each scanner of a given rig is from the recording's transforms (``mismatches``; empty
+    when the rig was built from them or there are none to compare)."""
 
     rig: Rig
     source: str
     notes: list[str] = field(default_factory=list)
+    mismatches: list[RigMismatch] = field(default_factory=list)
 
 
 def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None, echo: Echo) -> RigCheck:
@@ -52,7 +56,8 @@ def check_rig(src: BagSource, rig: Rig | None, urdf: str | Path | None, echo: Ec
         tree = FrameTree(transforms, where)
         by_topic = rig.by_topic()
         frames = {by_topic[s.topic].name: s.frame_id for s in scan_topics(src) if s.topic in by_topic}
-        error, warnings = rig_verdict(rig, compare_rig(rig, tree, frames), where)
+        out.mismatches = compare_rig(rig, tree, frames)
+        error, warnings = rig_verdict(rig, out.mismatches, where)
         if error is not None:
             raise RigError(error)
         out.notes += warnings

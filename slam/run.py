@@ -37,7 +37,7 @@ from segmentation.noise import estimate as estimate_noise_model
 from slam import params
 from slam.config import SlamConfig
 from slam.export import write_summary_json
-from slam.health import Health, assess, silent_scanners
+from slam.health import Health, assess, rig_problems, silent_scanners, start_problems
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import input_error
@@ -190,7 +190,7 @@ def run_slam(
             raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "
                               + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
         res = runner.result(batch=cfg.backend.final_batch)
-        health = run_health(res, cfg, imu is not None)
+        health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches])
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}
 
         with atomic_dir(Path(out_dir)) as tmp:
@@ -209,15 +209,18 @@ def run_slam(
     return summary
 
 
-def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool) -> Health:
-    """The run's verdict on its own estimate (``slam.health``)."""
+def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool,
+               rig_mismatches: list[tuple[str, float, float]] | None = None) -> Health:
+    """The run's verdict on its own estimate (``slam.health``); ``rig_mismatches`` (scanner, rad,
+    m) of a given rig against the recording's transforms."""
     rows = res.segment_rows
     normals = {int(i): n for i, n in zip(res.plane_ids, res.plane_normals, strict=True)}
     counts = {"segments": len(rows["plane_id"]), "segments_associated": int((rows["plane_id"] >= 0).sum())}
     residuals = res.stats.get("residuals") or {}
     return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
                   residuals.get("rms_whitened"), with_imu, cfg.health,
-                  extra=silent_scanners(res.scanner_names, rows["scanner"]))
+                  extra=silent_scanners(res.scanner_names, rows["scanner"]) + start_problems(res.stats.initial_motion)
+                  + rig_problems(rig_mismatches or [], cfg.health))
 
 
 def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.health import HealthSection, assess, unobserved_spans
+from slam.health import HealthSection, assess, rig_problems, start_problems, unobserved_spans
 
 CFG = HealthSection()
 ROOM = {0: np.array([1.0, 0, 0]), 1: np.array([0, 1.0, 0]), 2: np.array([0, 0, 1.0])}
@@ -66,3 +66,29 @@ def test_a_corridor_leaves_its_direction_unobserved() -> None:
     assert h.failed and h.problems[0].code == "unobserved_x"
     with_imu = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG)
     assert with_imu.verdict == "degraded"
+
+
+def test_a_walk_starting_along_an_unobserved_direction_fails() -> None:
+    corridor = {"moving": True, "speed": 0.08, "unobserved_direction": [1.0, 0.0]}
+    problems = start_problems(corridor)
+    assert [p.code for p in problems] == ["start_unobserved"] and problems[0].severity == "failure"
+    assert "parallel walls" in problems[0].message
+    # standing in a corridor, or walking off in a room, is no problem
+    assert start_problems({**corridor, "moving": False}) == []
+    assert start_problems({**corridor, "unobserved_direction": None}) == []
+    assert start_problems({}) == []
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG,
+               extra=problems)
+    assert h.failed and "start" in h.lines()[0]
+
+
+def test_a_rig_off_the_recordings_transforms_degrades_or_fails_the_run() -> None:
+    assert rig_problems([("top", 0.0, 0.0), ("left", np.radians(0.1), 0.002)], CFG) == []
+    mild = rig_problems([("left", np.radians(0.3), 0.004)], CFG)
+    assert [(p.code, p.severity) for p in mild] == [("rig_mismatch", "warning")]
+    # 1 deg / 2 cm on one scanner (the demo walk 18 mm off): failed, naming the scanner
+    off = rig_problems([("top", np.radians(0.3), 0.0), ("left", np.radians(1.0), 0.02)], CFG)
+    assert [(p.code, p.severity) for p in off] == [("rig_mismatch", "failure")]
+    assert "scanner 'left' differs from the recording's transforms by 1.00 deg / 0.020 m" in off[0].message

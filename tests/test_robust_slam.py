@@ -19,7 +19,8 @@ from slam.config import OutputConfig, SlamConfig
 from slam.evaluate import evaluate, load_ground_truth
 from slam.export import read_cloud_ply, read_segments_npz
 from slam.frontend.transients import TRANSIENT
-from slam.run import run_slam
+from slam.io.source import BagSource
+from slam.run import estimate_noise, run_slam
 
 # an 8 x 6 m box room (2.8 m ceiling) with a pillar, and a walk across it
 BOX_WORLD = """
@@ -63,12 +64,13 @@ def walking_start(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
 
 
 def test_a_walking_start_recovers_the_trajectory(walking_start: SimulationResult, tmp_path: Path) -> None:
-    summary, ate, ate_se3 = _run(walking_start, _cfg(initial_motion_window=1.0), tmp_path / "run")
+    summary, ate, ate_se3 = _run(walking_start, _cfg(), tmp_path / "run")  # the initialiser is on by default
     start = summary["start"]
     assert start["moving"] and 0.8 < start["speed"] < 1.3 and start["odometry_knots"] >= 15, start
     # the first knot's tilt rests on its own interval's scans only (no standstill to average
     # over): start-aligned the 3 s walk is a few mm off, its shape within a millimetre
     assert ate < 0.01 and ate_se3 < 0.002, f"ATE {1000 * ate:.1f} mm, SE(3) {1000 * ate_se3:.1f} mm"
+    assert start["unobserved_direction"] is None and summary["health"]["verdict"] != "failed", summary["health"]
     # taking the walk for a standstill (the assumption before) loses it
     _, ate_rest, _ = _run(walking_start, _cfg(initial_motion_window=0.0), tmp_path / "rest")
     assert ate_rest > 0.1, f"ATE {1000 * ate_rest:.1f} mm"
@@ -96,6 +98,17 @@ def test_noise_values_follow_the_rule() -> None:
     assert seg.params.sigma == pytest.approx(0.024) and seg.params.point_sigma == pytest.approx(0.012)
     with pytest.raises(ValueError, match=r"scanners\.top"):
         SlamConfig.model_validate({"noise": {"scanners": {"top": 0.0}}})
+
+
+@pytest.mark.parametrize("sigma", [0.001, 0.003, 0.01, 0.03])
+def test_the_noise_estimate_is_within_20_percent(sigma: float, tmp_path: Path) -> None:
+    """Each scanner's range noise from the first scans of a simulated recording (slam.run.estimate_noise)."""
+    sim = _simulate(tmp_path, 0.5, noise={"range_sigma": sigma})
+    with BagSource(sim.bag) as source:
+        _, record = estimate_noise(source, resolve_rig("itc_backpack"), SlamConfig())
+    for name in ("top", "left", "right"):
+        rec = record["scanners"][name]
+        assert rec["source"] == "estimated" and rec["range_sigma"] == pytest.approx(sigma, rel=0.2), (name, rec)
 
 
 @pytest.fixture(scope="module")

@@ -19,18 +19,22 @@ turns in it); its segments' points (scanner frame, every point at its own beam t
    Gauss-Newton with Huber weights to the distances of the later scans' points from the lines of
    the first scan's segments, matched segment to segment (nearly parallel, near, overlapping),
    coarse to fine (the gates shrink as the scans reach further in time: at 1 m/s the scans of
-   the first 0.1 s lie within 10 cm of the first). A weak prior holds directions the scans do not
-   observe (a corridor's walls say nothing about the walk along them) at rest. Below
+   the first 0.1 s lie within 10 cm of the first). A translation direction the matched lines do
+   not observe (:func:`unobserved_direction`: a corridor's parallel walls say nothing about the
+   walk along them) is not trusted: the twist's component along it is set to zero (rest, the
+   assumption without the initialiser), whatever the fit made of a few stray matches. Below
    ``min_speed`` and ``min_rate`` the start counts as at rest, and the front end takes exactly
    the standstill path.
 2. **Odometry** (:func:`odometry`), when moving: scan after scan, the scanner's pose at its stamp
    against the lines of the first scan and of the last ``MAP_SCANS`` scans, each scan deskewed
-   with the twist from the previous pose to its own; a weak prior holds it at the
-   constant-velocity prediction along directions no line observes.
+   with the twist from the previous pose to its own; along a direction its lines do not
+   observe, the pose stays at the constant-velocity prediction (which, from the rest test,
+   does not move along it).
 3. The knots' predicted motions (:func:`knot_increments`): the scanner's poses interpolated at
    the knot times, lifted into the body frame by the scanner's mounting
    (``T_body_scanner``); directions out of the scan plane (height, roll, pitch) are left at
-   rest, for the planes to correct.
+   rest, for the planes to correct, and so is an unobserved direction in it: tracking holds the
+   knots loosely along it (``UNOBSERVED_SIGMA``), for the IMU or the door edges to correct.
 """
 
 from __future__ import annotations
@@ -65,6 +69,13 @@ ODOMETRY_PRIOR = np.array([0.05, 0.05, 0.05])  # m, m, rad: the hold on the cons
 # the scan plane (rotation about its z, translation along x, y), loose out of it (a walker's bob and
 # sway, which the odometry does not see)
 ODOMETRY_SIGMAS = np.array([np.radians(1.0), np.radians(1.0), np.radians(0.05), 0.001, 0.001, 0.02])
+# a translation direction is observed when the matched segments' normals project on it as much as this
+# many segments square to it (the sum of (n . e)^2 over the matches, each segment counted once): in the
+# rest test over its scans (a wall across the walk is in each of them), in the odometry in one scan
+MIN_ACROSS = 3.0
+ODOMETRY_MIN_ACROSS = 0.8
+UNOBSERVED_SIGMA = 0.05  # m per knot interval: the hold of the odometry's motion along an unobserved direction
+HOLD_WEIGHT = 1e10  # prior weight (units of the Huber width^2) that keeps an unobserved component at its prior
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +97,9 @@ class InitialMotion:
     motion of the first knot intervals (``increments``: (4, 4) each, ``T_body(k)^-1 T_body(k +
     1)``) with the sigmas (6,: rad, m, body frame) tracking holds them with (``increment_sigmas``). ``scanner`` is the index registered (-1: none), ``twist_scan`` its 2D twist (v_x, v_y
     m/s, w rad/s), ``matches`` the rest test's matched segments and ``rms`` its points' RMS
-    distance (m); ``scans`` the scans of the odometry."""
+    distance (m); ``scans`` the scans of the odometry; ``unobserved`` the rest test's unobserved
+    translation direction (2,: unit, the first scan's scanner frame; None: both observed) and
+    ``unobserved_scans`` the odometry's scans with one."""
 
     twist_body: FloatArray
     moving: bool
@@ -97,6 +110,8 @@ class InitialMotion:
     increments: list[FloatArray] = field(default_factory=list)
     increment_sigmas: FloatArray | None = None
     scans: int = 0
+    unobserved: FloatArray | None = None
+    unobserved_scans: int = 0
 
     @staticmethod
     def rest(scanner: int = -1) -> InitialMotion:
@@ -113,6 +128,8 @@ class InitialMotion:
             "rms": None if not np.isfinite(self.rms) else self.rms,
             "odometry_knots": len(self.increments),
             "odometry_scans": self.scans,
+            "unobserved_direction": None if self.unobserved is None else [float(x) for x in self.unobserved],
+            "odometry_unobserved_scans": self.unobserved_scans,
         }
 
 
@@ -268,12 +285,30 @@ def _normal_equations(f: Residuals, x0: FloatArray, huber: float) -> tuple[Float
     return (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, r, w
 
 
-def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: FloatArray,
+def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_W: FloatArray,
                   huber: float = HUBER) -> FloatArray:
     """One Huber-weighted Gauss-Newton step of the residuals ``f(x)`` from ``x0``, with the prior
-    ``prior_w (x - prior_x)^2`` (weights in units of ``huber``^2)."""
+    ``(x - prior_x)^T prior_W (x - prior_x)`` (``prior_W`` (3, 3), in units of ``huber``^2)."""
     A, g, _, _ = _normal_equations(f, x0, huber)
-    return x0 - np.linalg.solve(A + np.diag(prior_w) * huber**2, g + prior_w * (x0 - prior_x) * huber**2)
+    return x0 - np.linalg.solve(A + prior_W * huber**2, g + prior_W @ (x0 - prior_x) * huber**2)
+
+
+def unobserved_directions(normals: FloatArray, min_across: float) -> FloatArray:
+    """The translation directions (k, 2; unit rows, k = 0-2; the normals' frame) that matched
+    segments with these unit normals (m, 2) do not observe: the eigenvectors of ``sum n n^T``
+    below ``min_across`` (parallel walls observe only the direction across them)."""
+    if normals.shape[0] == 0:
+        return np.eye(2)
+    w, V = np.linalg.eigh(normals.T @ normals)
+    return np.ascontiguousarray(V[:, w < min_across].T)
+
+
+def _hold_directions(dirs: FloatArray) -> FloatArray:
+    """The prior weight (3, 3) that holds a 2D twist's or pose correction's translation at its
+    prior along the unit directions ``dirs`` (k, 2; same frame)."""
+    W = np.zeros((3, 3))
+    W[:2, :2] = HOLD_WEIGHT * (dirs.T @ dirs)
+    return W
 
 
 # ---- 1: at rest or moving ------------------------------------------------------------------------
@@ -282,12 +317,15 @@ def _gauss_newton(f: Residuals, x0: FloatArray, prior_x: FloatArray, prior_w: Fl
 @dataclass(frozen=True, eq=False)
 class Fit:
     """The rest test's fit: the 2D twist ``xi`` (v_x, v_y m/s, w rad/s), its covariance ``cov``
-    (3, 3), the matched segments and the points' RMS distance (m)."""
+    (3, 3), the matched segments, the points' RMS distance (m) and the translation directions
+    the matched lines do not observe (``unobserved``: (k, 2) unit rows, scanner frame), along
+    which ``xi`` is held at zero."""
 
     xi: FloatArray
     cov: FloatArray
     matches: int
     rms: float
+    unobserved: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, span: float,
@@ -295,20 +333,29 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
     """The constant 2D twist (v_x, v_y, w) of the scanner frame over ``scans`` (one scanner's,
     time order, the first one the target; those within ``span`` s of ``t0``) with its
     covariance; None when too few segments match. ``sigma`` (m) is the scanner's range noise:
-    the Huber width and the distance gates are at least 1 and 3 of it."""
+    the Huber width and the distance gates are at least 1 and 3 of it. The velocity along a
+    direction the matched lines do not observe is held at zero (``Fit.unobserved``)."""
     segs = _segments(scans, T_body_scanner)
     if len(segs) < 2 or not segs[0]:
         return None
     dts = [np.array(s.stamp - t0) for s in scans]
     xi = np.zeros(3)
-    w_prior = 1.0 / PRIOR_SIGMAS**2
+    w_prior = np.diag(1.0 / PRIOR_SIGMAS**2)
     matches: list[tuple[_Seg, float, FloatArray, float]] = []
+    dirs = np.zeros((0, 2))
 
     def residuals(x: FloatArray) -> FloatArray:
         return np.concatenate([se2_place(seg.points, seg.dt + dt, x) @ n + d for seg, dt, n, d in matches])
 
     huber = max(HUBER, sigma)
-    for reach, stage_gate, angle in STAGES:
+    # coarse to fine, free; then, when the final matches leave a direction unobserved, the fine
+    # stage again with the velocity along it held at zero (holding it from the start would keep
+    # the few lines across the walk, found only once the velocity is about right, out of reach)
+    stages = [(reach, gate, angle, False) for reach, gate, angle in STAGES]
+    k = 0
+    while k < len(stages):
+        reach, stage_gate, angle, held = stages[k]
+        k += 1
         sources = [i for i in range(1, len(segs)) if float(dts[i]) <= min(reach, span) + 1e-9]
         if not sources:
             continue
@@ -324,54 +371,76 @@ def register(scans: list[ScanSegments], T_body_scanner: FloatArray, t0: float, s
                         matches.append((seg, float(dts[i]), target.n[j], -float(target.n[j] @ target.c[j])))
             if len(matches) < MIN_MATCHES:
                 return None
-            new = _gauss_newton(residuals, xi, np.zeros(3), w_prior, huber)
+            new = _gauss_newton(residuals, xi, np.zeros(3), w_prior + _hold_directions(dirs), huber)
             done = np.abs(new - xi).max() < 1e-5
             xi = new
             if done:
                 break
+        if k == len(stages) and not held:
+            dirs = unobserved_directions(np.array([m[2] for m in matches]), MIN_ACROSS)
+            if dirs.shape[0]:
+                xi[:2] -= dirs.T @ (dirs @ xi[:2])
+                stages.append((reach, stage_gate, angle, True))
     A, _, r, w = _normal_equations(residuals, xi, huber)
     # the weighted residuals' scale; the points of one segment share its line's errors, so the
     # segments (not the points) count as the independent samples
     scale2 = float(np.sum(w * r * r) / max(np.sum(w) - 3.0, 1.0)) * r.size / max(len(matches), 4)
+    # the held directions: known (to be zero), not free
+    A = A + _hold_directions(dirs) * huber**2
     try:
         cov = np.asarray(np.linalg.inv(A), dtype=np.float64) * scale2
     except np.linalg.LinAlgError:
         cov = np.diag(PRIOR_SIGMAS**2)
-    return Fit(xi, cov, len(matches), float(np.sqrt(np.mean(r * r))))
+    return Fit(xi, cov, len(matches), float(np.sqrt(np.mean(r * r))), dirs)
 
 
 # ---- 2: odometry ---------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class Odometry:
+    """The scanner's pose (3, 3) at each scan's stamp (s) relative to the first scan's, the
+    twist (v_x, v_y, w) of the interval before it, and the translation directions (k, 2: unit
+    rows, that scan's scanner frame) its matched lines did not observe."""
+
+    stamps: FloatArray
+    poses: list[FloatArray]
+    twists: list[FloatArray]
+    unobserved: list[FloatArray]
+
+
 def odometry(scans: list[ScanSegments], T_body_scanner: FloatArray, xi0: FloatArray, sigma: float = 0.0,
-             ) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
-    """The scanner's pose (3, 3) at each scan's stamp relative to the first scan's, with the
-    twist (v_x, v_y, w) of the interval before it (the first: ``xi0``): the stamps (s,), the
-    poses and the twists (module doc, step 2)."""
+             ) -> Odometry:
+    """Scan after scan from the first (whose interval's twist is ``xi0``; module doc, step 2)."""
     segs = _segments(scans, T_body_scanner)
     stamps = np.array([s.stamp for s in scans])
     poses = [np.eye(3)]
     twists = [np.asarray(xi0, dtype=np.float64)]
+    unobserved = [np.zeros((0, 2))]
     placed = [_Lines.of([se2_place(s.points, s.dt, twists[0]) for s in segs[0]])]
     for i in range(1, len(segs)):
         target = _Lines.concat([placed[0], *placed[max(1, len(placed) - MAP_SCANS):]])
-        P, xi = _register_scan(segs[i], target, poses[-1], twists[-1], float(stamps[i] - stamps[i - 1]), sigma)
+        P, xi, dirs = _register_scan(segs[i], target, poses[-1], twists[-1], float(stamps[i] - stamps[i - 1]), sigma)
         poses.append(P)
         twists.append(xi)
+        unobserved.append(dirs @ P[:2, :2])  # first-scan frame -> this scan's
         placed.append(_Lines.of([se2_place(s.points, s.dt, xi, P) for s in segs[i]]))
-    return stamps, poses, twists
+    return Odometry(stamps, poses, twists, unobserved)
 
 
 def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: FloatArray, h: float,
-                   sigma: float = 0.0) -> tuple[FloatArray, FloatArray]:
+                   sigma: float = 0.0) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The pose (3, 3) of a scan ``h`` s after the one at ``prev`` (whose interval's twist was
-    ``xi_prev``) against the ``target`` lines, and the twist of the interval between them; the
-    constant-velocity prediction when too few segments match."""
+    ``xi_prev``) against the ``target`` lines, the twist of the interval between them and the
+    translation directions (k, 2: unit rows, the target's frame) the matched lines do not
+    observe, along which the pose stays at the constant-velocity prediction (all of them when
+    too few segments match)."""
     pred = prev @ se2_exp(xi_prev * h)
     prev_inv = np.linalg.inv(prev)
     gate, sin_gate = max(ODOMETRY_GATE[0], 3.0 * sigma), np.sin(np.radians(ODOMETRY_GATE[1]))
     huber = max(HUBER, sigma)
-    w_prior = 1.0 / ODOMETRY_PRIOR**2
+    w_prior = np.diag(1.0 / ODOMETRY_PRIOR**2)
+    dirs = np.eye(2)
 
     def pose_of(x: FloatArray) -> tuple[FloatArray, FloatArray]:
         P = pred @ se2(*x)
@@ -386,13 +455,18 @@ def _register_scan(segs: list[_Seg], target: _Lines, prev: FloatArray, xi_prev: 
             if j >= 0:
                 matches.append((seg, target.n[j], -float(target.n[j] @ target.c[j])))
         if len(matches) < MIN_MATCHES:
+            dirs = np.eye(2)
             break
-        new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior, huber)
+        dirs = unobserved_directions(np.array([m[1] for m in matches]), ODOMETRY_MIN_ACROSS)
+        # the correction's translation is in the predicted pose's frame
+        hold = _hold_directions(dirs @ pred[:2, :2])
+        new = _gauss_newton(_scan_residuals(matches, pose_of), x, np.zeros(3), w_prior + hold, huber)
         done = np.abs(new - x).max() < 1e-6
         x = new
         if done:
             break
-    return pose_of(x)
+    P, xi = pose_of(x)
+    return P, xi, dirs
 
 
 def _scan_residuals(matches: list[tuple[_Seg, FloatArray, float]],
@@ -452,6 +526,7 @@ def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: fl
     if fit is None:
         return InitialMotion.rest(s)
     xi = fit.xi
+    unobserved = fit.unobserved[0] if fit.unobserved.shape[0] else None
     speed, rate = float(np.hypot(xi[0], xi[1])), abs(float(xi[2]))
     # the first scan's lines are every match's target: their errors, which the standard errors
     # do not see, grow with the noise (30 mm: 0.1-0.2 m/s and 3-6 deg/s on a standing start)
@@ -462,17 +537,24 @@ def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: fl
     se_rate = float(np.sqrt(max(float(fit.cov[2, 2]), 0.0)))
     if (speed < max(k * params.min_speed, SE_SIGMAS * se_speed)
             and rate < max(k * params.min_rate, SE_SIGMAS * se_rate)):
-        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms)
+        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, unobserved=unobserved)
     twist_scan = np.array([0.0, 0.0, xi[2], xi[0], xi[1], 0.0])
     twist_body = adjoint(T_body_scanner[s]) @ twist_scan
-    stamps, poses, twists = odometry(own, T_body_scanner[s], xi, noise)
-    increments = knot_increments(t0, dt, float(stamps[-1]), stamps, poses, twists, T_body_scanner[s])
-    return InitialMotion(twist_body, True, s, xi, fit.matches, fit.rms, increments, body_sigmas(T_body_scanner[s]),
-                         len(own))
+    odo = odometry(own, T_body_scanner[s], xi, noise)
+    increments = knot_increments(t0, dt, float(odo.stamps[-1]), odo.stamps, odo.poses, odo.twists, T_body_scanner[s])
+    held = [d for d in odo.unobserved if d.shape[0]]
+    return InitialMotion(twist_body, True, s, xi, fit.matches, fit.rms, increments,
+                         body_sigmas(T_body_scanner[s], np.concatenate(held) if held else None, len(held)), len(own),
+                         unobserved, len(held))
 
 
-def body_sigmas(T_body_scanner: FloatArray) -> FloatArray:
+def body_sigmas(T_body_scanner: FloatArray, unobserved: FloatArray | None = None, count: int = 1) -> FloatArray:
     """``ODOMETRY_SIGMAS`` (scanner frame) as sigmas (6,: rad, m) of the body's motion: the
-    diagonal of the covariance moved by the adjoint of the scanner's mounting."""
+    diagonal of the covariance moved by the adjoint of the scanner's mounting. ``unobserved``
+    (k, 2: unit rows, scanner frame) are the directions the odometry's ``count`` scans with one
+    did not observe: their mean outer product adds ``UNOBSERVED_SIGMA``^2 to the translation."""
+    cov = np.diag(ODOMETRY_SIGMAS**2)
+    if unobserved is not None and unobserved.shape[0]:
+        cov[3:5, 3:5] += UNOBSERVED_SIGMA**2 * (unobserved.T @ unobserved) / max(count, 1)
     A = adjoint(T_body_scanner)
-    return np.sqrt(np.diag(A @ np.diag(ODOMETRY_SIGMAS**2) @ A.T))
+    return np.sqrt(np.diag(A @ cov @ A.T))
