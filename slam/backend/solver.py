@@ -43,6 +43,16 @@ def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return s.values, s.iterations
 
 
+def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float) -> gtsam.GaussianFactorGraph:
+    """One factor per variable (key, dimension): ``damping * I`` rows (``HOLD`` for the keys in
+    ``hold``) with zero right-hand side."""
+    out = gtsam.GaussianFactorGraph()
+    for k, d in dims:
+        w = HOLD if k in hold else damping
+        out.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+    return out
+
+
 def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
           relative_tolerance: float, fixed: Sequence[int] = ()) -> Solution:
     """Solve from ``values``. Stops when no step lowers the error or the relative decrease falls
@@ -64,17 +74,23 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
         lin: gtsam.GaussianFactorGraph | None = graph.linearize(values)
         assert lin is not None
         err0 = err = lin.error(zero)
+        # the damping rows of each damping level, and the elimination ordering (the same
+        # structure at every iteration: COLAMD once), kept for the whole solve
+        damped: dict[float, gtsam.GaussianFactorGraph] = {}
+        ordering: gtsam.Ordering | None = None
         it = 0
         for it in range(1, max_iterations + 1):
             delta = None
             while delta is None:
                 if lin is None:
                     lin = graph.linearize(values)
-                for k, d in dims:
-                    w = HOLD if k in hold else damping
-                    lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                if damping not in damped:
+                    damped[damping] = damping_rows(dims, hold, damping)
+                lin.push_back(damped[damping])
+                if ordering is None:
+                    ordering = gtsam.Ordering.ColamdGaussianFactorGraph(lin)
                 try:
-                    delta = lin.optimize()
+                    delta = lin.optimize(ordering)
                 except RuntimeError as e:
                     if damping * 100.0 > MAX_DAMPING:
                         raise
