@@ -36,7 +36,7 @@ class BatchSolver:
         ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
         try:
-            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed, self.blocks.planes)
             self.singular_systems.extend(name_keys(m) for m in sol.singular)
             return sol
         except RuntimeError as err2:

@@ -18,6 +18,7 @@ from gtsam.symbol_shorthand import P, X
 from numpy.typing import ArrayLike, NDArray
 
 from slam.backend.factors import (
+    PlaneTable,
     RobustKernel,
     check_block,
     point_plane_factor,
@@ -59,6 +60,7 @@ class BlockStore:
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self.summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
+        self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
 
     # ----------------------------------------------------------------- planes
     def add_plane(self, plane_id: int) -> None:
@@ -217,7 +219,7 @@ class BlockStore:
                 np.concatenate([np.full(b.points.shape[0], slot[b.plane_id]) for b in blks]),
                 np.concatenate([b.points for b in blks]), np.concatenate(alphas),  # type: ignore[arg-type]
                 np.concatenate([b.sigmas for b in blks]), kernel or self.kernel,
-                np.array([self.graph.anchors[j] for j in plane_ids]))
+                np.array([self.graph.anchors[j] for j in plane_ids]), self.planes)
         if kernel is None:
             self._groups[knot] = (key, factor)
         return factor
