@@ -80,9 +80,8 @@ class BatchSolver:
         if not (max_whitened > 0.0 and min_distance >= 0.0):
             raise ValueError(f"trim thresholds: expected > 0 and >= 0, got {max_whitened}, {min_distance}")
         n_points = n_blocks = 0
-        for bid in list(self.blocks.blocks):
+        for bid, e in self.blocks.all_whitened_residuals():
             blk = self.blocks.blocks[bid]
-            e = self.blocks.whitened_residuals(blk)
             out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
             if not out.any():
                 continue
