@@ -30,14 +30,15 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import P, X
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from backend_defaults import backend_defaults
 from box_scene import make_scene, walking_knots
 
 from slam.backend import Backend
 from slam.backend.factors import point_plane_factor
 from slam.motion import constant_velocity_terms
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, repeat: int) -> float:
@@ -190,7 +191,7 @@ def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: b
         head += f" {'ratio':>7}"
     print(head)
     for stage in (*ORDER, "total"):
-        def sec(r: dict) -> float:
+        def sec(r: dict, stage: str = stage) -> float:
             return float(sum(r["seconds"].values())) if stage == "total" else float(r["seconds"][stage])
         calls = sum(runs[-1][1]["counts"].values()) if stage == "total" else runs[-1][1]["counts"][stage]
         line = f"{stage:<26} {calls:>7d}" + "".join(f" {sec(r):>20.2f} {sec(r) / dur:>9.4f}" for _, r in runs)
