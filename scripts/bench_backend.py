@@ -174,7 +174,19 @@ def _estimate_difference(a: Path, b: Path) -> str:
             f"{ang:.5f} deg; planes max {pa:.5f} deg, {po * 1e3:.4f} mm")
 
 
-def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: bool) -> None:
+def _ate(log: Path, gt: Path, npz: Path) -> str:
+    """ATE RMSE (start- and SE(3)-aligned) of a replay's knots against the ground truth."""
+    from backend_log import load
+
+    from slam.evaluate import load_ground_truth, trajectory_errors
+
+    t = np.array([c[1][0] for c in load(log)["calls"] if c[0] == "add_pose"], dtype=float)
+    truth = load_ground_truth(gt)
+    ev = trajectory_errors(t, np.load(npz)["poses"], truth.times, truth.T_world_body)
+    return f"ATE start-aligned {ev.ate['start_aligned'].rmse * 1e3:.4f} mm, SE(3)-aligned {ev.ate['se3_aligned'].rmse * 1e3:.4f} mm"
+
+
+def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: bool, gt: Path | None = None) -> None:
     from backend_log import ORDER
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_backend_"))
@@ -206,6 +218,10 @@ def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: b
         print("this tree vs baseline: " + _estimate_difference(tmp / "base.npz", tmp / "now.npz"))
     if isam2:
         print("iSAM2 vs window: " + _estimate_difference(tmp / "now.npz", tmp / "isam2.npz"))
+    if gt is not None:
+        for (name, _), f in zip(runs, [*(["base.npz"] if baseline else []), "now.npz", *(["isam2.npz"] if isam2 else [])],
+                                strict=True):
+            print(f"{name}: {_ate(log, gt, tmp / f)} (the knots; the front end's decisions are the recording's)")
     if profile is not None:  # a run of its own: cProfile more than doubles the time it measures
         _run_replay(ROOT, log, tmp / "profiled.npz", profile)
         print(f"cProfile stats of this tree's replay (CPU time): {profile}")
@@ -221,6 +237,7 @@ def main() -> None:
     ap.add_argument("--profile", type=Path, default=None, help="write cProfile stats of this tree's replay here")
     ap.add_argument("--isam2", action="store_true", help="also replay with the iSAM2 incremental solver")
     ap.add_argument("--only-replay", action="store_true", help="skip benchmarks 1-3")
+    ap.add_argument("--gt", type=Path, default=None, help="the bag's ground-truth folder: ATE of each replay")
     ap.add_argument("--replay-child", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.replay_child:
@@ -243,7 +260,7 @@ def main() -> None:
         bench_motion_prior(args.duration)
     if args.log is not None:
         sys.path.insert(0, str(ROOT / "scripts"))
-        bench_replay(args.log, args.baseline, args.profile, args.isam2)
+        bench_replay(args.log, args.baseline, args.profile, args.isam2, args.gt)
 
 
 if __name__ == "__main__":
