@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -152,7 +153,7 @@ def _replay_child(tree: str, log: str, npz: str, profile: str, solver: str) -> N
 
 
 def _run_replay(tree: Path, log: Path, npz: Path, profile: Path | None, solver: str = "") -> dict:
-    env = {"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin", "NUMBA_CACHE_DIR": str(tree / ".numba_cache")}
+    env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, __file__, "--replay-child", str(tree), str(log), str(npz), str(profile or ""), solver]
     out = subprocess.run(cmd, cwd=tree, env=env, check=True, capture_output=True, text=True).stdout
     line = next(ln for ln in out.splitlines() if ln.startswith("REPLAY "))
