@@ -5,14 +5,24 @@
 2. iSAM2 update time against the number of knots on the synthetic box room (tests/box_scene.py),
    reading scan by scan as the pipeline will.
 3. Whitened constant-velocity residuals of the walking-tuned motion prior on the box-room walk.
+4. With ``--log``: a SLAM run's back-end calls (recorded by ``--record BAG``, see
+   ``scripts/backend_log.py``) replayed on this tree's back end and, with ``--baseline REV``, on
+   git revision REV's, each in a fresh process: CPU seconds per stage and per data second,
+   before/after ratios, and how far the two estimates are apart.
 
 Usage: .venv/bin/python scripts/bench_backend.py [--repeat N] [--duration S]
+       .venv/bin/python scripts/bench_backend.py --record BAG --log FILE   # once per bag
+       .venv/bin/python scripts/bench_backend.py --log FILE [--baseline REV] [--profile FILE] [--only-replay]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -28,6 +38,8 @@ from box_scene import make_scene, walking_knots
 from slam.backend import Backend
 from slam.backend.factors import point_plane_factor
 from slam.motion import constant_velocity_terms
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _linearize_seconds(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, repeat: int) -> float:
@@ -112,16 +124,144 @@ def bench_motion_prior(duration: float) -> None:
           f"max {rr[:, :3].max():.3f} / {rr[:, 3:].max():.3f} (a loose prior: < 1)")
 
 
+def _export_tree(rev: str) -> Path:
+    """Git revision ``rev`` of this repository as a folder (kept between runs, so that its numba
+    cache is too)."""
+    sha = subprocess.run(["git", "rev-parse", "--short", rev], cwd=ROOT, check=True, capture_output=True,
+                         text=True).stdout.strip()
+    out = Path(tempfile.gettempdir()) / f"bench_backend_tree_{sha}"
+    if not (out / "slam").is_dir():
+        out.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(["git", "archive", sha], cwd=ROOT, check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(out)], input=archive, check=True)
+    return out
+
+
+def _replay_child(tree: str, log: str, npz: str, profile: str, solver: str) -> None:
+    """One replay with the back end of ``tree`` (first on sys.path); prints one JSON line."""
+    sys.path.insert(0, tree)
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import backend_log
+
+    data = backend_log.load(Path(log))
+    if solver:
+        data["config"] = replace(data["config"], solver=solver)
+    backend_log.warm_up(data)
+    r = backend_log.replay(data, Path(profile) if profile else None)
+    np.savez(npz, poses=r["poses"], plane_ids=r["plane_ids"], normals=r["normals"], offsets=r["offsets"])
+    print("REPLAY " + json.dumps({k: r[k] for k in ("seconds", "counts", "mismatches", "data_duration")}))
+
+
+def _run_replay(tree: Path, log: Path, npz: Path, profile: Path | None, solver: str = "") -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    cmd = [sys.executable, __file__, "--replay-child", str(tree), str(log), str(npz), str(profile or ""), solver]
+    out = subprocess.run(cmd, cwd=tree, env=env, check=True, capture_output=True, text=True).stdout
+    line = next(ln for ln in out.splitlines() if ln.startswith("REPLAY "))
+    return dict(json.loads(line[len("REPLAY "):]))
+
+
+def _estimate_difference(a: Path, b: Path) -> str:
+    """Largest pose and plane differences between two replays' estimates."""
+    A, B = np.load(a), np.load(b)
+    if A["poses"].shape != B["poses"].shape or not np.array_equal(A["plane_ids"], B["plane_ids"]):
+        return "estimates: different knots or planes"
+    dt = np.linalg.norm(A["poses"][:, :3, 3] - B["poses"][:, :3, 3], axis=1).max()
+    R = np.einsum("kji,kjl->kil", A["poses"][:, :3, :3], B["poses"][:, :3, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))).max()
+    pa = np.degrees(np.arccos(np.clip(np.sum(A["normals"] * B["normals"], axis=1), -1.0, 1.0))).max()
+    po = np.abs(A["offsets"] - B["offsets"]).max()
+    same = all(np.array_equal(A[k], B[k]) for k in ("poses", "normals", "offsets"))
+    return (f"estimates {'bit for bit identical' if same else 'differ'}: poses max {dt * 1e3:.4f} mm, "
+            f"{ang:.5f} deg; planes max {pa:.5f} deg, {po * 1e3:.4f} mm")
+
+
+def _ate(log: Path, gt: Path, npz: Path) -> str:
+    """ATE RMSE (start- and SE(3)-aligned) of a replay's knots against the ground truth."""
+    from backend_log import load
+
+    from slam.evaluate import load_ground_truth, trajectory_errors
+
+    t = np.array([c[1][0] for c in load(log)["calls"] if c[0] == "add_pose"], dtype=float)
+    truth = load_ground_truth(gt)
+    ev = trajectory_errors(t, np.load(npz)["poses"], truth.times, truth.T_world_body)
+    return f"ATE start-aligned {ev.ate['start_aligned'].rmse * 1e3:.4f} mm, SE(3)-aligned {ev.ate['se3_aligned'].rmse * 1e3:.4f} mm"
+
+
+def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: bool, gt: Path | None = None) -> None:
+    from backend_log import ORDER
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_backend_"))
+    runs: list[tuple[str, dict]] = []
+    if baseline:
+        runs.append((f"baseline {baseline}", _run_replay(_export_tree(baseline), log, tmp / "base.npz", None)))
+    runs.append(("this tree", _run_replay(ROOT, log, tmp / "now.npz", None)))
+    if isam2:
+        runs.append(("this tree, iSAM2", _run_replay(ROOT, log, tmp / "isam2.npz", None, "isam2")))
+    dur = runs[-1][1]["data_duration"]
+    print(f"\n4. back end replayed from {log.name} ({dur:.1f} s of data): CPU seconds (time.process_time)")
+    head = f"{'stage':<26} {'calls':>7}" + "".join(f" {name + ' s':>20} {'s/data s':>9}" for name, _ in runs)
+    if baseline:
+        head += f" {'ratio':>7}"
+    print(head)
+    for stage in (*ORDER, "total"):
+        def sec(r: dict, stage: str = stage) -> float:
+            return float(sum(r["seconds"].values())) if stage == "total" else float(r["seconds"][stage])
+        calls = sum(runs[-1][1]["counts"].values()) if stage == "total" else runs[-1][1]["counts"][stage]
+        line = f"{stage:<26} {calls:>7d}" + "".join(f" {sec(r):>20.2f} {sec(r) / dur:>9.4f}" for _, r in runs)
+        if baseline:
+            now = runs[1][1]
+            line += f" {sec(runs[0][1]) / max(sec(now), 1e-9):>7.2f}"
+        print(line)
+    for name, r in runs:
+        if r["mismatches"]:
+            print(f"{name}: {r['mismatches']} results differ from the recording's (block ids, knots)")
+    if baseline:
+        print("this tree vs baseline: " + _estimate_difference(tmp / "base.npz", tmp / "now.npz"))
+    if isam2:
+        print("iSAM2 vs window: " + _estimate_difference(tmp / "now.npz", tmp / "isam2.npz"))
+    if gt is not None:
+        for (name, _), f in zip(runs, [*(["base.npz"] if baseline else []), "now.npz", *(["isam2.npz"] if isam2 else [])],
+                                strict=True):
+            print(f"{name}: {_ate(log, gt, tmp / f)} (the knots; the front end's decisions are the recording's)")
+    if profile is not None:  # a run of its own: cProfile more than doubles the time it measures
+        _run_replay(ROOT, log, tmp / "profiled.npz", profile)
+        print(f"cProfile stats of this tree's replay (CPU time): {profile}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--duration", type=float, default=4.0, help="box-room walk [s] (<= 4)")
+    ap.add_argument("--record", type=Path, default=None, help="run SLAM on this bag and write its back-end calls to --log")
+    ap.add_argument("--log", type=Path, default=None, help="a back-end call log to replay (4.)")
+    ap.add_argument("--baseline", default=None, help="git revision whose back end the replay is compared with")
+    ap.add_argument("--profile", type=Path, default=None, help="write cProfile stats of this tree's replay here")
+    ap.add_argument("--isam2", action="store_true", help="also replay with the iSAM2 incremental solver")
+    ap.add_argument("--only-replay", action="store_true", help="skip benchmarks 1-3")
+    ap.add_argument("--gt", type=Path, default=None, help="the bag's ground-truth folder: ATE of each replay")
+    ap.add_argument("--replay-child", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.replay_child:
+        _replay_child(*args.replay_child)
+        return
     if not 0.5 <= args.duration <= 4.0:
         ap.error("--duration: must be in [0.5, 4] s (the walk leaves the box room after that)")
-    bench_factor(args.repeat)
-    bench_isam(args.duration)
-    bench_motion_prior(args.duration)
+    if args.record is not None:
+        if args.log is None:
+            ap.error("--record needs --log")
+        sys.path.insert(0, str(ROOT / "scripts"))
+        from backend_log import record
+
+        summary = record(args.record, args.log, Path(tempfile.mkdtemp(prefix="bench_backend_run_")) / "slam")
+        print(f"recorded {args.log} ({summary['data_duration']:.1f} s of data)")
+        return
+    if not args.only_replay:
+        bench_factor(args.repeat)
+        bench_isam(args.duration)
+        bench_motion_prior(args.duration)
+    if args.log is not None:
+        sys.path.insert(0, str(ROOT / "scripts"))
+        bench_replay(args.log, args.baseline, args.profile, args.isam2, args.gt)
 
 
 if __name__ == "__main__":

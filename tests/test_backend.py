@@ -645,3 +645,23 @@ def test_a_step_before_the_second_knot_does_nothing() -> None:
         assert be.step() == StepReport(False, 0, 0)
         be.add_pose(0.0, np.eye(4))
         assert be.step() == StepReport(False, 0, 0)
+
+
+def test_all_whitened_residuals_equal_the_blocks_own(clean_scene: Scene) -> None:
+    """The one-pass residuals of every block (trim, statistics) are each block's own, bit for bit,
+    with the planes about anchors and a single-pose block among them."""
+    rng = np.random.default_rng(4)
+    be = Backend(backend_defaults())
+    for i, (t, T) in enumerate(zip(clean_scene.knot_times, clean_scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
+    for j, (n0, d0) in enumerate(zip(clean_scene.planes[:, :3], clean_scene.planes[:, 3], strict=True)):
+        be.add_plane(j, n0 + rng.normal(0.0, 0.01, 3), d0 + rng.normal(0.0, 0.01), anchor=rng.normal(0.0, 2.0, 3))
+    for b in clean_scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    b0 = clean_scene.blocks[0]
+    single = be.add_observations(b0["knot"], b0["plane"], b0["points_body"], None, b0["sigmas"])
+    got = be.blocks.all_whitened_residuals()
+    assert [b for b, _ in got] == list(be.blocks.blocks) and single in dict(got)
+    for bid, e in got:
+        assert np.array_equal(e, be.block_residuals(bid)[0])
+    assert np.abs(np.concatenate([e for _, e in got])).max() > 1.0  # perturbed: residuals far from zero

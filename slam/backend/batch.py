@@ -36,7 +36,7 @@ class BatchSolver:
         ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
         try:
-            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed)
+            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed, self.blocks.planes)
             self.singular_systems.extend(name_keys(m) for m in sol.singular)
             return sol
         except RuntimeError as err2:
@@ -50,9 +50,11 @@ class BatchSolver:
         kernel = cfg.kernel if kernel is None else kernel
         graph = self.blocks.whole_graph() if own else self.blocks.whole_graph(kernel=kernel)
         values = self.graph.used_values(graph)
-        e0 = graph.error(values)
         robust = graduated and kernel.name != "none" and bool(self.blocks.blocks)
         scales = list(cfg.robust_schedule) if robust else []
+        # the nominal graph's errors before and after: the solve of the nominal graph has them
+        # (its first linearisation's, its last accepted step's) unless graduated stages precede it
+        e0 = graph.error(values) if scales else None
         t0 = _time.perf_counter()
         iterations = 0
         for scale in [*scales, 1.0]:
@@ -65,7 +67,8 @@ class BatchSolver:
         self.graph.values.update(values)
         self.graph.restructure()
         self.blocks.drop_summaries()  # the held poses have moved
-        return OptimizeSummary(float(e0), float(graph.error(values)), iterations, _time.perf_counter() - t0)
+        return OptimizeSummary(float(sol.initial_error if e0 is None else e0), float(sol.final_error), iterations,
+                               _time.perf_counter() - t0)
 
     def error(self) -> float:
         """Total graph error (0.5 sum of whitened squares, robust losses) at the current estimate."""
@@ -77,9 +80,8 @@ class BatchSolver:
         if not (max_whitened > 0.0 and min_distance >= 0.0):
             raise ValueError(f"trim thresholds: expected > 0 and >= 0, got {max_whitened}, {min_distance}")
         n_points = n_blocks = 0
-        for bid in list(self.blocks.blocks):
+        for bid, e in self.blocks.all_whitened_residuals():
             blk = self.blocks.blocks[bid]
-            e = self.blocks.whitened_residuals(blk)
             out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
             if not out.any():
                 continue

@@ -17,9 +17,12 @@ import numpy as np
 from gtsam.symbol_shorthand import P, X
 from numpy.typing import ArrayLike, NDArray
 
+from slam.backend import factor_kernels as _fk
 from slam.backend.factors import (
+    PlaneTable,
     RobustKernel,
     check_block,
+    plane_row,
     point_plane_factor,
     point_plane_terms,
     point_planes_factor,
@@ -59,6 +62,7 @@ class BlockStore:
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self.summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
+        self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
 
     # ----------------------------------------------------------------- planes
     def add_plane(self, plane_id: int) -> None:
@@ -177,6 +181,35 @@ class BlockStore:
                                   blk.alphas, jacobians=False, anchor=a)
         return np.asarray(terms.residuals / blk.sigmas)
 
+    def all_whitened_residuals(self) -> list[tuple[int, FloatArray]]:
+        """(block id, :meth:`whitened_residuals`) of every block, in the store's order: the
+        two-pose blocks in one compiled pass (each knot and plane read once), the same numbers."""
+        v = self.graph.values
+        two = [b for b, blk in self.blocks.items() if blk.alphas is not None]
+        out: dict[int, FloatArray] = {}
+        if two:
+            blks = [self.blocks[b] for b in two]
+            knots = sorted({k for blk in blks for k in (blk.knot, blk.knot + 1)})
+            krow = {k: i for i, k in enumerate(knots)}
+            M = np.array([v.atPose3(X(k)).matrix() for k in knots])
+            planes = sorted({blk.plane_id for blk in blks})
+            prow = {j: i for i, j in enumerate(planes)}
+            rows = [plane_row(v, P(j)) for j in planes]
+            sizes = np.array([blk.points.shape[0] for blk in blks], dtype=np.int64)
+            starts = np.zeros(len(blks) + 1, dtype=np.int64)
+            np.cumsum(sizes, out=starts[1:])
+            res = _fk.blocks_residuals(
+                np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
+                np.array([krow[blk.knot] for blk in blks], dtype=np.int64),
+                np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                np.array([prow[blk.plane_id] for blk in blks], dtype=np.int64),
+                np.array([self.graph.anchors[j] for j in planes]),
+                np.concatenate([blk.points for blk in blks]),
+                np.concatenate([blk.alphas for blk in blks]), starts)  # type: ignore[misc]
+            for b, blk, s, e in zip(two, blks, starts[:-1], starts[1:], strict=True):
+                out[b] = res[s:e] / blk.sigmas
+        return [(b, out[b] if b in out else self.whitened_residuals(blk)) for b, blk in self.blocks.items()]
+
     def residuals(self, block_id: int) -> tuple[FloatArray, FloatArray]:
         """Whitened residuals (N,) of a block and the robust weights (N,) its kernel gives them."""
         e = self.whitened_residuals(self.get(block_id))
@@ -217,7 +250,7 @@ class BlockStore:
                 np.concatenate([np.full(b.points.shape[0], slot[b.plane_id]) for b in blks]),
                 np.concatenate([b.points for b in blks]), np.concatenate(alphas),  # type: ignore[arg-type]
                 np.concatenate([b.sigmas for b in blks]), kernel or self.kernel,
-                np.array([self.graph.anchors[j] for j in plane_ids]))
+                np.array([self.graph.anchors[j] for j in plane_ids]), self.planes)
         if kernel is None:
             self._groups[knot] = (key, factor)
         return factor

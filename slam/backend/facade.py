@@ -263,7 +263,7 @@ class Backend:
     # ----------------------------------------------------------------- statistics
     def residual_statistics(self) -> dict[str, float]:
         """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5)."""
-        es = [self.blocks.residuals(b)[0] for b in self.blocks.blocks]
+        es = [e for _, e in self.blocks.all_whitened_residuals()]
         e = np.concatenate(es) if es else np.zeros(0)
         w = robust_weights(e, self.config.kernel)
         return {

@@ -267,3 +267,24 @@ def group_rows(
     if r:
         rows[N] = math.sqrt(max(0.0, 2.0 * correction)) if linearize else 0.0
     return rows, Ha, Hb, Hp
+
+
+@nb.njit(cache=True)
+def blocks_residuals(
+    R: FloatArray, t: FloatArray, knot: NDArray[np.int64], normals: FloatArray, dists: FloatArray,
+    bases: FloatArray, plane: NDArray[np.int64], anchors: FloatArray, P: FloatArray, al: FloatArray,
+    starts: NDArray[np.int64],
+) -> FloatArray:
+    """Unwhitened residuals of many two-pose blocks at once, point for point those of
+    :func:`two_pose_terms` (the same code): block b holds the points ``P[starts[b]:starts[b+1]]``
+    (fractions ``al``) between knots ``knot[b]`` and ``knot[b] + 1`` (rotations ``R`` (K, 3, 3),
+    positions ``t`` (K, 3)) on plane row ``plane[b]`` (``normals``, ``dists``, ``bases`` (3 x 2),
+    ``anchors``)."""
+    out = np.empty(P.shape[0])
+    for b in range(starts.shape[0] - 1):
+        s, e = starts[b], starts[b + 1]
+        i, j = knot[b], plane[b]
+        res = two_pose_terms(R[i], t[i] - anchors[j], R[i + 1], t[i + 1] - anchors[j], normals[j], dists[j], bases[j],
+                             P[s:e], al[s:e], False)[0]
+        out[s:e] = res
+    return out

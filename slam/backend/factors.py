@@ -342,6 +342,39 @@ def _block_factor(
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
 
 
+class PlaneTable:
+    """The planes of one evaluation point, each read from the ``gtsam.Values`` once: while a
+    solver linearises a graph of :func:`point_planes_factor` factors at ``values``
+    (between ``at(values)`` and ``at(None)``), every factor takes a plane's unit normal (3,),
+    offset and tangent basis (3, 2) from here instead of reading it again (five gtsam calls per
+    plane and factor: as costly as the factor's arithmetic). Otherwise factors read their values."""
+
+    def __init__(self) -> None:
+        self.values: gtsam.Values | None = None
+        self.rows: dict[int, tuple[FloatArray, float, FloatArray]] = {}
+
+    def at(self, values: gtsam.Values | None) -> None:
+        """Serve the planes of ``values`` from now on (None: stop serving)."""
+        self.values = values
+        self.rows = {}
+
+    def get(self, key: int) -> tuple[FloatArray, float, FloatArray]:
+        """Unit normal, offset and tangent basis of plane ``key`` at the served point."""
+        row = self.rows.get(key)
+        if row is None:
+            assert self.values is not None
+            row = plane_row(self.values, key)
+            self.rows[key] = row
+        return row
+
+
+def plane_row(values: gtsam.Values, key: int) -> tuple[FloatArray, float, FloatArray]:
+    """Unit normal (3,), offset and the normal's tangent basis (3, 2) of plane ``key`` in ``values``."""
+    pl = values.atOrientedPlane3(key)
+    u = pl.normal()
+    return u.point3(), pl.distance(), u.basis()
+
+
 def point_planes_factor(
     pose_key_a: int,
     pose_key_b: int,
@@ -352,6 +385,7 @@ def point_planes_factor(
     sigmas: ArrayLike,
     kernel: RobustKernel,
     anchors: ArrayLike | None = None,
+    table: PlaneTable | None = None,
 ) -> gtsam.CustomFactor:
     """One factor for the N body-frame points (N, 3) [m] seen between knots a and b on several
     planes: point m on plane ``plane_keys[plane_index[m]]`` at fraction ``alphas[m]``, sigma
@@ -359,7 +393,8 @@ def point_planes_factor(
     Keys ``(pose_key_a, pose_key_b, *plane_keys)``. Its rows are those of one
     :func:`point_plane_factor` per plane concatenated (one robust correction row for all), so
     the error and every Gauss-Newton step are the same; a plane's Jacobian is zero on the other
-    planes' rows."""
+    planes' rows. ``table``: where the planes are read while a solver serves them
+    (:class:`PlaneTable`)."""
     pk = [int(k) for k in plane_keys]
     J = len(pk)
     if J == 0 or len(set(pk)) != J:
@@ -381,12 +416,9 @@ def point_planes_factor(
         normals = np.empty((J, 3))
         dists = np.empty(J)
         bases = np.empty((J, 3, 2))
+        served = table is not None and table.values is not None
         for j, key in enumerate(pk):
-            pl = v.atOrientedPlane3(key)
-            u = pl.normal()
-            normals[j] = u.point3()
-            dists[j] = pl.distance()
-            bases[j] = u.basis()
+            normals[j], dists[j], bases[j] = table.get(key) if served else plane_row(v, key)  # type: ignore[union-attr]
         rows, Ha, Hb, Hp = _fk.group_rows(Ma[:3, :3], Ma[:3, 3].copy(), Mb[:3, :3], Mb[:3, 3].copy(), normals, dists,
                                           bases, anc, idx, p, al, inv_s, code, thr, H is not None)
         if H is not None:

@@ -94,8 +94,11 @@ class FactorGraph:
 
     def used_values(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
         """The current estimate of the variables ``graph`` touches."""
+        keys = graph.keyVector()
+        if len(keys) == self.values.size():  # every variable (its keys are the estimate's): one copy
+            return gtsam.Values(self.values)
         out = gtsam.Values()
-        for k in graph.keyVector():
+        for k in keys:
             copy_value(out, self.values, int(k))
         return out
 

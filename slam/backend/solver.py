@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from slam.backend.factors import PlaneTable
+
 DAMPING = 1e-2  # on the whitened Jacobian: 1e-4 on the Hessian's diagonal
 MAX_DAMPING = 1e2  # the largest damping a singular system is retried with
 HOLD = 1e6  # "damping" of held variables: their steps stay at zero
@@ -43,14 +45,53 @@ def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return s.values, s.iterations
 
 
+def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float) -> gtsam.GaussianFactorGraph:
+    """One factor per variable (key, dimension): ``damping * I`` rows (``HOLD`` for the keys in
+    ``hold``) with zero right-hand side."""
+    out = gtsam.GaussianFactorGraph()
+    for k, d in dims:
+        w = HOLD if k in hold else damping
+        out.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+    return out
+
+
+class _Evaluator:
+    """The graph's linearisation and error at a point, with the plane table (if any) serving
+    that point's planes meanwhile."""
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, table: PlaneTable | None) -> None:
+        self.graph, self.table = graph, table
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        if self.table is None:
+            return self.graph.linearize(values)
+        self.table.at(values)
+        try:
+            return self.graph.linearize(values)
+        finally:
+            self.table.at(None)
+
+    def error(self, values: gtsam.Values) -> float:
+        if self.table is None:
+            return float(self.graph.error(values))
+        self.table.at(values)
+        try:
+            return float(self.graph.error(values))
+        finally:
+            self.table.at(None)
+
+
 def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
-          relative_tolerance: float, fixed: Sequence[int] = ()) -> Solution:
+          relative_tolerance: float, fixed: Sequence[int] = (), table: PlaneTable | None = None) -> Solution:
     """Solve from ``values``. Stops when no step lowers the error or the relative decrease falls
     below ``relative_tolerance``. Variables in ``fixed`` (keys) are held at their values. A
     singular linear system is solved again with a hundredfold damping (a tenth of it taken
     off again after each accepted step), up to ``MAX_DAMPING``; beyond it, or when a linearisation fails, the solve falls
     back to gtsam's Levenberg-Marquardt (without held variables), iterated until it converges,
-    ``max_iterations`` or ``FALLBACK_SECONDS``; its failure raises RuntimeError."""
+    ``max_iterations`` or ``FALLBACK_SECONDS``; its failure raises RuntimeError. ``table``: the
+    plane table of the graph's interval factors (:class:`slam.backend.factors.PlaneTable`),
+    serving each linearisation point's planes."""
+    ev = _Evaluator(graph, table)
     hold = {int(k) for k in fixed}
     dims = [(int(k), int(d)) for k, d in values.dims().items()]
     zero = values.zeroVectors()
@@ -61,20 +102,26 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
         # a linearisation's 0.5 ||b||^2 is the graph's error at its point (the robust blocks carry
         # a correction row: slam.backend.factors.robust_rows), so an accepted step's linearisation also
         # gives its error
-        lin: gtsam.GaussianFactorGraph | None = graph.linearize(values)
+        lin: gtsam.GaussianFactorGraph | None = ev.linearize(values)
         assert lin is not None
         err0 = err = lin.error(zero)
+        # the damping rows of each damping level, and the elimination ordering (the same
+        # structure at every iteration: COLAMD once), kept for the whole solve
+        damped: dict[float, gtsam.GaussianFactorGraph] = {}
+        ordering: gtsam.Ordering | None = None
         it = 0
         for it in range(1, max_iterations + 1):
             delta = None
             while delta is None:
                 if lin is None:
-                    lin = graph.linearize(values)
-                for k, d in dims:
-                    w = HOLD if k in hold else damping
-                    lin.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+                    lin = ev.linearize(values)
+                if damping not in damped:
+                    damped[damping] = damping_rows(dims, hold, damping)
+                lin.push_back(damped[damping])
+                if ordering is None:
+                    ordering = gtsam.Ordering.ColamdGaussianFactorGraph(lin)
                 try:
-                    delta = lin.optimize()
+                    delta = lin.optimize(ordering)
                 except RuntimeError as e:
                     if damping * 100.0 > MAX_DAMPING:
                         raise
@@ -86,10 +133,10 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iteration
                 trial = values.retract(delta if step == 1.0 else delta.scale(step))
                 lin_trial: gtsam.GaussianFactorGraph | None = None
                 if step == 1.0 and it < max_iterations:
-                    lin_trial = graph.linearize(trial)
+                    lin_trial = ev.linearize(trial)
                     new_err = lin_trial.error(zero)
                 else:
-                    new_err = graph.error(trial)
+                    new_err = ev.error(trial)
                 if new_err <= err:
                     lin = lin_trial
                     break
