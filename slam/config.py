@@ -164,6 +164,22 @@ class FrontEndConfig(StrictModel):
         False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
         "wall's normal through the centre of its extent: a door fitted a little tilted is otherwise nearer the wall's "
         "or a neighbouring board's segments at one end, takes them and tilts further (office: 0.4 deg)")
+    parallel_choice: bool = Field(
+        True, description="choose between parallel planes a few centimetres apart (a wall, its door, its board) "
+        "from the segments' own lines once the scan's common pose offset is taken out (slam.frontend."
+        "parallel_choice); a segment that fits two is held back, one that fits none goes to the pool, and only "
+        "unambiguous segments grow extents. Off: the nearest plane under the pose-widened gates (the wall's "
+        "segments 2 cm off a board's plane passed its gate, and its extent ran along the whole wall)")
+    relative_sigma: float = Field(
+        0.0015, gt=0, description="m, what a segment's own line misses of its distance to a plane once the scan's "
+        "common offset is removed (flatness, the rotation's lever along the scan); stated for the reference noise")
+    relative_gate: float = Field(4.0, gt=0, description="sigmas of the parallel choice's test")
+    ambiguity_ratio: float = Field(
+        100.0, gt=1, description="least likelihood ratio between two parallel surfaces for a segment to be assigned "
+        "(else it is held back)")
+    child_merge_distance: float = Field(
+        0.004, gt=0, description="m, a door or board tied to its wall merges with it only when nearer than this "
+        "over its extent (with parallel_choice)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "

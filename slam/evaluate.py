@@ -392,6 +392,23 @@ class AssociationEval:
     segment_purity: FloatArray
     plane_true: dict[int, int]  # estimated plane id -> true plane id (majority of segments)
     plane_support: dict[int, float]  # fraction of the plane's segments voting for it
+    # per true plane kind group (``kind_group``): associated segments of that kind, and of those
+    # the ones on an estimated plane whose true plane is the segment's own
+    by_kind: dict[str, tuple[int, int]] = field(default_factory=dict)
+    # wall segments on a door's or board's estimated plane, and door or board segments on a wall's
+    confusions_wall_to_child: int = 0
+    confusions_child_to_wall: int = 0
+
+    @property
+    def n_child_associated(self) -> int:
+        """Associated segments whose true plane is a door or a board."""
+        return sum(self.by_kind.get(k, (0, 0))[0] for k in CHILD_GROUPS)
+
+    @property
+    def confusion_fraction(self) -> float:
+        """Wall<->door/board confusions over the associated door and board segments."""
+        n = self.n_child_associated
+        return (self.confusions_wall_to_child + self.confusions_child_to_wall) / n if n else float("nan")
 
     @property
     def fraction_associated(self) -> float:
@@ -417,13 +434,45 @@ class AssociationEval:
             "segment_purity_median": float(np.median(self.segment_purity))
             if self.segment_purity.size
             else None,
+            "by_kind": {
+                k: {"n_associated": n, "n_correct": c, "fraction_correct_of_associated": c / n if n else None}
+                for k, (n, c) in self.by_kind.items()
+            },
+            "confusions": {
+                "definition": "wall segments on an estimated plane whose true plane is a door or board, and "
+                "door or board segments on one whose true plane is a wall; fraction over the associated "
+                "door and board segments",
+                "wall_to_child": self.confusions_wall_to_child,
+                "child_to_wall": self.confusions_child_to_wall,
+                "fraction_of_child_segments": self.confusion_fraction if self.n_child_associated else None,
+            },
         }
 
 
+KIND_GROUPS = ("wall", "floor/ceiling", "door", "board", "other")
+CHILD_GROUPS = ("door", "board")
+
+
+def kind_group(kind: str) -> str:
+    """The group of a true plane's kind (``simulation`` names): wall, floor/ceiling, door (the
+    leaf), board (whiteboard, poster, pinboard faces), other (frames, edges, furniture, ...)."""
+    if kind == "wall":
+        return "wall"
+    if kind in ("floor", "ceiling"):
+        return "floor/ceiling"
+    if kind == "door":
+        return "door"
+    if kind == "board":
+        return "board"
+    return "other"
+
+
 def association_errors(
-    segments: SegmentTable, segment_true: IntArray, segment_purity: FloatArray
+    segments: SegmentTable, segment_true: IntArray, segment_purity: FloatArray,
+    true_kinds: Mapping[int, str] | None = None,
 ) -> AssociationEval:
-    """Score each segment's plane against its true plane (see :class:`AssociationEval`)."""
+    """Score each segment's plane against its true plane (see :class:`AssociationEval`);
+    ``true_kinds`` (true plane id -> kind) adds the figures per kind group and the confusions."""
     pid = segments.plane_id.astype(np.int64)
     assoc = pid >= 0
     plane_ids = np.unique(pid[assoc])
@@ -438,6 +487,21 @@ def association_errors(
     est_true = np.full(pid.shape, -1, dtype=np.int64)
     est_true[assoc] = w[group]
     correct = assoc & (segment_true >= 0) & (est_true == segment_true)
+    by_kind: dict[str, tuple[int, int]] = {}
+    w2c = c2w = 0
+    if true_kinds is not None:
+        def groups(t: IntArray) -> NDArray[np.str_]:
+            return np.array([kind_group(true_kinds.get(int(x), "")) if x >= 0 else "" for x in t.tolist()], dtype=object)
+
+        g_seg = groups(segment_true)
+        g_est = groups(est_true)
+        for k in KIND_GROUPS:
+            m = assoc & (g_seg == k)
+            by_kind[k] = (int(np.count_nonzero(m)), int(np.count_nonzero(m & correct)))
+        child_seg = np.isin(g_seg, CHILD_GROUPS)
+        child_est = np.isin(g_est, CHILD_GROUPS)
+        w2c = int(np.count_nonzero(assoc & (g_seg == "wall") & child_est))
+        c2w = int(np.count_nonzero(assoc & child_seg & (g_est == "wall")))
     return AssociationEval(
         n_segments=len(segments),
         n_associated=int(np.count_nonzero(assoc)),
@@ -447,6 +511,9 @@ def association_errors(
         segment_purity=segment_purity,
         plane_true=plane_true,
         plane_support=support,
+        by_kind=by_kind,
+        confusions_wall_to_child=w2c,
+        confusions_child_to_wall=c2w,
     )
 
 
@@ -541,6 +608,22 @@ class PlaneMatch:
     matched_by: str  # "beams" or "geometry"
     support: float  # beams: fraction of the plane's segments voting for the true plane
     sigma_angle_deg: float = float("nan")  # the run's own 1-sigma of the normal (planes.json covariance), larger axis
+    # doors and boards: the extent's error against the true face (``extent_errors``), NaN otherwise
+    extent_error_m: float = float("nan")
+    extent_excess_m: float = float("nan")
+
+
+def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -> tuple[float, float]:
+    """How far an estimated plane's extent (its polygon (k, 3), ground-truth frame) is from the
+    true face's (polygon (m, 3)), both projected onto the true plane's (u horizontal, v) axes:
+    the largest distance between corresponding edges of the two bounding rectangles (m), and
+    by how much the estimated rectangle is longer or taller than the face (m, >= 0)."""
+    B = np.stack(plane_basis(np.asarray(normal, dtype=np.float64)))
+    e, t = estimated @ B.T, true @ B.T
+    e_lo, e_hi, t_lo, t_hi = e.min(axis=0), e.max(axis=0), t.min(axis=0), t.max(axis=0)
+    err = float(max(np.abs(e_lo - t_lo).max(), np.abs(e_hi - t_hi).max()))
+    excess = float(max(0.0, ((e_hi - e_lo) - (t_hi - t_lo)).max()))
+    return err, excess
 
 
 @dataclass(frozen=True)
@@ -596,6 +679,15 @@ class PlaneEval:
             },
             "angle_over_sigma": self.normalized_angle.to_json(),
             "by_kind": by_kind,
+            "extents": {
+                "definition": "door and board planes: largest distance between the edges of the estimated "
+                "extent's bounding rectangle and the true face's, in the face's plane (m); excess: how much "
+                "longer or taller the estimate is",
+                "planes": [{"est_id": m.est_id, "true_id": m.true_id, "kind": m.kind, "error_m": m.extent_error_m,
+                            "excess_m": m.extent_excess_m} for m in self.matches if m.extent_error_m == m.extent_error_m],
+                "max_error_m": max((m.extent_error_m for m in self.matches if m.extent_error_m == m.extent_error_m),
+                                   default=None),
+            },
             "planes": [m.__dict__ for m in self.matches],
         }
 
@@ -635,6 +727,9 @@ def plane_errors(
         t = true_by_id[tid]
         cosang = min(1.0, abs(float(e.normal @ t.normal)))
         c = _centre(e, fallback=_centre(t) if t.polygon.shape[0] >= 3 else None)
+        ext = (float("nan"), float("nan"))
+        if t.kind in ("door", "board") and e.polygon.shape[0] >= 3 and t.polygon.shape[0] >= 3:
+            ext = extent_errors(e.polygon, t.polygon, t.normal)
         matches.append(
             PlaneMatch(
                 est_id=int(e.id),
@@ -647,6 +742,8 @@ def plane_errors(
                 if e.id in beams
                 else float("nan"),
                 sigma_angle_deg=normal_sigma_deg(e.covariance),
+                extent_error_m=ext[0],
+                extent_excess_m=ext[1],
             )
         )
     return PlaneEval(matches, len(estimated), len(true), unmatched)
@@ -877,7 +974,7 @@ def evaluate(
         segs = read_segments_npz(run / "segments.npz")
         ids, stamps = gt.beams(segs.scanner_names)
         seg_true, purity = segment_true_planes(segs, ids, stamps)
-        assoc = association_errors(segs, seg_true, purity)
+        assoc = association_errors(segs, seg_true, purity, {t.id: t.kind for t in gt.planes})
 
     planes: PlaneEval | None = None
     if not (run / "planes.json").is_file():

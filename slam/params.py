@@ -26,6 +26,7 @@ from slam.frontend.association import Gates
 from slam.frontend.edges import EdgeParams
 from slam.frontend.initial_motion import InitialMotionParams
 from slam.frontend.map_builder import MapParams
+from slam.frontend.parallel_choice import ChoiceParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
 from slam.frontend.transients import TransientParams
@@ -34,7 +35,7 @@ from slam.motion import ImuConfig, MotionPriorConfig
 
 # the values stated for the reference noise (``noise.reference``) that scale with the scanners' noise
 NOISE_SCALED: dict[str, tuple[str, ...]] = {
-    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance"),
+    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma"),
     "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
     "backend": ("final_trim_distance",),
 }
@@ -115,6 +116,8 @@ def gates(cfg: SlamConfig) -> Gates:
         max_endpoint_distance=fe.max_endpoint_distance,
         child_margin_cells=fe.child_margin_cells,
         child_host_normal=fe.child_host_normal,
+        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.sigma_pose)
+        if fe.parallel_choice else None,
     )
 
 
@@ -200,6 +203,7 @@ def map_params(cfg: SlamConfig) -> MapParams:
         drift_rate=fe.drift_rate,
         drift_rate_vertical=fe.drift_rate_vertical,
         link_sigma=fe.link_sigma,
+        child_merge_distance=fe.child_merge_distance if fe.parallel_choice else float("inf"),
     )
 
 

@@ -63,6 +63,7 @@ class MapParams:
     drift_rate: float
     drift_rate_vertical: float
     link_sigma: float
+    child_merge_distance: float = float("inf")  # m, a tied door or board merges with its wall only nearer than this
 
 
 class TieKind(Enum):
@@ -130,21 +131,24 @@ class MapBuilder:
 
     # ------------------------------------------------------------------ observation
     def observe(self, p: PendingScan, ids: NDArray[np.int64], v_world: FloatArray, e_world: FloatArray,
-                T_body_scanner: FloatArray, now: float, blocks: ObservationBlocks) -> None:
-        """The scan's associated segments (plane ids ``ids``, -1: none) observe their planes
-        and extend them; the long enough others go to the pool. ``v_world``/``e_world`` (k, 2,
-        3) are the segments' virtual and end points placed in the world (``T_body_scanner``:
-        the scan's scanner)."""
+                T_body_scanner: FloatArray, now: float, blocks: ObservationBlocks,
+                grows: NDArray[np.bool_] | None = None) -> None:
+        """The scan's associated segments (plane ids ``ids``; -1: none, -2: held back as
+        ambiguous) observe their planes and, where ``grows`` (default: all), extend them; the
+        long enough unassociated others (-1) go to the pool. ``v_world``/``e_world`` (k, 2, 3)
+        are the segments' virtual and end points placed in the world (``T_body_scanner``: the
+        scan's scanner)."""
         segs = p.segs
         associated = np.flatnonzero(ids >= 0)
-        pooled = np.flatnonzero((ids < 0) & (segs.n_points >= self.params.min_segment_points))
+        pooled = np.flatnonzero((ids == -1) & (segs.n_points >= self.params.min_segment_points))
         # every 8th point of the associated segments (extents), every 12th of the pooled ones
         placed = self._knots.place_segments(segs, np.concatenate((associated, pooled)),
                                             np.repeat([8, 12], [associated.size, pooled.size]))
         for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
             pid = int(ids[j])
             blocks.segment(segs, j, pid)
-            self.pmap.extend(pid, pts)
+            if grows is None or grows[j]:
+                self.pmap.extend(pid, pts)
             self.pmap.planes[pid].n_segments += 1
             self.pmap.seen(pid, now, self._knots.odometer)
         self._stats.associated += int((ids >= 0).sum())
@@ -332,6 +336,7 @@ class MapBuilder:
         mp = self.params
         recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
         cos_max = np.cos(mp.merge_angle)
+        tied = {frozenset(pair) for pair in self.ties.children().items()}
         for a in recent:
             if not a.active:
                 continue
@@ -354,6 +359,9 @@ class MapBuilder:
                 # strength of its centre alone
                 small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
                 if self.pmap.max_distance_over(small.id, big.id) > tol:
+                    continue
+                # a door or board and its wall: one surface only when nearer than any door or board
+                if frozenset((a.id, b.id)) in tied and self.pmap.max_distance_over(small.id, big.id) > mp.child_merge_distance:
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
                 self._sink.link_planes(keep.id, drop.id, mp.link_sigma, mp.link_sigma)
