@@ -174,6 +174,11 @@ class FrontEndConfig(StrictModel):
         0.0015, gt=0, description="m, what a segment's own line misses of its distance to a plane once the scan's "
         "common offset is removed (flatness, the rotation's lever along the scan); stated for the reference noise")
     relative_gate: float = Field(4.0, gt=0, description="sigmas of the parallel choice's test")
+    choice_sigma_pose: float = Field(
+        0.002, gt=0, description="m, prior sigma of a scan's common offset from the map's planes after tracking, in "
+        "the parallel choice (times tracking_loosen in the tracking's pre-association): tracking has just fitted "
+        "the scan to these planes, so that several segments agreeing on a 2 cm offset from a board's plane are the "
+        "wall's, not a 2 cm pose error")
     ambiguity_ratio: float = Field(
         100.0, gt=1, description="least likelihood ratio between two parallel surfaces for a segment to be assigned "
         "(else it is held back)")

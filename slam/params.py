@@ -116,7 +116,7 @@ def gates(cfg: SlamConfig) -> Gates:
         max_endpoint_distance=fe.max_endpoint_distance,
         child_margin_cells=fe.child_margin_cells,
         child_host_normal=fe.child_host_normal,
-        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.sigma_pose)
+        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.choice_sigma_pose)
         if fe.parallel_choice else None,
     )
 

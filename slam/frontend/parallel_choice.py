@@ -11,9 +11,10 @@ on:
 
 * the candidates of one scan are grouped into *families* of parallel planes (normals within
   ``PARALLEL_DEG``, same facing);
-* each (segment, candidate) pair proposes ``delta = dist``; the hypothesis explaining the most
-  segment points within ``gate`` sigmas (weighted by the pose prior ``exp(-delta^2 / 2
-  sigma_pose^2)``) wins and is refined to the mean of its inliers' distances;
+* each (segment, candidate) pair proposes ``delta = dist``; the hypothesis of the highest
+  likelihood wins: every segment it leaves unexplained (no candidate within ``gate`` sigmas)
+  costs ``OUTLIER_NATS``, and ``delta`` has the pose prior ``N(0, sigma_pose^2)``; it is then
+  refined to the point-weighted mean of its inliers' distances;
 * each segment then takes the candidate whose distance, less ``delta``, lies within ``gate``
   of its own sigma (``sqrt(sigma_centroid^2 + relative_sigma^2)``); two such candidates on one
   surface (a duplicate awaiting merge: offsets within one sigma) keep the nearer, on two
@@ -36,6 +37,7 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 NONE, HELD = -1, -2
 PARALLEL_DEG = 2.0
+OUTLIER_NATS = float(np.log(100.0))  # a segment on none of the planes: 1 % as likely as on one
 
 
 @dataclass(frozen=True)
@@ -97,8 +99,11 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
         if not members:
             continue
         # the scan's common offset along the family's normal: the best-supported hypothesis
-        best_score, delta, support = -1.0, 0.0, 0
-        hyps = sorted({float(dist[k, j]) for k, js in members for j in js})
+        best_score, delta, support = -np.inf, 0.0, 0
+        # no offset at all is a hypothesis too: a lone segment 1.5 cm off its only candidate (a door's
+        # off the wall's plane, the door's plane not made yet) is then unexplained rather than the
+        # proof of a 1.5 cm pose error
+        hyps = sorted({0.0} | {float(dist[k, j]) for k, js in members for j in js})
         for h in hyps:
             w_in, n_in, acc = 0.0, 0, 0.0
             for k, js in members:
@@ -107,7 +112,8 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
                     w_in += weight[k]
                     n_in += 1
                     acc += weight[k] * (h + r)
-            score = w_in * float(np.exp(-0.5 * h * h / sp2))
+            # log-likelihood: each segment left unexplained costs OUTLIER_NATS, the offset its prior
+            score = n_in * OUTLIER_NATS - 0.5 * h * h / sp2
             if score > best_score:
                 best_score, delta, support = score, acc / w_in if w_in > 0 else h, n_in
         for k, js in members:
