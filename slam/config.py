@@ -158,7 +158,8 @@ class FrontEndConfig(StrictModel):
         "wall's segments metres away cannot turn towards them (the final trim then detaches them)")
     child_margin_cells: int = Field(
         -1, ge=-1, description="cells by which the extent of a plane tied parallel to its wall (a door, a board) "
-        "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane. A door's "
+        "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane (1 with "
+        "parallel_choice, where a segment's end points must both lie in a child's extent so grown). A door's "
         "extent grown by a metre reaches the wall and the boards beside it, whose segments lie 1-3 cm off the door")
     child_host_normal: bool = Field(
         False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "

@@ -114,9 +114,10 @@ def gates(cfg: SlamConfig) -> Gates:
         max_drift_sigma=fe.max_drift_sigma,
         chi2=fe.association_chi2,
         max_endpoint_distance=fe.max_endpoint_distance,
-        child_margin_cells=fe.child_margin_cells,
+        child_margin_cells=fe.child_margin_cells if fe.child_margin_cells >= 0 or not fe.parallel_choice else 1,
         child_host_normal=fe.child_host_normal,
-        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.choice_sigma_pose)
+        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.choice_sigma_pose,
+                            np.radians(fe.sigma_lever_deg))
         if fe.parallel_choice else None,
     )
 

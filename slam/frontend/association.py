@@ -190,12 +190,17 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     if gates.choice is not None:
         # the candidates by increasing m2 under the gates and over the (dilated) extents, then
         # the choice between parallel planes from the segments' own lines
+        # a door's or board's segments end at its edges (the segmenter breaks there): both end
+        # points and the centroid of a segment on it lie within its extent (dilated by the child
+        # margin), where a wall's segment runs on past it
+        whole = set(child_rows)
         cands: list[list[int]] = [[] for _ in range(segs.n)]
         for k in hit.tolist():
             cands[k] = [j for j in order[k, : count[k]].tolist()
-                        if pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j])]
+                        if (all(pmap.overlaps_cells(ids[j], [c], dilate[j]) for c in cells[k, j].tolist()) if j in whole
+                            else pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j]))]
         weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
-        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice)
+        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range)
         id_arr = np.asarray(ids, dtype=np.int64)
         out = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
         return Association(out, ch.grows & (ch.column >= 0))
@@ -276,7 +281,8 @@ class ScanAssociator:
             d = v_world[:, 1] - v_world[:, 0]
             d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
             ws = replace(ws, direction=d)
-        children = self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal) else None
+        children = (self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal or gates.choice is not None)
+                    else None)
         a = associate_scan(ws, self._pmap, self._knots.odometer, gates, children)
         short = p.segs.n_points < self._min_segment_points
         a.ids[short] = NONE

@@ -51,6 +51,7 @@ class ChoiceParams:
     gate: float
     ratio: float
     sigma_pose: float
+    sigma_lever: float = 0.0  # rad: the rotation's error, times a segment's range, in its relative sigma
 
 
 @dataclass(frozen=True)
@@ -78,11 +79,13 @@ def families(normals: FloatArray, columns: list[int]) -> dict[int, int]:
 
 
 def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
-           normals: FloatArray, params: ChoiceParams) -> Choice:
+           normals: FloatArray, params: ChoiceParams, seg_range: FloatArray | None = None) -> Choice:
     """The choice for the k segments of one scan: ``candidates[k]`` the columns (planes) passing
     the gates and extents, by increasing Mahalanobis distance; ``dist`` (k, P) the signed
     centroid distances (m), ``sigma_own`` (k,) the centroids' sigmas (m), ``weight`` (k,) the
-    segments' point counts, ``normals`` (P, 3) the planes' normals (world frame)."""
+    segments' point counts, ``normals`` (P, 3) the planes' normals (world frame), ``seg_range``
+    (k,) the segments' distances from the scanner (m; a rotation error moves a far segment
+    more than the scan's common offset: ``sigma_lever`` times the range)."""
     k_n = len(candidates)
     column = np.full(k_n, NONE, dtype=np.int64)
     grows = np.zeros(k_n, dtype=bool)
@@ -90,7 +93,8 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
     if not used:
         return Choice(column, grows)
     fam = families(normals, used)
-    s_rel = np.sqrt(sigma_own**2 + params.relative_sigma**2)
+    lever = 0.0 if seg_range is None else (params.sigma_lever * seg_range) ** 2
+    s_rel = np.sqrt(sigma_own**2 + params.relative_sigma**2 + lever)
     tau = params.gate * s_rel
     sp2 = max(params.sigma_pose, 1e-6) ** 2
     for f in sorted(set(fam.values())):
