@@ -91,6 +91,7 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
         a = res.association
         row |= {"assoc_associated": a.fraction_associated,
                 "assoc_correct_of_associated": a.fraction_correct_of_associated,
+                "assoc_correct_surface": a.fraction_correct_surface_of_associated,
                 "assoc_by_kind": {k: (c / n if n else None) for k, (n, c) in a.by_kind.items()},
                 "confusions": a.confusions_wall_to_child + a.confusions_child_to_wall,
                 "confusion_fraction": a.confusion_fraction if a.n_child_associated else None}
@@ -171,6 +172,8 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
     add("plane offset median (mm)", [_fmt(r.get("plane_offset_median"), 1e3) for r in rows])
     add("segments associated (%)", [_fmt(r.get("assoc_associated"), 100, 1) for r in rows])
     add("association correct of associated (%)", [_fmt(r.get("assoc_correct_of_associated"), 100, 2) for r in rows])
+    add("association correct of associated, coplanar true planes as one surface (%)",
+        [_fmt(r.get("assoc_correct_surface"), 100, 2) for r in rows])
     for kind in ("wall", "floor/ceiling", "door", "board", "other"):
         add(f"association correct, {kind} segments (%)",
             [_fmt((r.get("assoc_by_kind") or {}).get(kind), 100, 2) for r in rows])

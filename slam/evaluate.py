@@ -392,12 +392,21 @@ class AssociationEval:
     segment_purity: FloatArray
     plane_true: dict[int, int]  # estimated plane id -> true plane id (majority of segments)
     plane_support: dict[int, float]  # fraction of the plane's segments voting for it
+    # segments on an estimated plane whose surface (coplanar true planes as one) is theirs; None: not asked
+    n_correct_surface: int | None = None
     # per true plane kind group (``kind_group``): associated segments of that kind, and of those
-    # the ones on an estimated plane whose true plane is the segment's own
+    # the ones on an estimated plane whose true plane (surface, with ``surfaces``) is the segment's own
     by_kind: dict[str, tuple[int, int]] = field(default_factory=dict)
     # wall segments on a door's or board's estimated plane, and door or board segments on a wall's
     confusions_wall_to_child: int = 0
     confusions_child_to_wall: int = 0
+
+    @property
+    def fraction_correct_surface_of_associated(self) -> float:
+        """Like ``fraction_correct_of_associated``, with coplanar true planes taken as one surface."""
+        if self.n_correct_surface is None or not self.n_associated:
+            return float("nan")
+        return self.n_correct_surface / self.n_associated
 
     @property
     def n_child_associated(self) -> int:
@@ -431,6 +440,8 @@ class AssociationEval:
             "fraction_associated": self.fraction_associated,
             "fraction_correct": self.fraction_correct,
             "fraction_correct_of_associated": self.fraction_correct_of_associated,
+            "fraction_correct_surface_of_associated": self.fraction_correct_surface_of_associated
+            if self.n_correct_surface is not None else None,
             "segment_purity_median": float(np.median(self.segment_purity))
             if self.segment_purity.size
             else None,
@@ -467,12 +478,31 @@ def kind_group(kind: str) -> str:
     return "other"
 
 
+def coplanar_surfaces(planes: Sequence[PlaneRecord], max_angle_deg: float = 0.05,
+                      max_offset: float = 0.002) -> dict[int, int]:
+    """True plane id -> the smallest id of the true planes of the same kind that lie in one plane
+    with it (normals within ``max_angle_deg``, same facing, offsets within ``max_offset`` m):
+    the pieces of one wall between its openings, the same wall of two rooms in a row, the
+    ceiling of a room and of the corridor beside it. One map plane for them is the right map."""
+    out = {int(p.id): int(p.id) for p in planes}
+    cos_min = float(np.cos(np.radians(max_angle_deg)))
+    ordered = sorted(planes, key=lambda q: int(q.id))
+    for i, a in enumerate(ordered):
+        for b in ordered[:i]:
+            if (a.kind == b.kind and float(a.normal @ b.normal) > cos_min and abs(a.d - b.d) < max_offset):
+                out[int(a.id)] = out[int(b.id)]
+                break
+    return out
+
+
 def association_errors(
     segments: SegmentTable, segment_true: IntArray, segment_purity: FloatArray,
-    true_kinds: Mapping[int, str] | None = None,
+    true_kinds: Mapping[int, str] | None = None, surfaces: Mapping[int, int] | None = None,
 ) -> AssociationEval:
     """Score each segment's plane against its true plane (see :class:`AssociationEval`);
-    ``true_kinds`` (true plane id -> kind) adds the figures per kind group and the confusions."""
+    ``true_kinds`` (true plane id -> kind) adds the figures per kind group and the confusions,
+    ``surfaces`` (true plane id -> its surface, :func:`coplanar_surfaces`) the share of
+    segments on the right surface (pieces of one plane taken as one)."""
     pid = segments.plane_id.astype(np.int64)
     assoc = pid >= 0
     plane_ids = np.unique(pid[assoc])
@@ -487,6 +517,15 @@ def association_errors(
     est_true = np.full(pid.shape, -1, dtype=np.int64)
     est_true[assoc] = w[group]
     correct = assoc & (segment_true >= 0) & (est_true == segment_true)
+    n_surface = None
+    if surfaces is not None:
+        # the same majority vote with each segment's true plane taken as its surface
+        surf = np.array([surfaces.get(int(t), int(t)) if t >= 0 else -1 for t in segment_true.tolist()], dtype=np.int64)
+        ws, _ = majority(group, surf[assoc], plane_ids.size)
+        est_surf = np.full(pid.shape, -1, dtype=np.int64)
+        est_surf[assoc] = ws[group]
+        correct = assoc & (surf >= 0) & (est_surf == surf)
+        n_surface = int(np.count_nonzero(correct))
     by_kind: dict[str, tuple[int, int]] = {}
     w2c = c2w = 0
     if true_kinds is not None:
@@ -505,7 +544,8 @@ def association_errors(
     return AssociationEval(
         n_segments=len(segments),
         n_associated=int(np.count_nonzero(assoc)),
-        n_correct=int(np.count_nonzero(correct)),
+        n_correct=int(np.count_nonzero(assoc & (segment_true >= 0) & (est_true == segment_true))),
+        n_correct_surface=n_surface,
         n_without_truth=int(np.count_nonzero(segment_true < 0)),
         segment_true=segment_true,
         segment_purity=segment_purity,
@@ -974,7 +1014,8 @@ def evaluate(
         segs = read_segments_npz(run / "segments.npz")
         ids, stamps = gt.beams(segs.scanner_names)
         seg_true, purity = segment_true_planes(segs, ids, stamps)
-        assoc = association_errors(segs, seg_true, purity, {t.id: t.kind for t in gt.planes})
+        assoc = association_errors(segs, seg_true, purity, {t.id: t.kind for t in gt.planes},
+                                   coplanar_surfaces(gt.planes))
 
     planes: PlaneEval | None = None
     if not (run / "planes.json").is_file():

@@ -336,7 +336,10 @@ class MapBuilder:
         mp = self.params
         recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
         cos_max = np.cos(mp.merge_angle)
-        tied = {frozenset(pair) for pair in self.ties.children().items()}
+        # doors and boards with their wall, and with one another on one wall: distinct surfaces
+        children = self.ties.children()
+        tied = {frozenset(pair) for pair in children.items()}
+        tied |= {frozenset((a, b)) for a, ha in children.items() for b, hb in children.items() if a != b and ha == hb}
         for a in recent:
             if not a.active:
                 continue
@@ -360,7 +363,8 @@ class MapBuilder:
                 small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
                 if self.pmap.max_distance_over(small.id, big.id) > tol:
                     continue
-                # a door or board and its wall: one surface only when nearer than any door or board
+                # a door or board and its wall (or another child of it): one surface only when nearer
+                # than any door or board
                 if frozenset((a.id, b.id)) in tied and self.pmap.max_distance_over(small.id, big.id) > mp.child_merge_distance:
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
