@@ -175,6 +175,9 @@ class FrontEndConfig(StrictModel):
         0.0015, gt=0, description="m, what a segment's own line misses of its distance to a plane once the scan's "
         "common offset is removed (flatness, the rotation's lever along the scan); stated for the reference noise")
     relative_gate: float = Field(4.0, gt=0, description="sigmas of the parallel choice's test")
+    tracking_choice: bool = Field(
+        False, description="the parallel choice in the tracking's pre-association too (loosened with its gates); "
+        "off: the nearest candidate there, the choice in the association proper only")
     choice_sigma_pose: float = Field(
         0.002, gt=0, description="m, prior sigma of a scan's common offset from the map's planes after tracking, in "
         "the parallel choice (times tracking_loosen in the tracking's pre-association): tracking has just fitted "

@@ -11,7 +11,7 @@ the knot interval turns the motion prior's accelerations into densities.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -123,8 +123,10 @@ def gates(cfg: SlamConfig) -> Gates:
 
 
 def tracking_gates(cfg: SlamConfig) -> Gates:
-    """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``."""
-    return gates(cfg).loosened(cfg.frontend.tracking_loosen)
+    """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``,
+    with the parallel choice only with ``tracking_choice``."""
+    g = gates(cfg).loosened(cfg.frontend.tracking_loosen)
+    return g if cfg.frontend.tracking_choice else replace(g, choice=None)
 
 
 def plane_init_params(cfg: SlamConfig) -> PlaneInitParams:
