@@ -175,6 +175,10 @@ class FrontEndConfig(StrictModel):
         0.0015, gt=0, description="m, what a segment's own line misses of its distance to a plane once the scan's "
         "common offset is removed (flatness, the rotation's lever along the scan); stated for the reference noise")
     relative_gate: float = Field(4.0, gt=0, description="sigmas of the parallel choice's test")
+    choice_sigma_lever_deg: float = Field(
+        0.05, gt=0, description="deg, the rotation's error after tracking, times a segment's range, in the parallel "
+        "choice's relative sigma (0.02: far wall segments refused by their wall made planes of their own, the "
+        "small room's board plane ran along its wall again)")
     tracking_choice: bool = Field(
         False, description="the parallel choice in the tracking's pre-association too (loosened with its gates); "
         "off: the nearest candidate there, the choice in the association proper only")

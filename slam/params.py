@@ -117,7 +117,7 @@ def gates(cfg: SlamConfig) -> Gates:
         child_margin_cells=fe.child_margin_cells if fe.child_margin_cells >= 0 or not fe.parallel_choice else 1,
         child_host_normal=fe.child_host_normal,
         choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.choice_sigma_pose,
-                            np.radians(fe.sigma_lever_deg))
+                            np.radians(fe.choice_sigma_lever_deg))
         if fe.parallel_choice else None,
     )
 
