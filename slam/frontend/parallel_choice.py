@@ -52,6 +52,7 @@ class ChoiceParams:
     ratio: float
     sigma_pose: float
     sigma_lever: float = 0.0  # rad: the rotation's error, times a segment's range, in its relative sigma
+    walls_only: bool = False  # floors, ceilings and slopes (normal over 30 deg off horizontal) take the nearest
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,11 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
         members = [(k, [j for j in c if fam[j] == f]) for k, c in enumerate(candidates)]
         members = [(k, js) for k, js in members if js]
         if not members:
+            continue
+        if params.walls_only and abs(float(normals[f, 2])) > 0.5:
+            for k, js in members:
+                if column[k] == NONE:
+                    column[k], grows[k] = js[0], True
             continue
         # the scan's common offset along the family's normal: the best-supported hypothesis
         best_score, delta, support = -np.inf, 0.0, 0
