@@ -672,6 +672,9 @@ class PlaneEval:
     n_estimated: int
     n_true: int
     unmatched: list[int] = field(default_factory=list)
+    # doors and boards: est id -> (its extent polygon (k, 3), the true face's (m, 3), the face's
+    # normal (3,)), ground-truth frame, for the plot of extents against faces
+    outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = field(default_factory=dict)
 
     @property
     def angle(self) -> Stats:
@@ -759,6 +762,7 @@ def plane_errors(
     geo = match_planes_geometric(rest, true)
     matches: list[PlaneMatch] = []
     unmatched: list[int] = []
+    outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
     for e in estimated:
         tid = beams.get(e.id, geo.get(e.id))
         if tid is None:
@@ -770,6 +774,7 @@ def plane_errors(
         ext = (float("nan"), float("nan"))
         if t.kind in ("door", "board") and e.polygon.shape[0] >= 3 and t.polygon.shape[0] >= 3:
             ext = extent_errors(e.polygon, t.polygon, t.normal)
+            outlines[int(e.id)] = (e.polygon, t.polygon, t.normal)
         matches.append(
             PlaneMatch(
                 est_id=int(e.id),
@@ -786,7 +791,7 @@ def plane_errors(
                 extent_excess_m=ext[1],
             )
         )
-    return PlaneEval(matches, len(estimated), len(true), unmatched)
+    return PlaneEval(matches, len(estimated), len(true), unmatched, outlines)
 
 
 # ----------------------------------------------------------------------------------- cloud

@@ -209,6 +209,7 @@ def map_params(cfg: SlamConfig) -> MapParams:
         drift_rate_vertical=fe.drift_rate_vertical,
         link_sigma=fe.link_sigma,
         child_merge_distance=fe.child_merge_distance if fe.parallel_choice else float("inf"),
+        child_adopt_cells=1 if fe.parallel_choice else 1 << 20,
     )
 
 

@@ -335,7 +335,7 @@ def test_evaluate_end_to_end(tmp_path: Path) -> None:
     assert js["planes"]["n_matched"] == 2
     pngs = write_plots(r, run)
     assert {p.name for p in pngs} >= {"trajectory_error_topview.png", "error_over_distance.png",
-                                      "plane_errors.png", "cloud_to_mesh.png"}  # fmt: skip
+                                      "plane_errors.png", "cloud_to_mesh.png", "plane_extents.png"}  # fmt: skip
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -463,3 +463,20 @@ def test_extent_errors_of_a_board_against_its_face() -> None:
     assert err == pytest.approx(0.3) and excess == pytest.approx(0.3)
     err, excess = extent_errors(rect(2.65, 4.4, 0.92, 2.1), rect(2.6, 4.4, 0.9, 2.1), n)
     assert err == pytest.approx(0.05) and excess == 0.0
+
+
+def test_plane_extents_plot(tmp_path: Path) -> None:
+    """plane_errors keeps each door's and board's outline with its face's, and the plot draws them."""
+    from slam.eval_plots import plot_plane_extents
+    from slam.evaluate import plane_errors
+
+    n = np.array([0.0, -1.0, 0.0])
+    face = np.array([[2.6, 6.0, 0.9], [4.4, 6.0, 0.9], [4.4, 6.0, 2.1], [2.6, 6.0, 2.1]])
+    true = [PlaneRecord(10, n, 5.98, face - [0.0, 0.02, 0.0], kind="board"),
+            PlaneRecord(3, n, 6.0, np.array([[0.0, 6.0, 0.0], [9.0, 6.0, 0.0], [9.0, 6.0, 2.8], [0.0, 6.0, 2.8]]),
+                        kind="wall")]
+    est = [PlaneRecord(5, n, 5.98, face + [0.1, -0.02, 0.0], kind="wall")]
+    pe = plane_errors(est, true, {5: 10})
+    assert set(pe.outlines) == {5} and pe.matches[0].extent_error_m == pytest.approx(0.1)
+    out = plot_plane_extents(pe, tmp_path / "plane_extents.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -64,6 +64,7 @@ class MapParams:
     drift_rate_vertical: float
     link_sigma: float
     child_merge_distance: float = float("inf")  # m, a tied door or board merges with its wall only nearer than this
+    child_adopt_cells: int = 1 << 20  # cells: a new door or board adopts pooled segments with both ends this near its extent
 
 
 class TieKind(Enum):
@@ -235,7 +236,7 @@ class MapBuilder:
             blocks.flush(self._sink)
             self._stats.planes_created += 1
             self._stats.associated += len(plane.members)
-            self._adopt_pooled(pl.id, by_serial)
+            self._adopt_pooled(pl.id, by_serial, child=host is not None)
 
     def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
         """The established plane a new one (its members' points ``pts``, world frame) lies on,
@@ -296,8 +297,10 @@ class MapBuilder:
         about = np.array([0.0, 0.0, 1.0]) if vertical else None
         return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < self.params.max_tilt_sigma
 
-    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan]) -> None:
-        """Give a new plane the pooled segments that lie on it but were not among its seed group."""
+    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan], child: bool = False) -> None:
+        """Give a new plane the pooled segments that lie on it but were not among its seed group; a
+        door or board (``child``) only those lying in its extent end to end (its wall's segments
+        refused by the wall, a metre beside it, would otherwise stretch it along the wall)."""
         pl = self.pmap.planes[pid]
         taken = []
         blocks = ObservationBlocks(self._knots, self._stats)
@@ -307,6 +310,8 @@ class MapBuilder:
             if not on_plane(m, pl.normal, pl.d, self.pool.params):
                 continue
             if not self.pmap.overlaps(pid, m.samples, self.params.extent_margin_cells):
+                continue
+            if child and not all(self.pmap.overlaps(pid, x[None], self.params.child_adopt_cells) for x in m.endpoints):
                 continue
             rec = by_serial.get(m.ref[0])
             if rec is None:
