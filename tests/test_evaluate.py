@@ -472,10 +472,10 @@ def test_plane_extents_plot(tmp_path: Path) -> None:
 
     n = np.array([0.0, -1.0, 0.0])
     face = np.array([[2.6, 6.0, 0.9], [4.4, 6.0, 0.9], [4.4, 6.0, 2.1], [2.6, 6.0, 2.1]])
-    true = [PlaneRecord(10, n, 5.98, face - [0.0, 0.02, 0.0], kind="board"),
+    true = [PlaneRecord(10, n, 5.98, face - np.array([0.0, 0.02, 0.0]), kind="board"),
             PlaneRecord(3, n, 6.0, np.array([[0.0, 6.0, 0.0], [9.0, 6.0, 0.0], [9.0, 6.0, 2.8], [0.0, 6.0, 2.8]]),
                         kind="wall")]
-    est = [PlaneRecord(5, n, 5.98, face + [0.1, -0.02, 0.0], kind="wall")]
+    est = [PlaneRecord(5, n, 5.98, face + np.array([0.1, -0.02, 0.0]), kind="wall")]
     pe = plane_errors(est, true, {5: 10})
     assert set(pe.outlines) == {5} and pe.matches[0].extent_error_m == pytest.approx(0.1)
     out = plot_plane_extents(pe, tmp_path / "plane_extents.png")
