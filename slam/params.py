@@ -124,11 +124,11 @@ def gates(cfg: SlamConfig) -> Gates:
 
 def tracking_gates(cfg: SlamConfig) -> Gates:
     """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``,
-    with the parallel choice (for walls only) only with ``tracking_choice``."""
+    with the parallel choice (for walls only) as a veto on the nearest candidate with ``tracking_choice``."""
     g = gates(cfg).loosened(cfg.frontend.tracking_loosen)
     if g.choice is None or not cfg.frontend.tracking_choice:
         return replace(g, choice=None)
-    return replace(g, choice=replace(g.choice, walls_only=True))
+    return replace(g, choice=replace(g.choice, walls_only=True, veto=True))
 
 
 def plane_init_params(cfg: SlamConfig) -> PlaneInitParams:

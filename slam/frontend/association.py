@@ -204,8 +204,11 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
         ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range)
         id_arr = np.asarray(ids, dtype=np.int64)
-        out = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
-        return Association(out, ch.grows & (ch.column >= 0))
+        chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
+        if not gates.choice.veto:
+            return Association(chosen, ch.grows & (ch.column >= 0))
+    else:
+        chosen = None
     for k in hit.tolist():
         # the candidates by increasing m2; the segment's two end points and centroid (world
         # frame) against their extents
@@ -222,6 +225,9 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
                 break
         if not ambiguous:
             out[k] = ids[best]
+    if chosen is not None:
+        # the choice as a veto: the nearest candidate where the choice agrees, else none
+        out = np.where(out == chosen, out, NONE)
     return Association(out, out >= 0)
 
 
