@@ -116,8 +116,9 @@ def gates(cfg: SlamConfig) -> Gates:
         max_endpoint_distance=fe.max_endpoint_distance,
         child_margin_cells=fe.child_margin_cells if fe.child_margin_cells >= 0 or not fe.parallel_choice else 1,
         child_host_normal=fe.child_host_normal,
-        choice=ChoiceParams(fe.relative_sigma, fe.relative_gate, fe.ambiguity_ratio, fe.choice_sigma_pose,
-                            np.radians(fe.choice_sigma_lever_deg))
+        choice=ChoiceParams(relative_sigma=fe.relative_sigma, gate=fe.relative_gate, ratio=fe.ambiguity_ratio,
+                            sigma_pose=fe.choice_sigma_pose, sigma_lever=np.radians(fe.choice_sigma_lever_deg),
+                            walls_only=False, veto=False)
         if fe.parallel_choice else None,
     )
 

@@ -13,7 +13,8 @@ GAP = 0.02
 
 
 def _params(sigma_pose: float = 0.004) -> ChoiceParams:
-    return ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=sigma_pose)
+    return ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=sigma_pose, sigma_lever=0.0,
+                        walls_only=False, veto=False)
 
 
 def _scan(on: list[int], offset: float, rng: np.random.Generator) -> tuple[list[list[int]], np.ndarray, np.ndarray]:

@@ -75,7 +75,7 @@ class Gates:
     child_host_normal: bool
     # the choice between parallel planes from the segments' own lines (``parallel_choice``); None:
     # the nearest candidate under the gates, as before
-    choice: ChoiceParams | None = None
+    choice: ChoiceParams | None
 
     def loosened(self, factor: float) -> Gates:
         # the choice's prior on the scan's offset loosens with the pose (its lever does not: loosened,

@@ -63,8 +63,8 @@ class MapParams:
     drift_rate: float
     drift_rate_vertical: float
     link_sigma: float
-    child_merge_distance: float = float("inf")  # m, a tied door or board merges with its wall only nearer than this
-    child_adopt_cells: int = 1 << 20  # cells: a new door or board adopts pooled segments with both ends this near its extent
+    child_merge_distance: float  # m, a tied door or board merges with its wall only nearer than this
+    child_adopt_cells: int  # cells: a new door or board adopts pooled segments with both ends this near its extent
 
 
 class TieKind(Enum):

@@ -51,9 +51,9 @@ class ChoiceParams:
     gate: float
     ratio: float
     sigma_pose: float
-    sigma_lever: float = 0.0  # rad: the rotation's error, times a segment's range, in its relative sigma
-    walls_only: bool = False  # floors, ceilings and slopes (normal over 30 deg off horizontal) take the nearest
-    veto: bool = False  # the association keeps the nearest candidate where the choice agrees (else none)
+    sigma_lever: float  # rad: the rotation's error, times a segment's range, in its relative sigma
+    walls_only: bool  # floors, ceilings and slopes (normal over 30 deg off horizontal) take the nearest
+    veto: bool  # the association keeps the nearest candidate where the choice agrees (else none)
 
 
 @dataclass(frozen=True)
