@@ -1,4 +1,5 @@
-"""SLAM benchmark on a simulated walk through the ``office`` world (issue 4's goals).
+"""SLAM benchmark on a simulated walk through the ``office`` world (issue 4's goals), or another
+world (``--world``: ``small_room``, issue 26's doors and boards next to their walls).
 
 Simulates the walk once (or reuses the bag in ``--cache``), runs SLAM with each segmenter of
 ``--segmenters`` (RoR first by default) on that same bag, each in a fresh child process so that
@@ -8,7 +9,8 @@ peak memory, and the accuracy figures, with the goals marked reached or not.
 
 Usage:
     .venv/bin/python scripts/bench_slam.py [--duration 600] [--cache DIR] [--out DIR]
-        [--segmenters ror,split_and_merge,...] [--seed 1] [--markdown FILE]
+        [--segmenters ror,split_and_merge,...] [--seed 1] [--markdown FILE] [--world office]
+        [--start-rest 10]
 """
 
 from __future__ import annotations
@@ -86,26 +88,38 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     if reg.planes is not None:
         row |= {"plane_angle_p95_se3": reg.planes.angle.p95, "plane_angle_max_se3": reg.planes.angle.max}
     if res.association is not None:
-        row |= {"assoc_associated": res.association.fraction_associated,
-                "assoc_correct_of_associated": res.association.fraction_correct_of_associated}
+        a = res.association
+        row |= {"assoc_associated": a.fraction_associated,
+                "assoc_correct_of_associated": a.fraction_correct_of_associated,
+                "assoc_correct_surface": a.fraction_correct_surface_of_associated,
+                "assoc_by_kind": {k: (c / n if n else None) for k, (n, c) in a.by_kind.items()},
+                "confusions": a.confusions_wall_to_child + a.confusions_child_to_wall,
+                "confusion_fraction": a.confusion_fraction if a.n_child_associated else None}
+    row |= {"ate_max": tr.ate["start_aligned"].max, "trimmed_points": summary["counts"].get("trimmed_points"),
+            "cloud_points": summary["counts"].get("cloud_points")}
+    if reg.planes is not None:
+        ext = [m.extent_error_m for m in reg.planes.matches if m.extent_error_m == m.extent_error_m]
+        excess = [m.extent_excess_m for m in reg.planes.matches if m.extent_excess_m == m.extent_excess_m]
+        row |= {"extent_error_max": max(ext, default=None), "extent_excess_max": max(excess, default=None),
+                "extent_planes": len(ext)}
     print("BENCH_ROW " + json.dumps(row))
 
 
-def _bag(cache: Path, duration: float, seed: int) -> tuple[Path, Path]:
+def _bag(cache: Path, duration: float, seed: int, world: str = "office", start_rest: float = 10.0) -> tuple[Path, Path]:
     from simulation.run import SimulationConfig, gt_dir_for, simulate
 
     cache.mkdir(parents=True, exist_ok=True)
-    bag = cache / f"office_adis_rest10_{duration:g}s_seed{seed}.bag"
+    bag = cache / f"{world}_adis_rest{start_rest:g}_{duration:g}s_seed{seed}.bag"
     gt = gt_dir_for(bag)
     if bag.is_file() and (gt / "meta.json").is_file():
         print(f"reusing {bag}", flush=True)
         return bag, gt
-    print(f"simulating {duration:g} s in the office world -> {bag}", flush=True)
+    print(f"simulating {duration:g} s in the {world} world -> {bag}", flush=True)
     # the survey starts with the operator standing still for 10 s, as IMU-aided mobile mapping does: the
     # zero-velocity updates then fix the accelerometer bias that carries the estimate along corridors
     # whose ends are out of range (1 s of standing: ATE 429 mm on the first minute; 10 s: 17 mm)
-    cfg = SimulationConfig.model_validate({"gait": {"start_rest": 10.0}})
-    sim = simulate("office", "itc_backpack", duration=duration, seed=seed, out=bag, fmt="ros1", imu=True,
+    cfg = SimulationConfig.model_validate({"gait": {"start_rest": start_rest}})
+    sim = simulate(world, "itc_backpack", duration=duration, seed=seed, out=bag, fmt="ros1", imu=True,
                    config=cfg, progress=True)
     print(f"  {sim.n_rays / 1e6:.1f} M rays in {sim.wall_time:.1f} s", flush=True)
     return sim.bag, sim.gt
@@ -158,6 +172,19 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
     add("plane offset median (mm)", [_fmt(r.get("plane_offset_median"), 1e3) for r in rows])
     add("segments associated (%)", [_fmt(r.get("assoc_associated"), 100, 1) for r in rows])
     add("association correct of associated (%)", [_fmt(r.get("assoc_correct_of_associated"), 100, 2) for r in rows])
+    add("association correct of associated, coplanar true planes as one surface (%)",
+        [_fmt(r.get("assoc_correct_surface"), 100, 2) for r in rows])
+    for kind in ("wall", "floor/ceiling", "door", "board", "other"):
+        add(f"association correct, {kind} segments (%)",
+            [_fmt((r.get("assoc_by_kind") or {}).get(kind), 100, 2) for r in rows])
+    add("wall<->door/board confusions (segments / % of door and board segments)",
+        [f"{r.get('confusions', '-')} / {_fmt(r.get('confusion_fraction'), 100, 2)}" for r in rows])
+    add("door/board extent error, max (mm) / excess, max (mm) / planes",
+        [f"{_fmt(r.get('extent_error_max'), 1e3, 0)} / {_fmt(r.get('extent_excess_max'), 1e3, 0)} / "
+         f"{r.get('extent_planes', '-')}" for r in rows])
+    add("largest position error, start-aligned (mm)", [_fmt(r.get("ate_max"), 1e3) for r in rows])
+    add("points detached by the final trim / cloud points",
+        [f"{r.get('trimmed_points', '-')} / {r.get('cloud_points', '-')}" for r in rows])
     return "\n".join(lines)
 
 
@@ -232,6 +259,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=600.0, help="seconds of walking (default 600)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--world", default="office", help="world to walk through (default office; small_room: issue 26)")
+    ap.add_argument("--start-rest", type=float, default=10.0, help="s standing still before walking (default 10)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/bench_slam_cache"), help="folder of cached bags")
     ap.add_argument("--out", type=Path, default=None, help="run folders (default: <cache>/runs_<duration>s)")
     ap.add_argument("--segmenters", default="ror", help="comma-separated segmenter names (default: ror)")
@@ -251,7 +280,7 @@ def main() -> int:
     unknown = [m for m in methods if m not in segmentation.available()]
     if unknown:
         ap.error(f"--segmenters: unknown {', '.join(unknown)} (available: {', '.join(segmentation.available())})")
-    bag, gt = _bag(args.cache, args.duration, args.seed)
+    bag, gt = _bag(args.cache, args.duration, args.seed, args.world, args.start_rest)
     out = args.out or args.cache / f"runs_{args.duration:g}s_seed{args.seed}"
     rows = []
     for m in methods:
@@ -274,7 +303,7 @@ def main() -> int:
     if not rows:
         return 1
     text = (
-        f"office world, {args.duration:g} s walk (seed {args.seed}), bag {bag}\n\n"
+        f"{args.world} world, {args.duration:g} s walk (seed {args.seed}), bag {bag}\n\n"
         + table(rows, args.duration) + "\n\nGoals (issue 4):\n\n" + goals(rows) + "\n"
     )
     print(text)

@@ -158,12 +158,43 @@ class FrontEndConfig(StrictModel):
         "wall's segments metres away cannot turn towards them (the final trim then detaches them)")
     child_margin_cells: int = Field(
         -1, ge=-1, description="cells by which the extent of a plane tied parallel to its wall (a door, a board) "
-        "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane. A door's "
+        "is grown for association, not grown with the drift; -1 = extent_margin_cells like every plane (1 with "
+        "parallel_choice, where a segment's end points must both lie in a child's extent so grown). A door's "
         "extent grown by a metre reaches the wall and the boards beside it, whose segments lie 1-3 cm off the door")
     child_host_normal: bool = Field(
         False, description="associate with a plane tied parallel to its wall by the distance to the plane with the "
         "wall's normal through the centre of its extent: a door fitted a little tilted is otherwise nearer the wall's "
         "or a neighbouring board's segments at one end, takes them and tilts further (office: 0.4 deg)")
+    parallel_choice: bool = Field(
+        True, description="choose between parallel planes a few centimetres apart (a wall, its door, its board) "
+        "from the segments' own lines once the scan's common pose offset is taken out (slam.frontend."
+        "parallel_choice); a segment that fits two is held back, one that fits none goes to the pool, and only "
+        "unambiguous segments grow extents. Off: the nearest plane under the pose-widened gates (the wall's "
+        "segments 2 cm off a board's plane passed its gate, and its extent ran along the whole wall)")
+    relative_sigma: float = Field(
+        0.0015, gt=0, description="m, what a segment's own line misses of its distance to a plane once the scan's "
+        "common offset is removed (flatness, the rotation's lever along the scan); stated for the reference noise")
+    relative_gate: float = Field(4.0, gt=0, description="sigmas of the parallel choice's test")
+    choice_sigma_lever_deg: float = Field(
+        0.05, gt=0, description="deg, the rotation's error after tracking, times a segment's range, in the parallel "
+        "choice's relative sigma (0.02: far wall segments refused by their wall made planes of their own, the "
+        "small room's board plane ran along its wall again)")
+    tracking_choice: bool = Field(
+        True, description="the parallel choice in the tracking's pre-association too, as a veto: the nearest "
+        "candidate under the loose gates stays where the choice (for walls, its offset prior loosened with the "
+        "gates) agrees, else the segment is left out of tracking. Without it the small room's walls pulled the "
+        "tracking onto its board (ATE 5.6 mm); the choice itself in tracking lost the demo's higher room's height")
+    choice_sigma_pose: float = Field(
+        0.002, gt=0, description="m, prior sigma of a scan's common offset from the map's planes after tracking, in "
+        "the parallel choice (times tracking_loosen in the tracking's pre-association): tracking has just fitted "
+        "the scan to these planes, so that several segments agreeing on a 2 cm offset from a board's plane are the "
+        "wall's, not a 2 cm pose error")
+    ambiguity_ratio: float = Field(
+        100.0, gt=1, description="least likelihood ratio between two parallel surfaces for a segment to be assigned "
+        "(else it is held back)")
+    child_merge_distance: float = Field(
+        0.004, gt=0, description="m, a door or board tied to its wall merges with it only when nearer than this "
+        "over its extent (with parallel_choice)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "

@@ -6,6 +6,8 @@
   variants.
 - ``plane_errors.png``: histograms of plane angle (deg) and offset (mm) errors.
 - ``cloud_to_mesh.png``: histogram of the cloud's distances to the true mesh (mm).
+- ``plane_extents.png``: each door's and board's estimated extent against its true face, in
+  the face's plane.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from matplotlib.figure import Figure
 
 from common.atomic import atomic_path
 from slam.evaluate import CloudEval, EvalResult, PlaneEval, TrajectoryEval
+from slam.frontend.planemap import plane_basis
 
 
 def _save(fig: Figure, path: Path) -> Path:
@@ -122,6 +125,36 @@ def plot_plane_errors(planes: PlaneEval, path: Path) -> Path:
     return _save(fig, path)
 
 
+def plot_plane_extents(planes: PlaneEval, path: Path, max_panels: int = 12) -> Path:
+    """One panel per door and board plane (up to ``max_panels``): the estimated extent's outline
+    (red) and the true face's (green) in the face's plane (u horizontal, v up; m), titled with the
+    extent error (the largest distance between corresponding edges)."""
+    by_id = {m.est_id: m for m in planes.matches}
+    ids = sorted(planes.outlines)[:max_panels]
+    cols = min(4, max(1, len(ids)))
+    rows = max(1, -(-len(ids) // cols))
+    fig = Figure(figsize=(3.6 * cols, 2.8 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax, pid in zip(axes, ids, strict=False):
+        est, true, normal = planes.outlines[pid]
+        B = np.stack(plane_basis(normal))
+        for poly, colour, label in ((true, "tab:green", "true face"), (est, "tab:red", "estimated extent")):
+            uv = poly @ B.T
+            lo, hi = uv.min(axis=0), uv.max(axis=0)
+            ax.plot([lo[0], hi[0], hi[0], lo[0], lo[0]], [lo[1], lo[1], hi[1], hi[1], lo[1]], color=colour, label=label)
+        m = by_id[pid]
+        ax.set_title(f"plane {pid} ({m.kind}, true {m.true_id}): {100 * m.extent_error_m:.0f} cm", fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=7)
+    for ax in axes[len(ids):]:
+        ax.axis("off")
+    if ids:
+        axes[0].legend(fontsize=7)
+    else:
+        axes[0].text(0.5, 0.5, "no door or board planes matched", ha="center", va="center")
+    return _save(fig, path)
+
+
 def plot_cloud_distances(cloud: CloudEval, path: Path) -> Path:
     """Histogram of point-to-mesh distances (mm) with median and 95th percentile."""
     fig = Figure(figsize=(7, 4))
@@ -147,6 +180,7 @@ def write_plots(result: EvalResult, out_dir: str | Path) -> list[Path]:
     ]
     if result.planes is not None and result.planes.matches:
         out.append(plot_plane_errors(result.planes, d / "plane_errors.png"))
+        out.append(plot_plane_extents(result.planes, d / "plane_extents.png"))
     if result.cloud is not None and result.cloud.distances.size:
         out.append(plot_cloud_distances(result.cloud, d / "cloud_to_mesh.png"))
     return out

@@ -392,6 +392,32 @@ class AssociationEval:
     segment_purity: FloatArray
     plane_true: dict[int, int]  # estimated plane id -> true plane id (majority of segments)
     plane_support: dict[int, float]  # fraction of the plane's segments voting for it
+    # segments on an estimated plane whose surface (coplanar true planes as one) is theirs; None: not asked
+    n_correct_surface: int | None = None
+    # per true plane kind group (``kind_group``): associated segments of that kind, and of those
+    # the ones on an estimated plane whose true plane (surface, with ``surfaces``) is the segment's own
+    by_kind: dict[str, tuple[int, int]] = field(default_factory=dict)
+    # wall segments on a door's or board's estimated plane, and door or board segments on a wall's
+    confusions_wall_to_child: int = 0
+    confusions_child_to_wall: int = 0
+
+    @property
+    def fraction_correct_surface_of_associated(self) -> float:
+        """Like ``fraction_correct_of_associated``, with coplanar true planes taken as one surface."""
+        if self.n_correct_surface is None or not self.n_associated:
+            return float("nan")
+        return self.n_correct_surface / self.n_associated
+
+    @property
+    def n_child_associated(self) -> int:
+        """Associated segments whose true plane is a door or a board."""
+        return sum(self.by_kind.get(k, (0, 0))[0] for k in CHILD_GROUPS)
+
+    @property
+    def confusion_fraction(self) -> float:
+        """Wall<->door/board confusions over the associated door and board segments."""
+        n = self.n_child_associated
+        return (self.confusions_wall_to_child + self.confusions_child_to_wall) / n if n else float("nan")
 
     @property
     def fraction_associated(self) -> float:
@@ -414,16 +440,69 @@ class AssociationEval:
             "fraction_associated": self.fraction_associated,
             "fraction_correct": self.fraction_correct,
             "fraction_correct_of_associated": self.fraction_correct_of_associated,
+            "fraction_correct_surface_of_associated": self.fraction_correct_surface_of_associated
+            if self.n_correct_surface is not None else None,
             "segment_purity_median": float(np.median(self.segment_purity))
             if self.segment_purity.size
             else None,
+            "by_kind": {
+                k: {"n_associated": n, "n_correct": c, "fraction_correct_of_associated": c / n if n else None}
+                for k, (n, c) in self.by_kind.items()
+            },
+            "confusions": {
+                "definition": "wall segments on an estimated plane whose true plane is a door or board, and "
+                "door or board segments on one whose true plane is a wall; fraction over the associated "
+                "door and board segments",
+                "wall_to_child": self.confusions_wall_to_child,
+                "child_to_wall": self.confusions_child_to_wall,
+                "fraction_of_child_segments": self.confusion_fraction if self.n_child_associated else None,
+            },
         }
 
 
+KIND_GROUPS = ("wall", "floor/ceiling", "door", "board", "other")
+CHILD_GROUPS = ("door", "board")
+
+
+def kind_group(kind: str) -> str:
+    """The group of a true plane's kind (``simulation`` names): wall, floor/ceiling, door (the
+    leaf), board (whiteboard, poster, pinboard faces), other (frames, edges, furniture, ...)."""
+    if kind == "wall":
+        return "wall"
+    if kind in ("floor", "ceiling"):
+        return "floor/ceiling"
+    if kind == "door":
+        return "door"
+    if kind == "board":
+        return "board"
+    return "other"
+
+
+def coplanar_surfaces(planes: Sequence[PlaneRecord], max_angle_deg: float = 0.05,
+                      max_offset: float = 0.002) -> dict[int, int]:
+    """True plane id -> the smallest id of the true planes of the same kind that lie in one plane
+    with it (normals within ``max_angle_deg``, same facing, offsets within ``max_offset`` m):
+    the pieces of one wall between its openings, the same wall of two rooms in a row, the
+    ceiling of a room and of the corridor beside it. One map plane for them is the right map."""
+    out = {int(p.id): int(p.id) for p in planes}
+    cos_min = float(np.cos(np.radians(max_angle_deg)))
+    ordered = sorted(planes, key=lambda q: int(q.id))
+    for i, a in enumerate(ordered):
+        for b in ordered[:i]:
+            if (a.kind == b.kind and float(a.normal @ b.normal) > cos_min and abs(a.d - b.d) < max_offset):
+                out[int(a.id)] = out[int(b.id)]
+                break
+    return out
+
+
 def association_errors(
-    segments: SegmentTable, segment_true: IntArray, segment_purity: FloatArray
+    segments: SegmentTable, segment_true: IntArray, segment_purity: FloatArray,
+    true_kinds: Mapping[int, str] | None = None, surfaces: Mapping[int, int] | None = None,
 ) -> AssociationEval:
-    """Score each segment's plane against its true plane (see :class:`AssociationEval`)."""
+    """Score each segment's plane against its true plane (see :class:`AssociationEval`);
+    ``true_kinds`` (true plane id -> kind) adds the figures per kind group and the confusions,
+    ``surfaces`` (true plane id -> its surface, :func:`coplanar_surfaces`) the share of
+    segments on the right surface (pieces of one plane taken as one)."""
     pid = segments.plane_id.astype(np.int64)
     assoc = pid >= 0
     plane_ids = np.unique(pid[assoc])
@@ -438,15 +517,43 @@ def association_errors(
     est_true = np.full(pid.shape, -1, dtype=np.int64)
     est_true[assoc] = w[group]
     correct = assoc & (segment_true >= 0) & (est_true == segment_true)
+    n_surface = None
+    if surfaces is not None:
+        # the same majority vote with each segment's true plane taken as its surface
+        surf = np.array([surfaces.get(int(t), int(t)) if t >= 0 else -1 for t in segment_true.tolist()], dtype=np.int64)
+        ws, _ = majority(group, surf[assoc], plane_ids.size)
+        est_surf = np.full(pid.shape, -1, dtype=np.int64)
+        est_surf[assoc] = ws[group]
+        correct = assoc & (surf >= 0) & (est_surf == surf)
+        n_surface = int(np.count_nonzero(correct))
+    by_kind: dict[str, tuple[int, int]] = {}
+    w2c = c2w = 0
+    if true_kinds is not None:
+        def groups(t: IntArray) -> NDArray[np.str_]:
+            return np.array([kind_group(true_kinds.get(int(x), "")) if x >= 0 else "" for x in t.tolist()], dtype=object)
+
+        g_seg = groups(segment_true)
+        g_est = groups(est_true)
+        for k in KIND_GROUPS:
+            m = assoc & (g_seg == k)
+            by_kind[k] = (int(np.count_nonzero(m)), int(np.count_nonzero(m & correct)))
+        child_seg = np.isin(g_seg, CHILD_GROUPS)
+        child_est = np.isin(g_est, CHILD_GROUPS)
+        w2c = int(np.count_nonzero(assoc & (g_seg == "wall") & child_est))
+        c2w = int(np.count_nonzero(assoc & child_seg & (g_est == "wall")))
     return AssociationEval(
         n_segments=len(segments),
         n_associated=int(np.count_nonzero(assoc)),
-        n_correct=int(np.count_nonzero(correct)),
+        n_correct=int(np.count_nonzero(assoc & (segment_true >= 0) & (est_true == segment_true))),
+        n_correct_surface=n_surface,
         n_without_truth=int(np.count_nonzero(segment_true < 0)),
         segment_true=segment_true,
         segment_purity=segment_purity,
         plane_true=plane_true,
         plane_support=support,
+        by_kind=by_kind,
+        confusions_wall_to_child=w2c,
+        confusions_child_to_wall=c2w,
     )
 
 
@@ -541,6 +648,22 @@ class PlaneMatch:
     matched_by: str  # "beams" or "geometry"
     support: float  # beams: fraction of the plane's segments voting for the true plane
     sigma_angle_deg: float = float("nan")  # the run's own 1-sigma of the normal (planes.json covariance), larger axis
+    # doors and boards: the extent's error against the true face (``extent_errors``), NaN otherwise
+    extent_error_m: float = float("nan")
+    extent_excess_m: float = float("nan")
+
+
+def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -> tuple[float, float]:
+    """How far an estimated plane's extent (its polygon (k, 3), ground-truth frame) is from the
+    true face's (polygon (m, 3)), both projected onto the true plane's (u horizontal, v) axes:
+    the largest distance between corresponding edges of the two bounding rectangles (m), and
+    by how much the estimated rectangle is longer or taller than the face (m, >= 0)."""
+    B = np.stack(plane_basis(np.asarray(normal, dtype=np.float64)))
+    e, t = estimated @ B.T, true @ B.T
+    e_lo, e_hi, t_lo, t_hi = e.min(axis=0), e.max(axis=0), t.min(axis=0), t.max(axis=0)
+    err = float(max(np.abs(e_lo - t_lo).max(), np.abs(e_hi - t_hi).max()))
+    excess = float(max(0.0, ((e_hi - e_lo) - (t_hi - t_lo)).max()))
+    return err, excess
 
 
 @dataclass(frozen=True)
@@ -549,6 +672,9 @@ class PlaneEval:
     n_estimated: int
     n_true: int
     unmatched: list[int] = field(default_factory=list)
+    # doors and boards: est id -> (its extent polygon (k, 3), the true face's (m, 3), the face's
+    # normal (3,)), ground-truth frame, for the plot of extents against faces
+    outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = field(default_factory=dict)
 
     @property
     def angle(self) -> Stats:
@@ -596,6 +722,15 @@ class PlaneEval:
             },
             "angle_over_sigma": self.normalized_angle.to_json(),
             "by_kind": by_kind,
+            "extents": {
+                "definition": "door and board planes: largest distance between the edges of the estimated "
+                "extent's bounding rectangle and the true face's, in the face's plane (m); excess: how much "
+                "longer or taller the estimate is",
+                "planes": [{"est_id": m.est_id, "true_id": m.true_id, "kind": m.kind, "error_m": m.extent_error_m,
+                            "excess_m": m.extent_excess_m} for m in self.matches if m.extent_error_m == m.extent_error_m],
+                "max_error_m": max((m.extent_error_m for m in self.matches if m.extent_error_m == m.extent_error_m),
+                                   default=None),
+            },
             "planes": [m.__dict__ for m in self.matches],
         }
 
@@ -627,6 +762,7 @@ def plane_errors(
     geo = match_planes_geometric(rest, true)
     matches: list[PlaneMatch] = []
     unmatched: list[int] = []
+    outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
     for e in estimated:
         tid = beams.get(e.id, geo.get(e.id))
         if tid is None:
@@ -635,6 +771,10 @@ def plane_errors(
         t = true_by_id[tid]
         cosang = min(1.0, abs(float(e.normal @ t.normal)))
         c = _centre(e, fallback=_centre(t) if t.polygon.shape[0] >= 3 else None)
+        ext = (float("nan"), float("nan"))
+        if t.kind in ("door", "board") and e.polygon.shape[0] >= 3 and t.polygon.shape[0] >= 3:
+            ext = extent_errors(e.polygon, t.polygon, t.normal)
+            outlines[int(e.id)] = (e.polygon, t.polygon, t.normal)
         matches.append(
             PlaneMatch(
                 est_id=int(e.id),
@@ -647,9 +787,11 @@ def plane_errors(
                 if e.id in beams
                 else float("nan"),
                 sigma_angle_deg=normal_sigma_deg(e.covariance),
+                extent_error_m=ext[0],
+                extent_excess_m=ext[1],
             )
         )
-    return PlaneEval(matches, len(estimated), len(true), unmatched)
+    return PlaneEval(matches, len(estimated), len(true), unmatched, outlines)
 
 
 # ----------------------------------------------------------------------------------- cloud
@@ -880,7 +1022,8 @@ def evaluate(
         segs = read_segments_npz(run / "segments.npz")
         ids, stamps = gt.beams(segs.scanner_names)
         seg_true, purity = segment_true_planes(segs, ids, stamps)
-        assoc = association_errors(segs, seg_true, purity)
+        assoc = association_errors(segs, seg_true, purity, {t.id: t.kind for t in gt.planes},
+                                   coplanar_surfaces(gt.planes))
 
     planes: PlaneEval | None = None
     if not (run / "planes.json").is_file():

@@ -11,7 +11,7 @@ the knot interval turns the motion prior's accelerations into densities.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from slam.frontend.association import Gates
 from slam.frontend.edges import EdgeParams
 from slam.frontend.initial_motion import InitialMotionParams
 from slam.frontend.map_builder import MapParams
+from slam.frontend.parallel_choice import ChoiceParams
 from slam.frontend.plane_init import PlaneInitParams
 from slam.frontend.tracking import TrackingParams
 from slam.frontend.transients import TransientParams
@@ -34,7 +35,7 @@ from slam.motion import ImuConfig, MotionPriorConfig
 
 # the values stated for the reference noise (``noise.reference``) that scale with the scanners' noise
 NOISE_SCALED: dict[str, tuple[str, ...]] = {
-    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance"),
+    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma"),
     "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
     "backend": ("final_trim_distance",),
 }
@@ -113,14 +114,22 @@ def gates(cfg: SlamConfig) -> Gates:
         max_drift_sigma=fe.max_drift_sigma,
         chi2=fe.association_chi2,
         max_endpoint_distance=fe.max_endpoint_distance,
-        child_margin_cells=fe.child_margin_cells,
+        child_margin_cells=fe.child_margin_cells if fe.child_margin_cells >= 0 or not fe.parallel_choice else 1,
         child_host_normal=fe.child_host_normal,
+        choice=ChoiceParams(relative_sigma=fe.relative_sigma, gate=fe.relative_gate, ratio=fe.ambiguity_ratio,
+                            sigma_pose=fe.choice_sigma_pose, sigma_lever=np.radians(fe.choice_sigma_lever_deg),
+                            walls_only=False, veto=False)
+        if fe.parallel_choice else None,
     )
 
 
 def tracking_gates(cfg: SlamConfig) -> Gates:
-    """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``."""
-    return gates(cfg).loosened(cfg.frontend.tracking_loosen)
+    """The gates of the tracking (pre-)association: :func:`gates` loosened by ``tracking_loosen``,
+    with the parallel choice (for walls only) as a veto on the nearest candidate with ``tracking_choice``."""
+    g = gates(cfg).loosened(cfg.frontend.tracking_loosen)
+    if g.choice is None or not cfg.frontend.tracking_choice:
+        return replace(g, choice=None)
+    return replace(g, choice=replace(g.choice, walls_only=True, veto=True))
 
 
 def plane_init_params(cfg: SlamConfig) -> PlaneInitParams:
@@ -200,6 +209,8 @@ def map_params(cfg: SlamConfig) -> MapParams:
         drift_rate=fe.drift_rate,
         drift_rate_vertical=fe.drift_rate_vertical,
         link_sigma=fe.link_sigma,
+        child_merge_distance=fe.child_merge_distance if fe.parallel_choice else float("inf"),
+        child_adopt_cells=1 if fe.parallel_choice else 1 << 20,
     )
 
 

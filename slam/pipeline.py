@@ -217,11 +217,13 @@ class SlamRunner:
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
         for p, summary in zip(ready, self.associator.summaries(ready), strict=True):
-            ids = self.associator.associate(p, self.gates, summary)
+            a = self.associator.associate(p, self.gates, summary)
+            ids = np.maximum(a.ids, -1)  # held back (-2) or not: unassociated
             p.plane_ids = ids
             segs = p.segs
             self.edges.observe(p, ids, hosts, now, blocks)
-            self.maps.observe(p, ids, summary[0], summary[1], self._T_body_scanner[segs.scanner], now, blocks)
+            self.maps.observe(p, a.ids, summary[0], summary[1], self._T_body_scanner[segs.scanner], now, blocks,
+                              a.grows)
             self.queues.done.append(p)
         blocks.flush(self.backend)
 

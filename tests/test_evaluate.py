@@ -335,7 +335,7 @@ def test_evaluate_end_to_end(tmp_path: Path) -> None:
     assert js["planes"]["n_matched"] == 2
     pngs = write_plots(r, run)
     assert {p.name for p in pngs} >= {"trajectory_error_topview.png", "error_over_distance.png",
-                                      "plane_errors.png", "cloud_to_mesh.png"}  # fmt: skip
+                                      "plane_errors.png", "cloud_to_mesh.png", "plane_extents.png"}  # fmt: skip
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -420,3 +420,63 @@ def test_geometric_match_prefers_same_facing_plane_on_tie() -> None:
     assert match_planes_geometric(
         [PlaneRecord(0, np.array([1.0, 0, 0]), 0.0, patch)], [wall, back]
     ) == {0: 1}
+
+
+def test_association_per_kind_confusions_and_coplanar_surfaces() -> None:
+    """Two pieces of one wall (a doorway between them), a board on the first and a door in the
+    second: the map's plane over both pieces is right as a surface, not as a piece; a board
+    segment on the wall's plane and a wall segment on the board's are the two confusions."""
+    from slam.evaluate import coplanar_surfaces
+    from slam.export import SegmentTable
+
+    def rec(i: int, kind: str, d: float) -> PlaneRecord:
+        return PlaneRecord(i, np.array([0.0, -1.0, 0.0]), d, np.empty((0, 3)), kind=kind)
+
+    true = [rec(0, "wall", 2.0), rec(1, "wall", 2.0), rec(2, "board", 1.98), rec(3, "door", 2.015), rec(4, "wall", 2.01)]
+    assert coplanar_surfaces(true) == {0: 0, 1: 0, 2: 2, 3: 3, 4: 4}
+    # est plane 7: both wall pieces (0 the majority) and a board segment; 8: the board and one wall segment
+    seg_true = np.array([0, 0, 0, 1, 1, 2, 2, 2, 2, 0, 3])
+    plane = np.array([7, 7, 7, 7, 7, 7, 8, 8, 8, 8, -1])
+    n = seg_true.size
+    seg = SegmentTable(("top",), np.zeros(n, np.int32), np.arange(n), np.zeros(n), np.zeros(n, np.int32),
+                       np.zeros(n, np.int32), plane.astype(np.int32))
+    a = association_errors(seg, seg_true, np.ones(n), {t.id: t.kind for t in true}, coplanar_surfaces(true))
+    assert a.n_associated == 10 and a.n_correct == 3 + 3
+    assert a.n_correct_surface == 3 + 2 + 3 and a.fraction_correct_surface_of_associated == pytest.approx(0.8)
+    assert a.by_kind["wall"] == (6, 5) and a.by_kind["board"] == (4, 3) and a.by_kind["door"] == (0, 0)
+    assert (a.confusions_wall_to_child, a.confusions_child_to_wall) == (1, 1)
+    assert a.confusion_fraction == pytest.approx(2 / 4)
+    js = a.to_json()
+    assert js["confusions"]["wall_to_child"] == 1 and js["by_kind"]["board"]["n_correct"] == 3
+
+
+def test_extent_errors_of_a_board_against_its_face() -> None:
+    """A board face 1.8 x 1.2 m; an estimate 10 cm short on the left and 30 cm long at the top."""
+    from slam.evaluate import extent_errors
+
+    n = np.array([0.0, -1.0, 0.0])
+
+    def rect(x0: float, x1: float, z0: float, z1: float) -> np.ndarray:
+        return np.array([[x0, 6.0, z0], [x1, 6.0, z0], [x1, 6.0, z1], [x0, 6.0, z1]])
+
+    err, excess = extent_errors(rect(2.7, 4.4, 0.9, 2.4), rect(2.6, 4.4, 0.9, 2.1), n)
+    assert err == pytest.approx(0.3) and excess == pytest.approx(0.3)
+    err, excess = extent_errors(rect(2.65, 4.4, 0.92, 2.1), rect(2.6, 4.4, 0.9, 2.1), n)
+    assert err == pytest.approx(0.05) and excess == 0.0
+
+
+def test_plane_extents_plot(tmp_path: Path) -> None:
+    """plane_errors keeps each door's and board's outline with its face's, and the plot draws them."""
+    from slam.eval_plots import plot_plane_extents
+    from slam.evaluate import plane_errors
+
+    n = np.array([0.0, -1.0, 0.0])
+    face = np.array([[2.6, 6.0, 0.9], [4.4, 6.0, 0.9], [4.4, 6.0, 2.1], [2.6, 6.0, 2.1]])
+    true = [PlaneRecord(10, n, 5.98, face - np.array([0.0, 0.02, 0.0]), kind="board"),
+            PlaneRecord(3, n, 6.0, np.array([[0.0, 6.0, 0.0], [9.0, 6.0, 0.0], [9.0, 6.0, 2.8], [0.0, 6.0, 2.8]]),
+                        kind="wall")]
+    est = [PlaneRecord(5, n, 5.98, face + np.array([0.1, -0.02, 0.0]), kind="wall")]
+    pe = plane_errors(est, true, {5: 10})
+    assert set(pe.outlines) == {5} and pe.matches[0].extent_error_m == pytest.approx(0.1)
+    out = plot_plane_extents(pe, tmp_path / "plane_extents.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

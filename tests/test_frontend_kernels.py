@@ -24,8 +24,9 @@ from slam.trajectory.interpolation import (
 
 
 def _gates(**changes: Any) -> Gates:
-    """The default configuration's gates with a 2-cell extent margin, with ``changes``."""
-    return replace(gates_of(SlamConfig()), **{"extent_margin_cells": 2, **changes})
+    """The default configuration's gates with a 2-cell extent margin, with ``changes``: the nearest
+    candidate under the gates (the parallel choice off; tests/test_parallel_choice.py tests it)."""
+    return replace(gates_of(SlamConfig()), **{"extent_margin_cells": 2, "choice": None, **changes})
 
 
 def _knots(rng: np.random.Generator, k: int, rot: float = 0.3) -> np.ndarray:

@@ -21,7 +21,7 @@ from simulation.world import (
     world_names,
 )
 
-READY = ["office", "hall", "corridor", "demo", "calibration"]
+READY = ["office", "hall", "corridor", "demo", "calibration", "small_room"]
 
 
 def room_spec(**extra: Any) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
+from slam.frontend.parallel_choice import NONE, ChoiceParams, choose
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import PlaneMap
 
@@ -46,6 +47,7 @@ class WorldSegments:
     sigma_direction: FloatArray  # (k,) rad
     range: FloatArray  # (k,) m, distance of the centroid from the scanner
     origin: FloatArray  # (3,) the scanner's position, world frame
+    n_points: NDArray[np.int64] | None = None  # (k,) the segments' point counts (weights of the parallel choice)
 
     @property
     def n(self) -> int:
@@ -71,8 +73,14 @@ class Gates:
     # distance is taken to the plane through their extent's centre with the host's normal
     child_margin_cells: int
     child_host_normal: bool
+    # the choice between parallel planes from the segments' own lines (``parallel_choice``); None:
+    # the nearest candidate under the gates, as before
+    choice: ChoiceParams | None
 
     def loosened(self, factor: float) -> Gates:
+        # the choice's prior on the scan's offset loosens with the pose (its lever does not: loosened,
+        # it let the demo's higher room's ceiling segments onto the corridor's ceiling in tracking)
+        choice = None if self.choice is None else replace(self.choice, sigma_pose=self.choice.sigma_pose * factor)
         return Gates(
             self.sigma_pose * factor,
             self.sigma_rotation * factor,
@@ -86,6 +94,7 @@ class Gates:
             self.max_endpoint_distance * factor,
             self.child_margin_cells,
             self.child_host_normal,
+            choice,
         )
 
 
@@ -100,12 +109,28 @@ def world_segments(virtual_world: FloatArray, endpoints_world: FloatArray, virtu
         np.ascontiguousarray(virtual_sigma, dtype=np.float64), float(point_sigma),
         np.ascontiguousarray(n_points, dtype=np.int64), np.ascontiguousarray(origin_world, dtype=np.float64),
     )
-    return WorldSegments(c, u, endpoints_world, sig_c, sig_dir, rng, origin_world)
+    return WorldSegments(c, u, endpoints_world, sig_c, sig_dir, rng, origin_world, np.asarray(n_points, dtype=np.int64))
 
 
 def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates,
               children: dict[int, int] | None = None) -> NDArray[np.int64]:
-    """Plane id per segment, or -1 (no candidate, or ambiguous).
+    """Plane id per segment, or -1 (no candidate, or ambiguous); see :func:`associate_scan`."""
+    return associate_scan(segs, pmap, odometer, gates, children).ids
+
+
+@dataclass(frozen=True)
+class Association:
+    """Per segment of a scan: its plane id, ``NONE`` (-1: left to the pool) or ``HELD`` (-2:
+    ambiguous between parallel planes, neither associated nor pooled); and whether it may grow
+    its plane's extent (an unambiguous choice)."""
+
+    ids: NDArray[np.int64]
+    grows: NDArray[np.bool_]
+
+
+def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates,
+                   children: dict[int, int] | None = None) -> Association:
+    """The segments of one scan (world frame) against the map: :class:`Association`.
 
     ``children`` maps the planes tied parallel to a host wall (a door set 1-2 cm into it, a board
     1-2 cm proud of it) to their host. A door's segment and the wall's next to it differ by those
@@ -120,10 +145,10 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     cells are computed in one compiled pass (``slam.kernels.association_gates``); the
     extents (Python sets of cells) are then tested only for the pairs under the gates.
     """
-    out = np.full(segs.n, -1, dtype=np.int64)
+    out = np.full(segs.n, NONE, dtype=np.int64)
     active = pmap.active_planes()
     if not active or segs.n == 0:
-        return out
+        return Association(out, np.zeros(segs.n, dtype=bool))
     # the active planes' arrays (world frame): normal, offset, offset sigma, odometer when last
     # seen, in-plane axes u and v
     ids = [p.id for p in active]
@@ -156,7 +181,7 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
     )
     hit = np.flatnonzero(count)
     if hit.size == 0:
-        return out
+        return Association(out, np.zeros(segs.n, dtype=bool))
     cell = pmap.cell_size
     # per plane: the extent margin grown with the drift since it was seen (cells)
     dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
@@ -164,6 +189,26 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
         for j in child_rows:
             dilate[j] = gates.child_margin_cells
     same_normal = float(np.cos(np.radians(2.0)))
+    if gates.choice is not None:
+        # the candidates by increasing m2 under the gates and over the (dilated) extents, then
+        # the choice between parallel planes from the segments' own lines
+        # a door's or board's segments end at its edges (the segmenter breaks there): both end
+        # points and the centroid of a segment on it lie within its extent (dilated by the child
+        # margin), where a wall's segment runs on past it
+        whole = set(child_rows)
+        cands: list[list[int]] = [[] for _ in range(segs.n)]
+        for k in hit.tolist():
+            cands[k] = [j for j in order[k, : count[k]].tolist()
+                        if (all(pmap.overlaps_cells(ids[j], [c], dilate[j]) for c in cells[k, j].tolist()) if j in whole
+                            else pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j]))]
+        weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
+        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range)
+        id_arr = np.asarray(ids, dtype=np.int64)
+        chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
+        if not gates.choice.veto:
+            return Association(chosen, ch.grows & (ch.column >= 0))
+    else:
+        chosen = None
     for k in hit.tolist():
         # the candidates by increasing m2; the segment's two end points and centroid (world
         # frame) against their extents
@@ -180,7 +225,10 @@ def associate(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: Gates
                 break
         if not ambiguous:
             out[k] = ids[best]
-    return out
+    if chosen is not None:
+        # the choice as a veto: the nearest candidate where the choice agrees, else none
+        out = np.where(out == chosen, out, NONE)
+    return Association(out, out >= 0)
 
 
 # per scan, placed in the world: virtual points (k, 2, 3), end points (k, 2, 3), the scanner's
@@ -233,15 +281,18 @@ class ScanAssociator:
             for i, p in enumerate(ps)
         ]
 
-    def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> NDArray[np.int64]:
-        """Plane id per segment of the scan (-1: none) under ``gates``, from its ``summary``."""
+    def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> Association:
+        """The scan's :class:`Association` under ``gates``, from its ``summary``."""
         v_world, e_world, origin = summary
         ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self._point_sigma, p.segs.n_points, origin[:3])
         if self._line_direction:
             d = v_world[:, 1] - v_world[:, 0]
             d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
             ws = replace(ws, direction=d)
-        children = self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal) else None
-        ids = associate(ws, self._pmap, self._knots.odometer, gates, children)
-        ids[p.segs.n_points < self._min_segment_points] = -1
-        return ids
+        children = (self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal or gates.choice is not None)
+                    else None)
+        a = associate_scan(ws, self._pmap, self._knots.odometer, gates, children)
+        short = p.segs.n_points < self._min_segment_points
+        a.ids[short] = NONE
+        a.grows[short] = False
+        return a

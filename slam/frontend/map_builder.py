@@ -63,6 +63,8 @@ class MapParams:
     drift_rate: float
     drift_rate_vertical: float
     link_sigma: float
+    child_merge_distance: float  # m, a tied door or board merges with its wall only nearer than this
+    child_adopt_cells: int  # cells: a new door or board adopts pooled segments with both ends this near its extent
 
 
 class TieKind(Enum):
@@ -130,21 +132,24 @@ class MapBuilder:
 
     # ------------------------------------------------------------------ observation
     def observe(self, p: PendingScan, ids: NDArray[np.int64], v_world: FloatArray, e_world: FloatArray,
-                T_body_scanner: FloatArray, now: float, blocks: ObservationBlocks) -> None:
-        """The scan's associated segments (plane ids ``ids``, -1: none) observe their planes
-        and extend them; the long enough others go to the pool. ``v_world``/``e_world`` (k, 2,
-        3) are the segments' virtual and end points placed in the world (``T_body_scanner``:
-        the scan's scanner)."""
+                T_body_scanner: FloatArray, now: float, blocks: ObservationBlocks,
+                grows: NDArray[np.bool_] | None = None) -> None:
+        """The scan's associated segments (plane ids ``ids``; -1: none, -2: held back as
+        ambiguous) observe their planes and, where ``grows`` (default: all), extend them; the
+        long enough unassociated others (-1) go to the pool. ``v_world``/``e_world`` (k, 2, 3)
+        are the segments' virtual and end points placed in the world (``T_body_scanner``: the
+        scan's scanner)."""
         segs = p.segs
         associated = np.flatnonzero(ids >= 0)
-        pooled = np.flatnonzero((ids < 0) & (segs.n_points >= self.params.min_segment_points))
+        pooled = np.flatnonzero((ids == -1) & (segs.n_points >= self.params.min_segment_points))
         # every 8th point of the associated segments (extents), every 12th of the pooled ones
         placed = self._knots.place_segments(segs, np.concatenate((associated, pooled)),
                                             np.repeat([8, 12], [associated.size, pooled.size]))
         for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
             pid = int(ids[j])
             blocks.segment(segs, j, pid)
-            self.pmap.extend(pid, pts)
+            if grows is None or grows[j]:
+                self.pmap.extend(pid, pts)
             self.pmap.planes[pid].n_segments += 1
             self.pmap.seen(pid, now, self._knots.odometer)
         self._stats.associated += int((ids >= 0).sum())
@@ -231,7 +236,7 @@ class MapBuilder:
             blocks.flush(self._sink)
             self._stats.planes_created += 1
             self._stats.associated += len(plane.members)
-            self._adopt_pooled(pl.id, by_serial)
+            self._adopt_pooled(pl.id, by_serial, child=host is not None)
 
     def _host_of(self, plane: NewPlane, pts: FloatArray) -> int | None:
         """The established plane a new one (its members' points ``pts``, world frame) lies on,
@@ -292,8 +297,10 @@ class MapBuilder:
         about = np.array([0.0, 0.0, 1.0]) if vertical else None
         return tilt_sigma(np.concatenate(pts), np.concatenate(sig), plane.normal, about) < self.params.max_tilt_sigma
 
-    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan]) -> None:
-        """Give a new plane the pooled segments that lie on it but were not among its seed group."""
+    def _adopt_pooled(self, pid: int, by_serial: dict[int, PendingScan], child: bool = False) -> None:
+        """Give a new plane the pooled segments that lie on it but were not among its seed group; a
+        door or board (``child``) only those lying in its extent end to end (its wall's segments
+        refused by the wall, a metre beside it, would otherwise stretch it along the wall)."""
         pl = self.pmap.planes[pid]
         taken = []
         blocks = ObservationBlocks(self._knots, self._stats)
@@ -303,6 +310,8 @@ class MapBuilder:
             if not on_plane(m, pl.normal, pl.d, self.pool.params):
                 continue
             if not self.pmap.overlaps(pid, m.samples, self.params.extent_margin_cells):
+                continue
+            if child and not all(self.pmap.overlaps(pid, x[None], self.params.child_adopt_cells) for x in m.endpoints):
                 continue
             rec = by_serial.get(m.ref[0])
             if rec is None:
@@ -332,6 +341,10 @@ class MapBuilder:
         mp = self.params
         recent = [p for p in self.pmap.active_planes() if now - p.last_seen_time < 2.0]
         cos_max = np.cos(mp.merge_angle)
+        # doors and boards with their wall, and with one another on one wall: distinct surfaces
+        children = self.ties.children()
+        tied = {frozenset(pair) for pair in children.items()}
+        tied |= {frozenset((a, b)) for a, ha in children.items() for b, hb in children.items() if a != b and ha == hb}
         for a in recent:
             if not a.active:
                 continue
@@ -354,6 +367,10 @@ class MapBuilder:
                 # strength of its centre alone
                 small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
                 if self.pmap.max_distance_over(small.id, big.id) > tol:
+                    continue
+                # a door or board and its wall (or another child of it): one surface only when nearer
+                # than any door or board
+                if frozenset((a.id, b.id)) in tied and self.pmap.max_distance_over(small.id, big.id) > mp.child_merge_distance:
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
                 self._sink.link_planes(keep.id, drop.id, mp.link_sigma, mp.link_sigma)

@@ -91,6 +91,9 @@ class Plane:
     # time buckets (``PlaneMap.bucket`` s) in which the plane had a segment: two planes seen in one
     # bucket were measured from (nearly) one pose, without drift between them
     seen_buckets: set[int] = field(default_factory=set)
+    # the extent's extreme points (world frame, up to 4: least and most u, least and most v),
+    # for the exported outline at the points' precision rather than the cells'
+    extremes: FloatArray | None = None
 
 
 class PlaneMap:
@@ -193,6 +196,17 @@ class PlaneMap:
         p.cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
         if p.n_segments < self.samples_until:
             p.samples.append(np.array(points_world, dtype=np.float64))
+        self._grow_extremes(p, np.asarray(points_world, dtype=np.float64))
+
+    @staticmethod
+    def _grow_extremes(p: Plane, points_world: FloatArray) -> None:
+        """Keep the points (world frame) of least and most ``u`` and ``v`` among the plane's
+        extreme points and ``points_world`` (m, 3)."""
+        if points_world.shape[0] == 0:
+            return
+        pts = points_world if p.extremes is None else np.vstack((p.extremes, points_world))
+        uv = np.column_stack((pts @ p.u, pts @ p.v))
+        p.extremes = pts[[int(uv[:, 0].argmin()), int(uv[:, 0].argmax()), int(uv[:, 1].argmin()), int(uv[:, 1].argmax())]]
 
     def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
         """Whether any of the points' (m, 3), world frame, cells is within ``dilate`` cells of the
@@ -257,13 +271,18 @@ class PlaneMap:
         return float(np.max(np.abs(pts @ q.normal + q.d)))
 
     def polygon(self, pid: int) -> FloatArray:
-        """The extent's bounding rectangle as a closed (5, 3) polygon on the plane (world frame)."""
+        """The extent's bounding rectangle as a closed (5, 3) polygon on the plane (world frame):
+        of its extreme points where known, else of its cells."""
         p = self.planes[pid]
         if not p.cells:
             return np.empty((0, 3))
-        c = np.array(list(p.cells), dtype=np.float64)
-        lo = c.min(axis=0) * self.cell_size
-        hi = (c.max(axis=0) + 1.0) * self.cell_size
+        if p.extremes is not None:
+            uv = np.column_stack((p.extremes @ p.u, p.extremes @ p.v))
+            lo, hi = uv.min(axis=0), uv.max(axis=0)
+        else:
+            c = np.array(list(p.cells), dtype=np.float64)
+            lo = c.min(axis=0) * self.cell_size
+            hi = (c.max(axis=0) + 1.0) * self.cell_size
         corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]], [lo[0], lo[1]]])
         return corners[:, :1] * p.u + corners[:, 1:] * p.v - p.d * p.normal
 
@@ -280,7 +299,12 @@ class PlaneMap:
         """Fold plane ``drop`` into ``keep``: union of extents and counts; ``drop`` becomes inactive."""
         pk, pd = self.planes[keep], self.planes[drop]
         if pd.cells:
+            own = pk.extremes
             self.extend(keep, self.cell_centres(drop))
+            # the outline: the two planes' extreme points (the cell centres' only where one had none)
+            if own is not None and pd.extremes is not None:
+                pk.extremes = None
+                self._grow_extremes(pk, np.vstack((own, pd.extremes)))
         pk.n_segments += pd.n_segments
         pk.last_seen_time = max(pk.last_seen_time, pd.last_seen_time)
         pk.last_seen_odometer = max(pk.last_seen_odometer, pd.last_seen_odometer)

@@ -53,7 +53,7 @@ class WindowTracker:
             return T_pred
         hosts = self._children() if self._edges.tracks() else None
         for p, summary in zip(ready, self._associator.summaries(ready), strict=True):
-            p.loose_ids = self._associator.associate(p, self.gates, summary)
+            p.loose_ids = self._associator.associate(p, self.gates, summary).ids
             if hosts is not None:
                 self._edges.match_loose(p, hosts)
         pts: list[FloatArray] = []
