@@ -75,6 +75,41 @@ EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
 EXIT_TERMINATED = 143  # SIGTERM
 
 
+class _ForkWindow:
+    """Whether this process is inside ``os.fork``'s callbacks, and a signal that arrived there.
+
+    Python runs its own at-fork callbacks (logging's lock release) around every fork; a handler
+    that raises inside one has its exception printed as "Exception ignored" with a traceback and
+    then lost. A signal that lands there is held and raised again just after the fork (in the
+    parent, by a 5 ms SIGALRM; in a forked child, which its parent will stop, by a quiet exit)."""
+
+    inside = False
+    pending: int | None = None
+    registered = False
+
+    @classmethod
+    def register(cls) -> None:
+        if not cls.registered:
+            os.register_at_fork(before=cls.enter, after_in_parent=cls.leave_parent, after_in_child=cls.leave_child)
+            cls.registered = True
+
+    @classmethod
+    def enter(cls) -> None:
+        cls.inside = True
+
+    @classmethod
+    def leave_parent(cls) -> None:
+        cls.inside = False
+        if cls.pending is not None:
+            signal.setitimer(signal.ITIMER_REAL, 0.005)
+
+    @classmethod
+    def leave_child(cls) -> None:
+        cls.inside = False
+        if cls.pending is not None:
+            os._exit(128 + cls.pending)
+
+
 @contextmanager
 def signals_as_interrupt() -> Iterator[list[int]]:
     """While the block runs, SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` in
@@ -87,6 +122,13 @@ def signals_as_interrupt() -> Iterator[list[int]]:
     received: list[int] = []
 
     def handler(signum: int, frame: FrameType | None) -> None:
+        if _ForkWindow.inside:
+            _ForkWindow.pending = signum
+            return
+        if signum == signal.SIGALRM:
+            if _ForkWindow.pending is None:
+                return
+            signum, _ForkWindow.pending = _ForkWindow.pending, None
         if os.getpid() != me:
             if signum == signal.SIGTERM:
                 os._exit(128 + signum)
@@ -94,9 +136,10 @@ def signals_as_interrupt() -> Iterator[list[int]]:
         received.append(signum)
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
+    _ForkWindow.register()
     previous = {}
     try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
             previous[sig] = signal.signal(sig, handler)
     except ValueError:  # not the main thread: leave the signals as they are
         pass
