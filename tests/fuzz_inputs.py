@@ -36,6 +36,7 @@ import json
 import math
 import random
 import shutil
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,18 +58,18 @@ RUN_FILES = ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.
 
 
 # ---- choosers: where the randomness comes from ------------------------------------------------
-class Chooser:
+class Chooser(ABC):
     """The choices a spec is drawn from; subclasses take them from a seeded RNG or hypothesis."""
 
-    def choice(self, options: Sequence[T]) -> T:
-        raise NotImplementedError
+    @abstractmethod
+    def choice(self, options: Sequence[T]) -> T: ...
 
-    def uniform(self, lo: float, hi: float) -> float:
-        raise NotImplementedError
+    @abstractmethod
+    def uniform(self, lo: float, hi: float) -> float: ...
 
+    @abstractmethod
     def integer(self, lo: int, hi: int) -> int:
         """An integer in [lo, hi]."""
-        raise NotImplementedError
 
     def chance(self, p: float) -> bool:
         return self.uniform(0.0, 1.0) < p
@@ -301,14 +302,13 @@ def _bag_commands(spec: dict[str, Any], bag: Path, materials: Materials, folder:
     return cmds
 
 
+def _draw_commands(ch: Chooser, first: str, *more: tuple[str, float]) -> list[str]:
+    """``first``, then each of ``more`` (command, chance) drawn in order."""
+    return [first] + [name for name, p in more if ch.chance(p)]
+
+
 def _draw_bag_commands(ch: Chooser) -> dict[str, Any]:
-    cmds = ["run"]
-    if ch.chance(0.5):
-        cmds.append("segment")
-    if ch.chance(0.25):
-        cmds.append("rig")
-    if ch.chance(0.08):
-        cmds.append("calibrate")
+    cmds = _draw_commands(ch, "run", ("segment", 0.5), ("rig", 0.25), ("calibrate", 0.08))
     out: dict[str, Any] = {"commands": cmds, "with_rig": ch.chance(0.85)}
     if ch.chance(0.08):
         out["signal"] = [ch.choice(("TERM", "INT")), round(ch.uniform(0.5, 8.0), 2), ch.chance(0.5)]
@@ -976,13 +976,7 @@ CARMEN_HOWS = ("ok", "count_short", "count_long", "count_zero", "count_huge", "n
 
 
 def draw_carmen(ch: Chooser) -> dict[str, Any]:
-    cmds = ["segment"]
-    if ch.chance(0.5):
-        cmds.append("run")
-    if ch.chance(0.15):
-        cmds.append("rig")
-    if ch.chance(0.05):
-        cmds.append("calibrate")
+    cmds = _draw_commands(ch, "segment", ("run", 0.5), ("rig", 0.15), ("calibrate", 0.05))
     return {"how": ch.choice(CARMEN_HOWS), "gzip": ch.chance(0.5), "lines": ch.integer(1, 25),
             "robotlaser": ch.chance(0.3), "fraction": _fraction(ch), "commands": cmds}
 
@@ -1098,9 +1092,7 @@ CSV_HOWS = ("ok", "no_header", "unknown_columns", "non_numeric", "ragged", "empt
 def draw_scanline(ch: Chooser) -> dict[str, Any]:
     fmt = ch.choice(("npz", "csv"))
     how = ch.choice(NPZ_HOWS if fmt == "npz" else CSV_HOWS)
-    cmds = ["segment"]
-    if ch.chance(0.2):
-        cmds.append("run")
+    cmds = _draw_commands(ch, "segment", ("run", 0.2))
     return {"fmt": fmt, "how": how, "n": ch.choice((271, 50, 3, 1081)), "scans": ch.integer(1, 4),
             "method": ch.choice(("ror", "ror", "split_and_merge", None)), "noise": ch.choice(("auto", "none")),
             "plot": ch.chance(0.15), "commands": cmds}
@@ -1258,11 +1250,7 @@ RIG_HOWS = ("value", "value", "value", "value", "unknown_key", "delete", "duplic
 
 
 def draw_rig(ch: Chooser) -> dict[str, Any]:
-    cmds = ["run"]
-    if ch.chance(0.5):
-        cmds.append("rig_check")
-    if ch.chance(0.07):
-        cmds.append("calibrate")
+    cmds = _draw_commands(ch, "run", ("rig_check", 0.5), ("calibrate", 0.07))
     return {"how": ch.choice(RIG_HOWS), "path": list(ch.choice(RIG_PATHS)), "value": hostile_value(ch),
             "fmt": ch.choice(("ros1", "ros2")), "commands": cmds}
 
@@ -1397,9 +1385,7 @@ CONFIG_SPECIALS: dict[str, Any] = {
 
 def draw_config(ch: Chooser) -> dict[str, Any]:
     special = ch.choice((None, None, None, *CONFIG_SPECIALS))
-    cmds = ["run"]
-    if ch.chance(0.06):
-        cmds.append("calibrate")
+    cmds = _draw_commands(ch, "run", ("calibrate", 0.06))
     return {"special": special, "path": list(ch.choice(CONFIG_PATHS)), "value": hostile_value(ch),
             "fmt": ch.choice(("ros1", "ros2")), "commands": cmds}
 

@@ -21,21 +21,7 @@ from slam.export import read_cloud_ply, read_segments_npz
 from slam.frontend.transients import TRANSIENT
 from slam.io.source import BagSource
 from slam.run import estimate_noise, run_slam
-
-# an 8 x 6 m box room (2.8 m ceiling) with a pillar, and a walk across it
-BOX_WORLD = """
-name: box
-floor_z: 0.0
-ceiling_z: 2.8
-spaces:
-  - {name: room, rect: [0.0, 0.0, 8.0, 6.0]}
-walk:
-  speed: 1.2
-  waypoints:
-    - [1.5, 1.5]
-    - [6.0, 2.0]
-    - [6.0, 4.5]
-"""
+from tests.test_slam_pipeline import BOX_WORLD
 
 
 def _simulate(folder: Path, duration: float, **sim: Any) -> SimulationResult:
