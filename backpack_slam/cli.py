@@ -25,7 +25,7 @@ import argparse
 import importlib
 import signal
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from types import FrameType
 from typing import Any, NoReturn
@@ -75,39 +75,24 @@ EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
 EXIT_TERMINATED = 143  # SIGTERM
 
 
-class _ForkWindow:
-    """Whether this process is inside ``os.fork``'s callbacks, and a signal that arrived there.
+class _Redeliver:
+    """An interrupt raised where Python cannot raise: inside an at-fork callback (logging's lock
+    release around a fork), a weakref callback (importlib's module locks) or a ``__del__``, the
+    handler's exception is "unraisable": printed as "Exception ignored" with a traceback and then
+    lost. ``sys.unraisablehook`` catches exactly those, keeps the print quiet and raises the
+    signal again 5 ms later (a SIGALRM), where the clean-up sees it."""
 
-    Python runs its own at-fork callbacks (logging's lock release) around every fork; a handler
-    that raises inside one has its exception printed as "Exception ignored" with a traceback and
-    then lost. A signal that lands there is held and raised again just after the fork (in the
-    parent, by a 5 ms SIGALRM; in a forked child, which its parent will stop, by a quiet exit)."""
-
-    inside = False
     pending: int | None = None
-    registered = False
 
     @classmethod
-    def register(cls) -> None:
-        if not cls.registered:
-            os.register_at_fork(before=cls.enter, after_in_parent=cls.leave_parent, after_in_child=cls.leave_child)
-            cls.registered = True
-
-    @classmethod
-    def enter(cls) -> None:
-        cls.inside = True
-
-    @classmethod
-    def leave_parent(cls) -> None:
-        cls.inside = False
-        if cls.pending is not None:
-            signal.setitimer(signal.ITIMER_REAL, 0.005)
-
-    @classmethod
-    def leave_child(cls) -> None:
-        cls.inside = False
-        if cls.pending is not None:
-            os._exit(128 + cls.pending)
+    def hook(cls, previous: Callable[[Any], object]) -> Callable[[Any], object]:
+        def unraisable(info: Any) -> None:
+            if isinstance(info.exc_value, (KeyboardInterrupt, Terminated)):
+                cls.pending = signal.SIGTERM if isinstance(info.exc_value, Terminated) else signal.SIGINT
+                signal.setitimer(signal.ITIMER_REAL, 0.005)
+                return
+            previous(info)
+        return unraisable
 
 
 @contextmanager
@@ -122,13 +107,10 @@ def signals_as_interrupt() -> Iterator[list[int]]:
     received: list[int] = []
 
     def handler(signum: int, frame: FrameType | None) -> None:
-        if _ForkWindow.inside:
-            _ForkWindow.pending = signum
-            return
         if signum == signal.SIGALRM:
-            if _ForkWindow.pending is None:
+            if _Redeliver.pending is None:
                 return
-            signum, _ForkWindow.pending = _ForkWindow.pending, None
+            signum, _Redeliver.pending = _Redeliver.pending, None
         if os.getpid() != me:
             if signum == signal.SIGTERM:
                 os._exit(128 + signum)
@@ -136,8 +118,9 @@ def signals_as_interrupt() -> Iterator[list[int]]:
         received.append(signum)
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
-    _ForkWindow.register()
     previous = {}
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _Redeliver.hook(previous_hook)
     try:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
             previous[sig] = signal.signal(sig, handler)
@@ -148,6 +131,7 @@ def signals_as_interrupt() -> Iterator[list[int]]:
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+        sys.unraisablehook = previous_hook
 
 
 def _interrupted(signum: int) -> int:
