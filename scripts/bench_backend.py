@@ -24,8 +24,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -137,24 +139,26 @@ def _export_tree(rev: str) -> Path:
     return out
 
 
-def _replay_child(tree: str, log: str, npz: str, profile: str, solver: str) -> None:
-    """One replay with the back end of ``tree`` (first on sys.path); prints one JSON line."""
+def _replay_child(tree: str, log: str, npz: str, profile: str, overrides: str) -> None:
+    """One replay with the back end of ``tree`` (first on sys.path) and the recorded configuration
+    with ``overrides`` (a JSON object of ``BackendConfig`` fields) applied; prints one JSON line."""
     sys.path.insert(0, tree)
     sys.path.insert(0, str(ROOT / "scripts"))
     import backend_log
 
     data = backend_log.load(Path(log))
-    if solver:
-        data["config"] = replace(data["config"], solver=solver)
+    if overrides:
+        data["config"] = replace(data["config"], **json.loads(overrides))
     backend_log.warm_up(data)
     r = backend_log.replay(data, Path(profile) if profile else None)
     np.savez(npz, poses=r["poses"], plane_ids=r["plane_ids"], normals=r["normals"], offsets=r["offsets"])
     print("REPLAY " + json.dumps({k: r[k] for k in ("seconds", "counts", "mismatches", "data_duration")}))
 
 
-def _run_replay(tree: Path, log: Path, npz: Path, profile: Path | None, solver: str = "") -> dict:
+def _run_replay(tree: Path, log: Path, npz: Path, profile: Path | None, overrides: dict[str, Any] | None = None) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    cmd = [sys.executable, __file__, "--replay-child", str(tree), str(log), str(npz), str(profile or ""), solver]
+    cmd = [sys.executable, __file__, "--replay-child", str(tree), str(log), str(npz), str(profile or ""),
+           json.dumps(overrides) if overrides else ""]
     out = subprocess.run(cmd, cwd=tree, env=env, check=True, capture_output=True, text=True).stdout
     line = next(ln for ln in out.splitlines() if ln.startswith("REPLAY "))
     return dict(json.loads(line[len("REPLAY "):]))
@@ -187,7 +191,25 @@ def _ate(log: Path, gt: Path, npz: Path) -> str:
     return f"ATE start-aligned {ev.ate['start_aligned'].rmse * 1e3:.4f} mm, SE(3)-aligned {ev.ate['se3_aligned'].rmse * 1e3:.4f} mm"
 
 
-def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: bool, gt: Path | None = None) -> None:
+def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
+    """``NAME:key=value;key=value`` (values as JSON, else strings) -> (NAME, overrides)."""
+    name, _, body = text.partition(":")
+    if not name or not body:
+        raise ValueError(f"--variant {text!r}: expected NAME:key=value[;key=value...]")
+    out: dict[str, Any] = {}
+    for item in body.split(";"):
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise ValueError(f"--variant {text!r}: {item!r} is not key=value")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return name, out
+
+
+def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: bool, gt: Path | None = None,
+                 variants: Sequence[tuple[str, dict[str, Any]]] = ()) -> None:
     from backend_log import ORDER
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_backend_"))
@@ -196,7 +218,9 @@ def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: b
         runs.append((f"baseline {baseline}", _run_replay(_export_tree(baseline), log, tmp / "base.npz", None)))
     runs.append(("this tree", _run_replay(ROOT, log, tmp / "now.npz", None)))
     if isam2:
-        runs.append(("this tree, iSAM2", _run_replay(ROOT, log, tmp / "isam2.npz", None, "isam2")))
+        runs.append(("this tree, iSAM2", _run_replay(ROOT, log, tmp / "isam2.npz", None, {"solver": "isam2"})))
+    for i, (vname, over) in enumerate(variants):
+        runs.append((vname, _run_replay(ROOT, log, tmp / f"variant{i}.npz", None, over)))
     dur = runs[-1][1]["data_duration"]
     print(f"\n4. back end replayed from {log.name} ({dur:.1f} s of data): CPU seconds (time.process_time)")
     head = f"{'stage':<26} {'calls':>7}" + "".join(f" {name + ' s':>20} {'s/data s':>9}" for name, _ in runs)
@@ -219,9 +243,12 @@ def bench_replay(log: Path, baseline: str | None, profile: Path | None, isam2: b
         print("this tree vs baseline: " + _estimate_difference(tmp / "base.npz", tmp / "now.npz"))
     if isam2:
         print("iSAM2 vs window: " + _estimate_difference(tmp / "now.npz", tmp / "isam2.npz"))
+    for i, (vname, over) in enumerate(variants):
+        print(f"{vname} {over} vs this tree: " + _estimate_difference(tmp / "now.npz", tmp / f"variant{i}.npz"))
     if gt is not None:
-        for (name, _), f in zip(runs, [*(["base.npz"] if baseline else []), "now.npz", *(["isam2.npz"] if isam2 else [])],
-                                strict=True):
+        files = [*(["base.npz"] if baseline else []), "now.npz", *(["isam2.npz"] if isam2 else []),
+                 *(f"variant{i}.npz" for i in range(len(variants)))]
+        for (name, _), f in zip(runs, files, strict=True):
             print(f"{name}: {_ate(log, gt, tmp / f)} (the knots; the front end's decisions are the recording's)")
     if profile is not None:  # a run of its own: cProfile more than doubles the time it measures
         _run_replay(ROOT, log, tmp / "profiled.npz", profile)
@@ -238,6 +265,9 @@ def main() -> None:
     ap.add_argument("--profile", type=Path, default=None, help="write cProfile stats of this tree's replay here")
     ap.add_argument("--isam2", action="store_true", help="also replay with the iSAM2 incremental solver")
     ap.add_argument("--only-replay", action="store_true", help="skip benchmarks 1-3")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE[;...]",
+                    help="also replay this tree with these BackendConfig fields changed (repeatable), "
+                         "e.g. 'it3:window_iterations=3'")
     ap.add_argument("--gt", type=Path, default=None, help="the bag's ground-truth folder: ATE of each replay")
     ap.add_argument("--replay-child", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -261,7 +291,11 @@ def main() -> None:
         bench_motion_prior(args.duration)
     if args.log is not None:
         sys.path.insert(0, str(ROOT / "scripts"))
-        bench_replay(args.log, args.baseline, args.profile, args.isam2, args.gt)
+        try:
+            variants = [parse_variant(v) for v in args.variant]
+        except ValueError as e:
+            ap.error(str(e))
+        bench_replay(args.log, args.baseline, args.profile, args.isam2, args.gt, variants)
 
 
 if __name__ == "__main__":
