@@ -5,7 +5,11 @@ Simulates the walk once (or reuses the bag in ``--cache``), runs SLAM with each 
 ``--segmenters`` (RoR first by default) on that same bag, each in a fresh child process so that
 its peak memory (``ru_maxrss``) is its own, evaluates every run against the ground truth and
 prints one markdown table: time per stage (``summary.json`` timings), total, ratio to real time,
-peak memory, and the accuracy figures, with the goals marked reached or not.
+CPU seconds per data second (every process of the run: estimator, reader, export), peak memory,
+and the accuracy figures, with the goals marked reached or not. Before and after the runs it
+times this machine's RoR segmentation on a fixed set of scanlines (``bench_segmentation.py``'s
+synthetic office set, one thread) and prints it beside the speed, so that the figures can be
+scaled to another machine.
 
 Usage:
     .venv/bin/python scripts/bench_slam.py [--duration 600] [--cache DIR] [--out DIR]
@@ -17,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import resource
 import subprocess
 import sys
 import time
@@ -38,6 +44,24 @@ GOALS = {  # issue 4, office 10 min walk
 }
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its children that have ended."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def machine_throughput(n_scans: int = 200, repeats: int = 5) -> float:
+    """This machine's RoR (the default, combined) segmentation speed [scans/s] on ``n_scans`` of
+    ``bench_segmentation.py``'s synthetic 1081-beam office scanlines (median of ``repeats``
+    passes after a warm-up), measured in a child process with one numba/BLAS thread."""
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_segmentation as b; "
+            f"print(b.time_method('ror', b.office_scans({n_scans}), {repeats}))")
+    env = {**os.environ, **{v: "1" for v in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                              "MKL_NUM_THREADS")}}
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True).stdout
+    return float(out.strip().splitlines()[-1])
+
+
 def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     """One SLAM run + evaluation in this process; prints one JSON line with the figures."""
     from common.rig import resolve_rig
@@ -48,7 +72,9 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     base = load_slam_config(config) if config else SlamConfig()
     cfg = base if base.segmenter.method == method else base.model_copy(
         update={"segmenter": SlamConfig.model_validate({"segmenter": {"method": method}}).segmenter})
+    cpu0 = _cpu_seconds()
     summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=True)
+    cpu = _cpu_seconds() - cpu0  # the run's reader and export processes have been waited for
     res = evaluate(out, gt)
     peak = peak_rss_gb() * 1e9  # SLAM and evaluation in this one process
     tr = res.trajectory
@@ -57,6 +83,7 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
         "timings": summary["timings"],
         "data_duration": summary["data_duration"],
         "realtime_factor": summary["realtime_factor"],
+        "cpu_seconds": cpu,
         "peak_bytes": peak,
         "counts": summary["counts"],
         "path_length": tr.path_length,
@@ -146,6 +173,8 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
     add("**time: total wall (s)**", [_fmt(r["timings"]["wall"], 1, 1) for r in rows])
     add("data duration (s)", [_fmt(r["data_duration"], 1, 1) for r in rows])
     add("**speed (x real time)**", [_fmt(r["realtime_factor"]) for r in rows])
+    add("CPU seconds per data second (all processes of the run)",
+        [_fmt(r["cpu_seconds"] / r["data_duration"], 1, 3) if "cpu_seconds" in r else "-" for r in rows])
     add("**peak memory (GB)**: all processes (summed PSS)", [_fmt(r.get("peak_pss_bytes"), 1e-9) for r in rows])
     add("peak memory (GB): the estimator's process (ru_maxrss)", [_fmt(r["peak_bytes"], 1e-9) for r in rows])
     add("knots / planes / merged", [f"{r['counts']['knots']} / {r['counts']['planes']} / {r['counts']['planes_merged']}" for r in rows])
@@ -282,6 +311,8 @@ def main() -> int:
         ap.error(f"--segmenters: unknown {', '.join(unknown)} (available: {', '.join(segmentation.available())})")
     bag, gt = _bag(args.cache, args.duration, args.seed, args.world, args.start_rest)
     out = args.out or args.cache / f"runs_{args.duration:g}s_seed{args.seed}"
+    throughput = [machine_throughput()]
+    load = [os.getloadavg()[0]]
     rows = []
     for m in methods:
         print(f"SLAM with {m} ...", flush=True)
@@ -302,8 +333,13 @@ def main() -> int:
         print(f"  done in {time.perf_counter() - t0:.0f} s (incl. evaluation)", flush=True)
     if not rows:
         return 1
+    throughput.append(machine_throughput())
+    load.append(os.getloadavg()[0])
     text = (
         f"{args.world} world, {args.duration:g} s walk (seed {args.seed}), bag {bag}\n\n"
+        f"This machine: RoR segments {throughput[0]:,.0f} / {throughput[1]:,.0f} scans/s before / after "
+        f"the runs (scripts/bench_segmentation.py's 200 synthetic 1081-beam office scanlines, one thread; "
+        f"1-minute load average {load[0]:.1f} / {load[1]:.1f}, {os.cpu_count()} CPUs)\n\n"
         + table(rows, args.duration) + "\n\nGoals (issue 4):\n\n" + goals(rows) + "\n"
     )
     print(text)
