@@ -119,19 +119,29 @@ class BreakFinder:
         """Breaks between a wall segment and its neighbour a step off it."""
         ep = self.params
         segs = p.segs
-        out = []
+        # the pairs whose boundary points lie within the gap, with those points (the end of the
+        # earlier segment and the start of the later one)
+        cand = []
         for j_wall, j_other in pairs:
             if segs.n_points[j_other] < ep.min_segment_points:
                 continue
-            # boundary points: the end of the earlier segment and the start of the later one
             lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
             ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
             if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
                 continue
-            w = self._knots.place(
-                np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
-                np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
-            )
+            cand.append((j_wall, j_other, lo, hi, ia, ib))
+        if not cand:
+            return []
+        # per pair: the two boundary points, the other's and the wall's virtual points, placed in
+        # one call for all pairs (per point the numbers of one call per pair)
+        c = np.array(cand, dtype=np.int64)
+        js = np.column_stack((c[:, 1], c[:, 0]))
+        placed = self._knots.place(
+            np.concatenate((segs.points_body[c[:, 4:6]], segs.virtual_body[js].reshape(-1, 4, 3)), axis=1).reshape(-1, 3),
+            np.concatenate((segs.times[c[:, 4:6]], segs.virtual_times[js].reshape(-1, 4)), axis=1).ravel(),
+        ).reshape(-1, 6, 3)
+        out = []
+        for (j_wall, j_other, lo, hi, ia, ib), w in zip(cand, placed, strict=True):
             wall = int(ids[j_wall])
             n_wall = self._pmap.planes[wall].normal
             if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from slam.frontend import batch_kernels as bk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import Plane, PlaneMap
@@ -73,17 +74,16 @@ class TransientFilter:
         self.returned: dict[int, int] = {}
         self._trees: dict[int, tuple[int, FloatArray, cKDTree]] = {}  # per plane: its samples' 2D tree
 
-    def _near_samples(self, plane: Plane, x: FloatArray) -> NDArray[np.bool_]:
-        """Whether each point (m, 3) on the plane lies within ``near`` of one of the points
-        the plane's extent was grown by (in the plane)."""
-        n = sum(s.shape[0] for s in plane.samples)
+    def _tree(self, plane: Plane) -> cKDTree:
+        """The 2D tree (the plane's (u, v) frame) of the points the plane's extent was grown by,
+        rebuilt when samples were added (the list only grows) or the plane's axes changed."""
+        n = len(plane.samples)
         hit = self._trees.get(plane.id)
         if hit is None or hit[0] != n or hit[1] is not plane.u:
             pts = np.concatenate(plane.samples)
             hit = (n, plane.u, cKDTree(np.column_stack((pts @ plane.u, pts @ plane.v))))
             self._trees[plane.id] = hit
-        d, _ = hit[2].query(np.column_stack((x @ plane.u, x @ plane.v)), distance_upper_bound=self.params.near)
-        return np.isfinite(d)
+        return hit[2]
 
     def candidates(self) -> list[int]:
         """The planes on probation."""
@@ -99,7 +99,14 @@ class TransientFilter:
         ids = self.candidates()
         if not ids:
             return []
-        found: list[int] = []
+        planes = [pl for pl in (self._pmap.planes[pid] for pid in ids) if pl.active and pl.samples]
+        normals = np.array([pl.normal for pl in planes]).reshape(-1, 3)
+        offsets = np.array([pl.d for pl in planes])
+        us = np.array([pl.u for pl in planes]).reshape(-1, 3)
+        vs = np.array([pl.v for pl in planes]).reshape(-1, 3)
+        # per scan with beams to test: the crossings of every plane (``plane_crossings``: start
+        # per plane, points in its (u, v) frame, whether the return lies beyond the margin)
+        crossings: list[tuple[NDArray[np.int64], FloatArray, NDArray[np.bool_]]] = []
         for p in scans:
             segs = p.segs
             valid = np.flatnonzero(segs.beam_valid)[:: pr.beam_step]
@@ -109,28 +116,32 @@ class TransientFilter:
             a = segs.beam_angles[valid]
             r = segs.beam_ranges[valid].astype(np.float64)
             dirs = np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T  # (m, 3) world frame
-            o = T[:3, 3]
-            for pid in ids:
-                plane = self._pmap.planes[pid]
-                if not plane.active or not plane.samples:
+            crossings.append(bk.plane_crossings(np.ascontiguousarray(dirs), r, np.ascontiguousarray(T[:3, 3]),
+                                                normals, offsets, us, vs, pr.margin, MIN_RANGE, MIN_COS))
+        # whether each crossing lies within ``near`` of one of the plane's samples: one query per
+        # plane over all the scans' crossings; per (scan, plane) with crossings
+        inside: dict[tuple[int, int], NDArray[np.bool_]] = {}
+        for q, plane in enumerate(planes):
+            parts = [uv[start[q] : start[q + 1]] for start, uv, _ in crossings]
+            sizes = [x.shape[0] for x in parts]
+            if not any(sizes):
+                continue
+            d, _ = self._tree(plane).query(np.concatenate(parts), distance_upper_bound=pr.near)
+            for i, got in enumerate(np.split(np.isfinite(d), np.cumsum(sizes)[:-1])):
+                if got.size:
+                    inside[(i, q)] = got
+        # the counts, scan by scan: a plane is found transient on the counts up to its scan
+        found: list[int] = []
+        for i, (start, _, far) in enumerate(crossings):
+            for q, plane in enumerate(planes):
+                near = inside.get((i, q))
+                if near is None:
                     continue
-                s = float(plane.normal @ o) + plane.d  # the scanner's signed distance from the plane
-                den = dirs @ plane.normal
-                # the returns' signed distances, positive on the scanner's side
-                behind = (s + r * den) * np.sign(s)
-                steep = np.abs(den) > MIN_COS  # a grazing beam's crossing is ill-defined
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    t = -s / den
-                cross = steep & (t > MIN_RANGE) & np.isfinite(t) & (behind < pr.margin)
-                if not cross.any():
-                    continue
-                k = np.flatnonzero(cross)
-                x = o + t[k, None] * dirs[k]
-                inside = self._near_samples(plane, x)
-                through = int(np.count_nonzero(inside & (behind[k] < -pr.margin)))
-                on = int(np.count_nonzero(inside & (behind[k] >= -pr.margin)))
-                self.through[pid] = self.through.get(pid, 0) + through
-                self.returned[pid] = self.returned.get(pid, 0) + on
+                behind_far = far[start[q] : start[q + 1]]
+                through = int(np.count_nonzero(near & behind_far))
+                on = int(np.count_nonzero(near & ~behind_far))
+                self.through[plane.id] = self.through.get(plane.id, 0) + through
+                self.returned[plane.id] = self.returned.get(plane.id, 0) + on
             for pid in ids:
                 if pid not in found and self.through.get(pid, 0) >= pr.min_through \
                         and self.through[pid] > pr.ratio * self.returned.get(pid, 0):
