@@ -4,7 +4,7 @@
 Three kinds of evidence, each giving the point where the surface nearer the scanner ends:
 
 - *pairs*: neighbouring segments, one on a wall, the other parallel to it a step off
-  (``frontend.edges.break_pairs``, ``step_of``);
+  (``frontend.edges.break_pairs``, ``step_of``, computed inline);
 - *recesses*: a wall segment that ends into unsegmented returns a door's recess behind it
   (``frontend.edges.recess_beyond``; a door seen obliquely is often left unsegmented);
 - *inline steps*: a step inside a wall segment (``frontend.edges.steps_within``; a poster 5 mm
@@ -35,7 +35,6 @@ from slam.frontend.edges import (
     segment_end,
     segment_returns,
     steep_enough,
-    step_of,
     surface_end,
 )
 from slam.frontend.knots import KnotMirror
@@ -144,18 +143,22 @@ class BreakFinder:
         for (j_wall, j_other, lo, hi, ia, ib), w in zip(cand, placed, strict=True):
             wall = int(ids[j_wall])
             n_wall = self._pmap.planes[wall].normal
+            # the six points along the wall normal; the means of the wall's and the other's two
+            # virtual points (``step_of``'s numbers, with one product for all of them)
+            h = (w @ n_wall).tolist()
+            h_wall, h_other = (h[4] + h[5]) / 2.0, (h[2] + h[3]) / 2.0
             if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall
                 d_wall = self._pmap.planes[wall].d
-                if abs(float(np.mean(w[4:6] @ n_wall)) + d_wall) > abs(float(np.mean(w[2:4] @ n_wall)) + d_wall):
+                if abs(h_wall + d_wall) > abs(h_other + d_wall):
                     continue
-            s1, s2 = step_of(n_wall, w[4:6], w[2:4])
+            s1, s2 = h[2] - h_wall, h[3] - h_wall  # step_of(n_wall, w[4:6], w[2:4])
             if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
                 continue
             # the edge point is the end of the surface nearer the scanner (the wall for a door, the
             # board for a board): beyond the edge the lower surface is shadowed or seen on the step's
             # face, by an amount that depends on the view; the higher one ends at the edge either way
             h_view = float(n_wall @ origin)
-            wall_higher = abs(h_view - float(np.mean(w[4:6] @ n_wall))) < abs(h_view - float(np.mean(w[2:4] @ n_wall)))
+            wall_higher = abs(h_view - h_wall) < abs(h_view - h_other)
             higher_is_lo = wall_higher == (j_wall == lo)
             i_end, i_next, q = (ia, ia - 1, 0) if higher_is_lo else (ib, ib + 1, 1)
             x_world = w[q]

@@ -85,12 +85,15 @@ class EdgeTracker:
     def tracking_rows(self, recent: list[PendingScan], k0: int) -> list[TrackRows]:
         """The recent scans' loosely matched breaks within the window from knot ``k0``, against
         their edges' current estimates."""
+        held = [p.loose_edges for p in recent if p.loose_edges is not None]
+        if not held:
+            return []
+        # one knot lookup for all the scans' breaks
+        idx_all, alpha_all = self._knots.fractions(np.concatenate([e[1] for e in held]))
+        splits = np.cumsum([e[1].shape[0] for e in held])[:-1]
         out = []
-        for p in recent:
-            if p.loose_edges is None:
-                continue
-            e_pts, e_t, e_ids, e_sig = p.loose_edges
-            idx, alpha = self._knots.fractions(e_t)
+        for (e_pts, _, e_ids, e_sig), idx, alpha in zip(held, np.split(idx_all, splits), np.split(alpha_all, splits),
+                                                         strict=True):
             inside = idx >= k0
             if not inside.any():
                 continue
