@@ -87,7 +87,7 @@ class BreakFinder:
         segs = p.segs
         is_wall = wall_test(self._pmap, hosts)
         pairs = break_pairs(segs.first_beam, segs.n_points, ids, is_wall, self.params.max_skipped_points)
-        walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
+        walls = [j for j, pid in enumerate(ids.tolist()) if pid >= 0 and is_wall(pid)]
         if not pairs and not walls:
             return []
         origin = (self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
@@ -118,22 +118,22 @@ class BreakFinder:
         """Breaks between a wall segment and its neighbour a step off it."""
         ep = self.params
         segs = p.segs
+        if not pairs:
+            return []
         # the pairs whose boundary points lie within the gap, with those points (the end of the
-        # earlier segment and the start of the later one)
-        cand = []
-        for j_wall, j_other in pairs:
-            if segs.n_points[j_other] < ep.min_segment_points:
-                continue
-            lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
-            ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
-            if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
-                continue
-            cand.append((j_wall, j_other, lo, hi, ia, ib))
+        # earlier segment and the start of the later one), for all pairs at once
+        jw, jo = np.array(pairs, dtype=np.int64).T
+        lo = np.where(segs.first_beam[jw] < segs.first_beam[jo], jw, jo)
+        hi = np.where(lo == jw, jo, jw)
+        ia, ib = segs.offsets[lo + 1] - 1, segs.offsets[hi]
+        ok = (segs.n_points[jo] >= ep.min_segment_points) & ~(
+            np.linalg.norm(segs.points_body[ia] - segs.points_body[ib], axis=1) > ep.max_gap)
+        cand = np.column_stack((jw, jo, lo, hi, ia, ib))[ok].tolist()
         if not cand:
             return []
         # per pair: the two boundary points, the other's and the wall's virtual points, placed in
         # one call for all pairs (per point the numbers of one call per pair)
-        c = np.array(cand, dtype=np.int64)
+        c = np.array(cand, dtype=np.int64).reshape(-1, 6)
         js = np.column_stack((c[:, 1], c[:, 0]))
         placed = self._knots.place(
             np.concatenate((segs.points_body[c[:, 4:6]], segs.virtual_body[js].reshape(-1, 4, 3)), axis=1).reshape(-1, 3),

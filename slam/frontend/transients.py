@@ -118,31 +118,33 @@ class TransientFilter:
             dirs = np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T  # (m, 3) world frame
             crossings.append(bk.plane_crossings(np.ascontiguousarray(dirs), r, np.ascontiguousarray(T[:3, 3]),
                                                 normals, offsets, us, vs, pr.margin, MIN_RANGE, MIN_COS))
-        # whether each crossing lies within ``near`` of one of the plane's samples: one query per
-        # plane over all the scans' crossings; per (scan, plane) with crossings
-        inside: dict[tuple[int, int], NDArray[np.bool_]] = {}
-        for q, plane in enumerate(planes):
-            parts = [uv[start[q] : start[q + 1]] for start, uv, _ in crossings]
-            sizes = [x.shape[0] for x in parts]
-            if not any(sizes):
-                continue
-            d, _ = self._tree(plane).query(np.concatenate(parts), distance_upper_bound=pr.near)
-            for i, got in enumerate(np.split(np.isfinite(d), np.cumsum(sizes)[:-1])):
-                if got.size:
-                    inside[(i, q)] = got
-        # the counts, scan by scan: a plane is found transient on the counts up to its scan
+        if not crossings:
+            return []
+        # per scan and plane: the crossings within ``near`` of one of the plane's samples whose
+        # return lies beyond the margin (through) or not (on); one tree query per plane over all
+        # the scans' crossings
+        n_cross = np.diff(np.array([c[0] for c in crossings]), axis=1)  # (scans, planes)
+        ends = np.cumsum(n_cross, axis=0)
+        through = np.zeros(n_cross.shape, dtype=np.int64)
+        on = np.zeros(n_cross.shape, dtype=np.int64)
+        for q in np.flatnonzero(n_cross.sum(axis=0)).tolist():
+            uv = np.concatenate([c[1][c[0][q] : c[0][q + 1]] for c in crossings])
+            far = np.concatenate([c[2][c[0][q] : c[0][q + 1]] for c in crossings])
+            d, _ = self._tree(planes[q]).query(uv, distance_upper_bound=pr.near)
+            near = np.isfinite(d)
+            for out, hit in ((through, near & far), (on, near & ~far)):
+                csum = np.concatenate(([0], np.cumsum(hit)))
+                out[:, q] = csum[ends[:, q]] - csum[ends[:, q] - n_cross[:, q]]
+        # the counts, scan by scan: a plane is found transient on the counts up to its scan (a
+        # plane whose counts a scan left unchanged was already tested after an earlier scan)
         found: list[int] = []
-        for i, (start, _, far) in enumerate(crossings):
-            for q, plane in enumerate(planes):
-                near = inside.get((i, q))
-                if near is None:
-                    continue
-                behind_far = far[start[q] : start[q + 1]]
-                through = int(np.count_nonzero(near & behind_far))
-                on = int(np.count_nonzero(near & ~behind_far))
-                self.through[plane.id] = self.through.get(plane.id, 0) + through
-                self.returned[plane.id] = self.returned.get(plane.id, 0) + on
-            for pid in ids:
+        for i in range(n_cross.shape[0]):
+            changed = np.flatnonzero(n_cross[i]).tolist()
+            for q in changed:
+                pid = planes[q].id
+                self.through[pid] = self.through.get(pid, 0) + int(through[i, q])
+                self.returned[pid] = self.returned.get(pid, 0) + int(on[i, q])
+            for pid in ids if i == 0 else [planes[q].id for q in changed]:
                 if pid not in found and self.through.get(pid, 0) >= pr.min_through \
                         and self.through[pid] > pr.ratio * self.returned.get(pid, 0):
                     found.append(pid)
