@@ -205,7 +205,7 @@ class PlaneMap:
         extreme points and ``points_world`` (m, 3)."""
         if points_world.shape[0] == 0:
             return
-        pts = points_world if p.extremes is None else np.vstack((p.extremes, points_world))
+        pts = points_world if p.extremes is None else np.concatenate((p.extremes, points_world))
         pu, pv = pts @ p.u, pts @ p.v
         p.extremes = pts[[int(pu.argmin()), int(pu.argmax()), int(pv.argmin()), int(pv.argmax())]]
 
