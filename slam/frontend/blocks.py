@@ -22,33 +22,44 @@ FloatArray = NDArray[np.float64]
 
 
 class ObservationBlocks:
-    """Rows (point (3,) body frame, fraction (1,), sigma (1,)) by (knot interval, plane id)."""
+    """Rows (point (3,) body frame, fraction, sigma) by (knot interval, plane id), kept as three
+    lists per block."""
 
     def __init__(self, knots: KnotMirror, stats: RunStats) -> None:
         self._knots = knots
         self._stats = stats
-        self._rows: dict[tuple[int, int], list[tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        self._rows: dict[tuple[int, int], tuple[list[FloatArray], list[float], list[float]]] = {}
 
     def segment(self, segs: ScanSegments, j: int, pid: int) -> None:
         """Segment ``j`` of the scan observes plane ``pid``: its two virtual points."""
-        idx, alpha = self._knots.fractions(segs.virtual_times[j])
-        for q in range(2):
-            self._rows.setdefault((int(idx[q]), pid), []).append(
-                (segs.virtual_body[j, q], np.array([alpha[q]]), np.array([segs.virtual_sigma[j]]))
-            )
+        self.segments(segs, np.array([j], dtype=np.int64), [pid])
+
+    def segments(self, segs: ScanSegments, js: NDArray[np.int64], pids: list[int]) -> None:
+        """Segments ``js`` of the scan observe planes ``pids`` (one each), in that order: the rows
+        of as many :meth:`segment` calls, with one knot lookup for all of them."""
+        if js.size == 0:
+            return
+        idx, alpha = self._knots.fractions(segs.virtual_times[js].ravel())
+        knot, frac, sigma = idx.tolist(), alpha.tolist(), segs.virtual_sigma[js].tolist()
+        for q, (j, pid) in enumerate(zip(js.tolist(), pids, strict=True)):
+            for e in range(2):
+                pts, al, sg = self._rows.setdefault((knot[2 * q + e], pid), ([], [], []))
+                pts.append(segs.virtual_body[j, e])
+                al.append(frac[2 * q + e])
+                sg.append(sigma[q])
 
     def point(self, brk: Break, pid: int) -> None:
         """A break observes the edge plane ``pid``."""
         idx, alpha = self._knots.fractions(np.array([brk.time]))
-        self._rows.setdefault((int(idx[0]), pid), []).append((brk.point_body, alpha, np.array([brk.sigma])))
+        pts, al, sg = self._rows.setdefault((int(idx[0]), pid), ([], [], []))
+        pts.append(brk.point_body)
+        al.append(float(alpha[0]))
+        sg.append(float(brk.sigma))
         self._stats.edge_observations += 1
 
     def flush(self, sink: MapSink) -> None:
         """Hand every block to the back end and start empty."""
-        for (knot, pid), rows in self._rows.items():
-            pts = np.array([r[0] for r in rows])
-            al = np.concatenate([r[1] for r in rows])
-            sg = np.concatenate([r[2] for r in rows])
-            sink.add_observations(knot, pid, pts, al, sg)
+        for (knot, pid), (pts, al, sg) in self._rows.items():
+            sink.add_observations(knot, pid, np.array(pts), np.array(al), np.array(sg))
             self._stats.observation_blocks += 1
         self._rows = {}

@@ -4,7 +4,7 @@
 Three kinds of evidence, each giving the point where the surface nearer the scanner ends:
 
 - *pairs*: neighbouring segments, one on a wall, the other parallel to it a step off
-  (``frontend.edges.break_pairs``, ``step_of``);
+  (``frontend.edges.break_pairs``, ``step_of``, computed inline);
 - *recesses*: a wall segment that ends into unsegmented returns a door's recess behind it
   (``frontend.edges.recess_beyond``; a door seen obliquely is often left unsegmented);
 - *inline steps*: a step inside a wall segment (``frontend.edges.steps_within``; a poster 5 mm
@@ -35,7 +35,6 @@ from slam.frontend.edges import (
     segment_end,
     segment_returns,
     steep_enough,
-    step_of,
     surface_end,
 )
 from slam.frontend.knots import KnotMirror
@@ -88,7 +87,7 @@ class BreakFinder:
         segs = p.segs
         is_wall = wall_test(self._pmap, hosts)
         pairs = break_pairs(segs.first_beam, segs.n_points, ids, is_wall, self.params.max_skipped_points)
-        walls = [j for j in range(segs.n_segments) if ids[j] >= 0 and is_wall(int(ids[j]))]
+        walls = [j for j, pid in enumerate(ids.tolist()) if pid >= 0 and is_wall(pid)]
         if not pairs and not walls:
             return []
         origin = (self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
@@ -119,33 +118,47 @@ class BreakFinder:
         """Breaks between a wall segment and its neighbour a step off it."""
         ep = self.params
         segs = p.segs
+        if not pairs:
+            return []
+        # the pairs whose boundary points lie within the gap, with those points (the end of the
+        # earlier segment and the start of the later one), for all pairs at once
+        jw, jo = np.array(pairs, dtype=np.int64).T
+        lo = np.where(segs.first_beam[jw] < segs.first_beam[jo], jw, jo)
+        hi = np.where(lo == jw, jo, jw)
+        ia, ib = segs.offsets[lo + 1] - 1, segs.offsets[hi]
+        ok = (segs.n_points[jo] >= ep.min_segment_points) & ~(
+            np.linalg.norm(segs.points_body[ia] - segs.points_body[ib], axis=1) > ep.max_gap)
+        cand = np.column_stack((jw, jo, lo, hi, ia, ib))[ok].tolist()
+        if not cand:
+            return []
+        # per pair: the two boundary points, the other's and the wall's virtual points, placed in
+        # one call for all pairs (per point the numbers of one call per pair)
+        c = np.array(cand, dtype=np.int64).reshape(-1, 6)
+        js = np.column_stack((c[:, 1], c[:, 0]))
+        placed = self._knots.place(
+            np.concatenate((segs.points_body[c[:, 4:6]], segs.virtual_body[js].reshape(-1, 4, 3)), axis=1).reshape(-1, 3),
+            np.concatenate((segs.times[c[:, 4:6]], segs.virtual_times[js].reshape(-1, 4)), axis=1).ravel(),
+        ).reshape(-1, 6, 3)
         out = []
-        for j_wall, j_other in pairs:
-            if segs.n_points[j_other] < ep.min_segment_points:
-                continue
-            # boundary points: the end of the earlier segment and the start of the later one
-            lo, hi = (j_wall, j_other) if segs.first_beam[j_wall] < segs.first_beam[j_other] else (j_other, j_wall)
-            ia, ib = int(segs.offsets[lo + 1]) - 1, int(segs.offsets[hi])
-            if float(np.linalg.norm(segs.points_body[ia] - segs.points_body[ib])) > ep.max_gap:
-                continue
-            w = self._knots.place(
-                np.vstack((segs.points_body[[ia, ib]], segs.virtual_body[j_other], segs.virtual_body[j_wall])),
-                np.concatenate((segs.times[[ia, ib]], segs.virtual_times[j_other], segs.virtual_times[j_wall])),
-            )
+        for (j_wall, j_other, lo, hi, ia, ib), w in zip(cand, placed, strict=True):
             wall = int(ids[j_wall])
             n_wall = self._pmap.planes[wall].normal
+            # the six points along the wall normal; the means of the wall's and the other's two
+            # virtual points (``step_of``'s numbers, with one product for all of them)
+            h = (w @ n_wall).tolist()
+            h_wall, h_other = (h[4] + h[5]) / 2.0, (h[2] + h[3]) / 2.0
             if int(ids[j_other]) == wall:  # both on the wall's plane: the nearer one is the wall
                 d_wall = self._pmap.planes[wall].d
-                if abs(float(np.mean(w[4:6] @ n_wall)) + d_wall) > abs(float(np.mean(w[2:4] @ n_wall)) + d_wall):
+                if abs(h_wall + d_wall) > abs(h_other + d_wall):
                     continue
-            s1, s2 = step_of(n_wall, w[4:6], w[2:4])
+            s1, s2 = h[2] - h_wall, h[3] - h_wall  # step_of(n_wall, w[4:6], w[2:4])
             if abs(s1 - s2) > ep.step_tolerance or not ep.min_step <= abs(0.5 * (s1 + s2)) <= ep.max_step:
                 continue
             # the edge point is the end of the surface nearer the scanner (the wall for a door, the
             # board for a board): beyond the edge the lower surface is shadowed or seen on the step's
             # face, by an amount that depends on the view; the higher one ends at the edge either way
             h_view = float(n_wall @ origin)
-            wall_higher = abs(h_view - float(np.mean(w[4:6] @ n_wall))) < abs(h_view - float(np.mean(w[2:4] @ n_wall)))
+            wall_higher = abs(h_view - h_wall) < abs(h_view - h_other)
             higher_is_lo = wall_higher == (j_wall == lo)
             i_end, i_next, q = (ia, ia - 1, 0) if higher_is_lo else (ib, ib + 1, 1)
             x_world = w[q]

@@ -84,20 +84,19 @@ class EdgeTracker:
 
     def tracking_rows(self, recent: list[PendingScan], k0: int) -> list[TrackRows]:
         """The recent scans' loosely matched breaks within the window from knot ``k0``, against
-        their edges' current estimates."""
-        out = []
-        for p in recent:
-            if p.loose_edges is None:
-                continue
-            e_pts, e_t, e_ids, e_sig = p.loose_edges
-            idx, alpha = self._knots.fractions(e_t)
-            inside = idx >= k0
-            if not inside.any():
-                continue
-            edges = [self.emap.edges[self.emap.root(int(i))] for i in e_ids[inside]]
-            out.append((e_pts[inside], idx[inside] - k0, alpha[inside], np.array([e.normal for e in edges]),
-                        np.array([e.d for e in edges]), e_sig[inside]))
-        return out
+        their edges' current estimates (one block of rows for all the scans, none without)."""
+        held = [p.loose_edges for p in recent if p.loose_edges is not None]
+        if not held:
+            return []
+        # all the scans' breaks in one block, in scan order (the tracker concatenates the blocks)
+        e_pts, e_t, e_ids, e_sig = (np.concatenate(c) for c in zip(*held, strict=True))
+        idx, alpha = self._knots.fractions(e_t)
+        inside = idx >= k0
+        if not inside.any():
+            return []
+        edges = [self.emap.edges[self.emap.root(i)] for i in e_ids[inside].tolist()]
+        return [(e_pts[inside], idx[inside] - k0, alpha[inside], np.array([e.normal for e in edges]),
+                 np.array([e.d for e in edges]), e_sig[inside])]
 
     def observe(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int], now: float,
                 blocks: ObservationBlocks) -> None:

@@ -137,16 +137,18 @@ def break_pairs(
     be skipped. Two neighbours on the same wall give both orders: a door set 1 cm in can pass the
     wall's association gates, and only the step between the two segments tells it (the caller
     keeps the order whose ``j_wall`` lies nearer the plane). Geometry is checked by the caller."""
-    order = [int(j) for j in np.argsort(first_beam, kind="stable")]
+    order = np.argsort(first_beam, kind="stable").tolist()
+    n_pts, pids = np.asarray(n_points).tolist(), np.asarray(plane_ids).tolist()
+    wall = {pid: is_wall(pid) for pid in set(pids) if pid >= 0}
     out = []
     for i, a in enumerate(order):
         for b in order[i + 1 : i + 3]:
-            if b != order[i + 1] and n_points[order[i + 1]] > max_skipped_points:
+            if b != order[i + 1] and n_pts[order[i + 1]] > max_skipped_points:
                 break
-            pa, pb = int(plane_ids[a]), int(plane_ids[b])
-            if pa >= 0 and is_wall(pa):
+            pa, pb = pids[a], pids[b]
+            if pa >= 0 and wall[pa]:
                 out.append((a, b))
-            if pb >= 0 and is_wall(pb):
+            if pb >= 0 and wall[pb]:
                 out.append((b, a))
     return out
 

@@ -145,9 +145,9 @@ class MapBuilder:
         # every 8th point of the associated segments (extents), every 12th of the pooled ones
         placed = self._knots.place_segments(segs, np.concatenate((associated, pooled)),
                                             np.repeat([8, 12], [associated.size, pooled.size]))
-        for j, pts in zip(map(int, associated), placed[: associated.size], strict=True):
+        blocks.segments(segs, associated, ids[associated].tolist())
+        for j, pts in zip(associated.tolist(), placed[: associated.size], strict=True):
             pid = int(ids[j])
-            blocks.segment(segs, j, pid)
             if grows is None or grows[j]:
                 self.pmap.extend(pid, pts)
             self.pmap.planes[pid].n_segments += 1

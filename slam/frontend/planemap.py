@@ -10,6 +10,7 @@ each update (``set_estimates``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -129,7 +130,7 @@ class PlaneMap:
         return p
 
     def _bucket_of(self, time: float) -> int:
-        return int(np.floor(time / self.bucket))
+        return math.floor(time / self.bucket)
 
     def seen(self, pid: int, time: float, odometer: float) -> None:
         """Record a sighting of plane ``pid`` (a segment associated with it) at ``time`` (s)."""
@@ -204,9 +205,9 @@ class PlaneMap:
         extreme points and ``points_world`` (m, 3)."""
         if points_world.shape[0] == 0:
             return
-        pts = points_world if p.extremes is None else np.vstack((p.extremes, points_world))
-        uv = np.column_stack((pts @ p.u, pts @ p.v))
-        p.extremes = pts[[int(uv[:, 0].argmin()), int(uv[:, 0].argmax()), int(uv[:, 1].argmin()), int(uv[:, 1].argmax())]]
+        pts = points_world if p.extremes is None else np.concatenate((p.extremes, points_world))
+        pu, pv = pts @ p.u, pts @ p.v
+        p.extremes = pts[[int(pu.argmin()), int(pu.argmax()), int(pv.argmin()), int(pv.argmax())]]
 
     def overlaps(self, pid: int, points_world: FloatArray, dilate: int) -> bool:
         """Whether any of the points' (m, 3), world frame, cells is within ``dilate`` cells of the
@@ -221,7 +222,7 @@ class PlaneMap:
         ext = self.planes[pid].cells
         if not ext:
             return False
-        own = {(cu, cv) for cu, cv in cells}
+        own = set(map(tuple, cells))
         if not own.isdisjoint(ext):  # the usual answer: a point inside the extent itself
             return True
         if dilate <= 0:

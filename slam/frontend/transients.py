@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from slam.frontend import batch_kernels as bk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import Plane, PlaneMap
@@ -73,17 +74,16 @@ class TransientFilter:
         self.returned: dict[int, int] = {}
         self._trees: dict[int, tuple[int, FloatArray, cKDTree]] = {}  # per plane: its samples' 2D tree
 
-    def _near_samples(self, plane: Plane, x: FloatArray) -> NDArray[np.bool_]:
-        """Whether each point (m, 3) on the plane lies within ``near`` of one of the points
-        the plane's extent was grown by (in the plane)."""
-        n = sum(s.shape[0] for s in plane.samples)
+    def _tree(self, plane: Plane) -> cKDTree:
+        """The 2D tree (the plane's (u, v) frame) of the points the plane's extent was grown by,
+        rebuilt when samples were added (the list only grows) or the plane's axes changed."""
+        n = len(plane.samples)
         hit = self._trees.get(plane.id)
         if hit is None or hit[0] != n or hit[1] is not plane.u:
             pts = np.concatenate(plane.samples)
             hit = (n, plane.u, cKDTree(np.column_stack((pts @ plane.u, pts @ plane.v))))
             self._trees[plane.id] = hit
-        d, _ = hit[2].query(np.column_stack((x @ plane.u, x @ plane.v)), distance_upper_bound=self.params.near)
-        return np.isfinite(d)
+        return hit[2]
 
     def candidates(self) -> list[int]:
         """The planes on probation."""
@@ -99,7 +99,14 @@ class TransientFilter:
         ids = self.candidates()
         if not ids:
             return []
-        found: list[int] = []
+        planes = [pl for pl in (self._pmap.planes[pid] for pid in ids) if pl.active and pl.samples]
+        normals = np.array([pl.normal for pl in planes]).reshape(-1, 3)
+        offsets = np.array([pl.d for pl in planes])
+        us = np.array([pl.u for pl in planes]).reshape(-1, 3)
+        vs = np.array([pl.v for pl in planes]).reshape(-1, 3)
+        # per scan with beams to test: the crossings of every plane (``plane_crossings``: start
+        # per plane, points in its (u, v) frame, whether the return lies beyond the margin)
+        crossings: list[tuple[NDArray[np.int64], FloatArray, NDArray[np.bool_]]] = []
         for p in scans:
             segs = p.segs
             valid = np.flatnonzero(segs.beam_valid)[:: pr.beam_step]
@@ -109,29 +116,35 @@ class TransientFilter:
             a = segs.beam_angles[valid]
             r = segs.beam_ranges[valid].astype(np.float64)
             dirs = np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T  # (m, 3) world frame
-            o = T[:3, 3]
-            for pid in ids:
-                plane = self._pmap.planes[pid]
-                if not plane.active or not plane.samples:
-                    continue
-                s = float(plane.normal @ o) + plane.d  # the scanner's signed distance from the plane
-                den = dirs @ plane.normal
-                # the returns' signed distances, positive on the scanner's side
-                behind = (s + r * den) * np.sign(s)
-                steep = np.abs(den) > MIN_COS  # a grazing beam's crossing is ill-defined
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    t = -s / den
-                cross = steep & (t > MIN_RANGE) & np.isfinite(t) & (behind < pr.margin)
-                if not cross.any():
-                    continue
-                k = np.flatnonzero(cross)
-                x = o + t[k, None] * dirs[k]
-                inside = self._near_samples(plane, x)
-                through = int(np.count_nonzero(inside & (behind[k] < -pr.margin)))
-                on = int(np.count_nonzero(inside & (behind[k] >= -pr.margin)))
-                self.through[pid] = self.through.get(pid, 0) + through
-                self.returned[pid] = self.returned.get(pid, 0) + on
-            for pid in ids:
+            crossings.append(bk.plane_crossings(np.ascontiguousarray(dirs), r, np.ascontiguousarray(T[:3, 3]),
+                                                normals, offsets, us, vs, pr.margin, MIN_RANGE, MIN_COS))
+        if not crossings:
+            return []
+        # per scan and plane: the crossings within ``near`` of one of the plane's samples whose
+        # return lies beyond the margin (through) or not (on); one tree query per plane over all
+        # the scans' crossings
+        n_cross = np.diff(np.array([c[0] for c in crossings]), axis=1)  # (scans, planes)
+        ends = np.cumsum(n_cross, axis=0)
+        through = np.zeros(n_cross.shape, dtype=np.int64)
+        on = np.zeros(n_cross.shape, dtype=np.int64)
+        for q in np.flatnonzero(n_cross.sum(axis=0)).tolist():
+            uv = np.concatenate([c[1][c[0][q] : c[0][q + 1]] for c in crossings])
+            far = np.concatenate([c[2][c[0][q] : c[0][q + 1]] for c in crossings])
+            d, _ = self._tree(planes[q]).query(uv, distance_upper_bound=pr.near)
+            near = np.isfinite(d)
+            for out, hit in ((through, near & far), (on, near & ~far)):
+                csum = np.concatenate(([0], np.cumsum(hit)))
+                out[:, q] = csum[ends[:, q]] - csum[ends[:, q] - n_cross[:, q]]
+        # the counts, scan by scan: a plane is found transient on the counts up to its scan (a
+        # plane whose counts a scan left unchanged was already tested after an earlier scan)
+        found: list[int] = []
+        for i in range(n_cross.shape[0]):
+            changed = np.flatnonzero(n_cross[i]).tolist()
+            for q in changed:
+                pid = planes[q].id
+                self.through[pid] = self.through.get(pid, 0) + int(through[i, q])
+                self.returned[pid] = self.returned.get(pid, 0) + int(on[i, q])
+            for pid in ids if i == 0 else [planes[q].id for q in changed]:
                 if pid not in found and self.through.get(pid, 0) >= pr.min_through \
                         and self.through[pid] > pr.ratio * self.returned.get(pid, 0):
                     found.append(pid)
