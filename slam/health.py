@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -37,6 +37,13 @@ class HealthSection(StrictModel):
     warn_associated: float = Field(default=0.75, ge=0, le=1, description="... below which it is degraded")
     max_rms_whitened: float = Field(default=4.0, gt=0, description="whitened residual RMS above which the run fails")
     warn_rms_whitened: float = Field(default=2.0, gt=0, description="... above which it is degraded")
+    max_imu_rms_whitened: float = Field(
+        default=1.0, gt=0, description="whitened RMS of the IMU factors above which the run fails: the trajectory "
+        "the scans give disagrees with what the IMU measured")
+    warn_imu_rms_whitened: float = Field(default=0.5, gt=0, description="... above which it is degraded")
+    echo_hint_share: float = Field(
+        default=0.2, ge=0, le=1, description="share of beams with several echoes from which a failure of the "
+        "residuals, the association or the IMU names the echo read (input.echo) as its likely cause")
     max_speed: float = Field(default=3.0, gt=0, description="m/s: a knot faster than this is a tracking failure")
     max_turn_rate: float = Field(default=math.radians(360.0), gt=0, description="rad/s, likewise")
     max_accel: float = Field(default=30.0, gt=0, description="m/s^2 between knot intervals: a jump")
@@ -219,10 +226,13 @@ def _unobserved_message(label: str, seconds: float, with_imu: bool, severity: Se
 
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],
            plane_normals: Mapping[int, FloatArray], counts: Mapping[str, float], rms_whitened: float | None,
-           with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None) -> Health:
+           with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None,
+           imu_rms_whitened: float | None = None, echoes: tuple[str, float] | None = None) -> Health:
     """The health of a run (module doc). ``counts`` holds at least ``segments`` and
     ``segments_associated``; ``plane_normals`` maps a final plane id to its world normal;
-    ``extra``: problems found elsewhere (:func:`silent_scanners`)."""
+    ``extra``: problems found elsewhere (:func:`silent_scanners`); ``imu_rms_whitened``: the IMU
+    factors' whitened RMS (None without an IMU); ``echoes``: the echo the run read and the share
+    of the recording's beams with several echoes (None: single-echo scans)."""
     problems: list[Problem] = list(extra or [])
     measures: dict[str, float] = {}
     n_seg = float(counts.get("segments", 0))
@@ -252,6 +262,15 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
                                     f"point-to-plane residuals are {rms_whitened:.1f}x the noise they were weighted with "
                                     "(range noise larger than assumed, or an inconsistent map)", rms_whitened,
                                     cfg.max_rms_whitened if sev == "failure" else cfg.warn_rms_whitened))
+    if imu_rms_whitened is not None and math.isfinite(imu_rms_whitened):
+        measures["imu_rms_whitened"] = imu_rms_whitened
+        if imu_rms_whitened > cfg.warn_imu_rms_whitened:
+            sev = "failure" if imu_rms_whitened > cfg.max_imu_rms_whitened else "warning"
+            problems.append(Problem("imu_disagrees", sev,
+                                    f"the trajectory disagrees with the IMU: its residuals are {imu_rms_whitened:.1f}x "
+                                    "the IMU's noise (the scans' scale or timing does not match what the IMU measured)",
+                                    imu_rms_whitened,
+                                    cfg.max_imu_rms_whitened if sev == "failure" else cfg.warn_imu_rms_whitened))
     motion, m = motion_problems(knot_times, T_world_body, cfg)
     problems += motion
     measures.update(m)
@@ -268,4 +287,24 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
                 sev = "failure" if (sec >= cfg.max_unobserved_seconds and not with_imu) else "warning"
                 problems.append(Problem(f"unobserved_{lab}", sev, _unobserved_message(lab, sec, with_imu, sev), sec,
                                         cfg.max_unobserved_seconds if sev == "failure" else warn))
+    if echoes is not None:
+        measures["several_echoes_share"] = echoes[1]
+        problems = _with_echo_hint(problems, *echoes, cfg)
     return Health(_verdict(problems), problems, measures)
+
+
+ECHO_SENSITIVE = ("few_associated", "residuals", "imu_disagrees")  # what reading the wrong echo breaks
+ECHO_CHOICES = ("first", "last", "strongest")
+
+
+def _with_echo_hint(problems: list[Problem], echo: str, share: float, cfg: HealthSection) -> list[Problem]:
+    """Failures an echo other than the surface's would cause name the echo read as their likely
+    cause when many of the recording's beams carry several echoes (a ghost before or after the
+    surface makes a scaled or bent copy of the scene: its lines are fine, its motion is not)."""
+    if share < cfg.echo_hint_share:
+        return problems
+    others = " or ".join(e for e in ECHO_CHOICES if e != echo)
+    hint = (f"; the recording has several echoes on {100 * share:.0f} % of its beams and the run read the {echo} "
+            f"echo (input.echo): another echo is likely the surface, re-run with input.echo: {others}")
+    return [replace(p, message=p.message + hint) if p.severity == "failure" and p.code in ECHO_SENSITIVE else p
+            for p in problems]
