@@ -3,8 +3,11 @@
 Measured from what a run produces (world frame): the fraction of segments associated with
 planes, the point-to-plane residuals against the noise they were weighted with, the knots'
 speeds and turn rates (a walker does not move at 17 m/s), the translation directions the
-associated planes leave unobserved and for how long, the number of planes, and a walk that
-starts moving along a direction its first scans do not observe. Each check that
+associated planes leave unobserved and for how long (without an IMU a few seconds fail the run:
+edges do not hold such a direction), the IMU factors' residuals against the IMU's noise (the
+scans' motion against what the IMU measured), the number of planes, and a walk that starts
+moving along a direction its first scans do not observe. On a recording whose beams carry
+several echoes, failures that reading the wrong echo causes name ``input.echo``. Each check that
 fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
 problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
 exits with :data:`EXIT_FAILED` (the CLI), still writing its outputs, marked failed in
