@@ -3,8 +3,11 @@
 Measured from what a run produces (world frame): the fraction of segments associated with
 planes, the point-to-plane residuals against the noise they were weighted with, the knots'
 speeds and turn rates (a walker does not move at 17 m/s), the translation directions the
-associated planes leave unobserved and for how long, the number of planes, and a walk that
-starts moving along a direction its first scans do not observe. Each check that
+associated planes leave unobserved and for how long (without an IMU a few seconds fail the run:
+edges do not hold such a direction), the IMU factors' residuals against the IMU's noise (the
+scans' motion against what the IMU measured), the number of planes, and a walk that starts
+moving along a direction its first scans do not observe. On a recording whose beams carry
+several echoes, failures that reading the wrong echo causes name ``input.echo``. Each check that
 fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
 problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
 exits with :data:`EXIT_FAILED` (the CLI), still writing its outputs, marked failed in
@@ -15,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -37,6 +40,13 @@ class HealthSection(StrictModel):
     warn_associated: float = Field(default=0.75, ge=0, le=1, description="... below which it is degraded")
     max_rms_whitened: float = Field(default=4.0, gt=0, description="whitened residual RMS above which the run fails")
     warn_rms_whitened: float = Field(default=2.0, gt=0, description="... above which it is degraded")
+    max_imu_rms_whitened: float = Field(
+        default=1.0, gt=0, description="whitened RMS of the IMU factors above which the run fails: the trajectory "
+        "the scans give disagrees with what the IMU measured")
+    warn_imu_rms_whitened: float = Field(default=0.5, gt=0, description="... above which it is degraded")
+    echo_hint_share: float = Field(
+        default=0.2, ge=0, le=1, description="share of beams with several echoes from which a failure of the "
+        "residuals, the association or the IMU names the echo read (input.echo) as its likely cause")
     max_speed: float = Field(default=3.0, gt=0, description="m/s: a knot faster than this is a tracking failure")
     max_turn_rate: float = Field(default=math.radians(360.0), gt=0, description="rad/s, likewise")
     max_accel: float = Field(default=30.0, gt=0, description="m/s^2 between knot intervals: a jump")
@@ -45,6 +55,8 @@ class HealthSection(StrictModel):
         default=5.0, gt=0, description="a translation direction whose planes' normals all lie within this of "
         "perpendicular to it is unobserved")
     warn_unobserved_seconds: float = Field(default=10.0, gt=0, description="s unobserved in a row: degraded")
+    warn_unobserved_seconds_no_imu: float = Field(
+        default=1.0, gt=0, description="s unobserved in a row without an IMU: degraded (one window)")
     warn_rig_angle_deg: float = Field(
         default=0.2, gt=0, description="deg: a given rig's scanner this far from the recording's /tf_static: degraded")
     warn_rig_distance: float = Field(default=0.005, gt=0, description="m, likewise")
@@ -53,8 +65,10 @@ class HealthSection(StrictModel):
         "off; the rig is refused before processing from 3 deg / 5 cm)")
     max_rig_distance: float = Field(default=0.01, gt=0, description="m, likewise")
     max_unobserved_seconds: float = Field(
-        default=60.0, gt=0, description="s unobserved in a row without an IMU: failed (the door and board edges "
-        "observe a corridor's direction too, so short spans are normal)")
+        default=3.0, gt=0, description="s unobserved in a row without an IMU: failed. Only planes count: without an "
+        "IMU nothing else holds the position along the direction (a 6 s standing-start corridor walk without an IMU "
+        "ended 0.8 m off without doors, 0.5 m with their edges observed; every no-IMU demo walk of "
+        "docs/robustness.md has no unobserved window)")
 
 
 @dataclass(frozen=True)
@@ -132,8 +146,14 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
                      min_angle: float) -> dict[str, float]:
     """Longest run (s) of windows in which a world translation direction is unobserved by the
     associated segments' plane normals (seg_normal (S, 3), world frame; NaN rows: unassociated).
-    Returns {direction label: seconds}; the label is the unobserved eigenvector's dominant axis."""
-    n_win = max(1, math.ceil((t1 - t0) / window))
+    Returns {direction label: seconds}; the label is the unobserved eigenvector's dominant axis.
+    The windows split [t0, t1] evenly, about ``window`` long (a remainder shorter than half a
+    window joins the last one rather than being judged on its few segments); a run's seconds
+    are the windows' lengths."""
+    n_win = max(1, math.floor((t1 - t0) / window + 0.5))
+    edges = np.minimum(t0 + window * np.arange(n_win + 1), t1)
+    edges[-1] = max(t1, edges[-2])
+    width = np.diff(edges)
     idx = np.clip(((seg_stamp - t0) / window).astype(np.int64), 0, n_win - 1)
     ok = np.all(np.isfinite(seg_normal), axis=1)
     info = np.zeros((n_win, 3, 3))
@@ -141,7 +161,7 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
     counts = np.bincount(idx[ok], minlength=n_win).astype(float)
     thresh = math.sin(min_angle) ** 2
     runs: dict[str, float] = {}
-    current: dict[str, int] = {}
+    current: dict[str, float] = {}
     for k in range(n_win):
         labels: set[str] = set()
         if counts[k] > 0:
@@ -152,8 +172,8 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
         else:
             labels = {"x", "y", "z"}
         for lab in "xyz":
-            current[lab] = current.get(lab, 0) + 1 if lab in labels else 0
-            runs[lab] = max(runs.get(lab, 0.0), current[lab] * window)
+            current[lab] = current.get(lab, 0.0) + float(width[k]) if lab in labels else 0.0
+            runs[lab] = max(runs.get(lab, 0.0), round(current[lab], 3))
     return {k: v for k, v in runs.items() if v > 0}
 
 
@@ -198,12 +218,24 @@ def start_problems(start: Mapping[str, Any]) -> list[Problem]:
                     "standing still, or where walls of two directions are in view)", 1.0, 0.0)]
 
 
+def _unobserved_message(label: str, seconds: float, with_imu: bool, severity: Severity) -> str:
+    if with_imu:
+        return f"motion along world {label} is not observed by the planes for {seconds:.0f} s in a row (the IMU carries it)"
+    tail = ": the trajectory along it cannot be trusted" if severity == "failure" else ""
+    return (f"motion along world {label} is not observed by the planes for {seconds:.1f} s in a row and there is no IMU "
+            f"(parallel walls only, e.g. a corridor whose ends are out of view; door and board edges alone do not "
+            f"hold it){tail}")
+
+
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],
            plane_normals: Mapping[int, FloatArray], counts: Mapping[str, float], rms_whitened: float | None,
-           with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None) -> Health:
+           with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None,
+           imu_rms_whitened: float | None = None, echoes: tuple[str, float] | None = None) -> Health:
     """The health of a run (module doc). ``counts`` holds at least ``segments`` and
     ``segments_associated``; ``plane_normals`` maps a final plane id to its world normal;
-    ``extra``: problems found elsewhere (:func:`silent_scanners`)."""
+    ``extra``: problems found elsewhere (:func:`silent_scanners`); ``imu_rms_whitened``: the IMU
+    factors' whitened RMS (None without an IMU); ``echoes``: the echo the run read and the share
+    of the recording's beams with several echoes (None: single-echo scans)."""
     problems: list[Problem] = list(extra or [])
     measures: dict[str, float] = {}
     n_seg = float(counts.get("segments", 0))
@@ -233,6 +265,15 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
                                     f"point-to-plane residuals are {rms_whitened:.1f}x the noise they were weighted with "
                                     "(range noise larger than assumed, or an inconsistent map)", rms_whitened,
                                     cfg.max_rms_whitened if sev == "failure" else cfg.warn_rms_whitened))
+    if imu_rms_whitened is not None and math.isfinite(imu_rms_whitened):
+        measures["imu_rms_whitened"] = imu_rms_whitened
+        if imu_rms_whitened > cfg.warn_imu_rms_whitened:
+            sev = "failure" if imu_rms_whitened > cfg.max_imu_rms_whitened else "warning"
+            problems.append(Problem("imu_disagrees", sev,
+                                    f"the trajectory disagrees with the IMU: its residuals are {imu_rms_whitened:.1f}x "
+                                    "the IMU's noise (the scans' scale or timing does not match what the IMU measured)",
+                                    imu_rms_whitened,
+                                    cfg.max_imu_rms_whitened if sev == "failure" else cfg.warn_imu_rms_whitened))
     motion, m = motion_problems(knot_times, T_world_body, cfg)
     problems += motion
     measures.update(m)
@@ -242,12 +283,31 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
             normal[seg_plane_id == pid] = n
         spans = unobserved_spans(np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]),
                                  float(knot_times[-1]), cfg.observed_window, math.radians(cfg.unobserved_min_angle_deg))
+        warn = cfg.warn_unobserved_seconds if with_imu else cfg.warn_unobserved_seconds_no_imu
         for lab, sec in sorted(spans.items()):
             measures[f"unobserved_{lab}_seconds"] = sec
-            if sec >= cfg.warn_unobserved_seconds:
+            if sec >= warn:
                 sev = "failure" if (sec >= cfg.max_unobserved_seconds and not with_imu) else "warning"
-                problems.append(Problem(f"unobserved_{lab}", sev,
-                                        f"motion along world {lab} is not observed by the planes for {sec:.0f} s in a row"
-                                        + ("" if with_imu else " and there is no IMU"), sec,
-                                        cfg.max_unobserved_seconds if sev == "failure" else cfg.warn_unobserved_seconds))
+                problems.append(Problem(f"unobserved_{lab}", sev, _unobserved_message(lab, sec, with_imu, sev), sec,
+                                        cfg.max_unobserved_seconds if sev == "failure" else warn))
+    if echoes is not None:
+        measures["several_echoes_share"] = echoes[1]
+        problems = _with_echo_hint(problems, *echoes, cfg)
     return Health(_verdict(problems), problems, measures)
+
+
+ECHO_SENSITIVE = ("few_associated", "residuals", "imu_disagrees")  # what reading the wrong echo breaks
+ECHO_CHOICES = ("first", "last", "strongest")
+
+
+def _with_echo_hint(problems: list[Problem], echo: str, share: float, cfg: HealthSection) -> list[Problem]:
+    """Failures an echo other than the surface's would cause name the echo read as their likely
+    cause when many of the recording's beams carry several echoes (a ghost before or after the
+    surface makes a scaled or bent copy of the scene: its lines are fine, its motion is not)."""
+    if share < cfg.echo_hint_share:
+        return problems
+    others = " or ".join(e for e in ECHO_CHOICES if e != echo)
+    hint = (f"; the recording has several echoes on {100 * share:.0f} % of its beams and the run read the {echo} "
+            f"echo (input.echo): another echo is likely the surface, re-run with input.echo: {others}")
+    return [replace(p, message=p.message + hint) if p.severity == "failure" and p.code in ECHO_SENSITIVE else p
+            for p in problems]

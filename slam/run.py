@@ -40,6 +40,7 @@ from slam.export import write_summary_json
 from slam.health import Health, assess, rig_problems, silent_scanners, start_problems
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
+from slam.io.echoes import several_echoes_share
 from slam.io.errors import input_error
 from slam.io.source import BagSource
 from slam.pipeline import SlamRunner
@@ -175,7 +176,8 @@ def run_slam(
     with BagSource(bag) as source:
         check = check_rig(source, rig, urdf, cfg.input.echo)
         rig = check.rig
-        source.scan_plan(rig=rig)  # checks the bag and its topics before anything is written
+        plan = source.scan_plan(rig=rig)  # checks the bag and its topics before anything is written
+        share = several_echoes_share(source, list(plan))
         t_range = source.time_range()
         imu = load_imu(source, cfg, *t_range, rig=rig)
         check.notes += check_observability(rig, source, imu_topic(cfg, rig) if imu is not None else None)
@@ -190,7 +192,8 @@ def run_slam(
             raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "
                               + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
         res = runner.result(batch=cfg.backend.final_batch)
-        health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches])
+        health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches],
+                            None if share is None else (cfg.input.echo, share))
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}
 
         with atomic_dir(Path(out_dir)) as tmp:
@@ -210,9 +213,11 @@ def run_slam(
 
 
 def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool,
-               rig_mismatches: list[tuple[str, float, float]] | None = None) -> Health:
+               rig_mismatches: list[tuple[str, float, float]] | None = None,
+               echoes: tuple[str, float] | None = None) -> Health:
     """The run's verdict on its own estimate (``slam.health``); ``rig_mismatches`` (scanner, rad,
-    m) of a given rig against the recording's transforms."""
+    m) of a given rig against the recording's transforms; ``echoes``: the echo read and the share
+    of beams with several (``slam.io.echoes``), None for single-echo scans."""
     rows = res.segment_rows
     normals = {int(i): n for i, n in zip(res.plane_ids, res.plane_normals, strict=True)}
     counts = {"segments": len(rows["plane_id"]), "segments_associated": int((rows["plane_id"] >= 0).sum())}
@@ -220,7 +225,8 @@ def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool,
     return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
                   residuals.get("rms_whitened"), with_imu, cfg.health,
                   extra=silent_scanners(res.scanner_names, rows["scanner"]) + start_problems(res.stats.initial_motion)
-                  + rig_problems(rig_mismatches or [], cfg.health))
+                  + rig_problems(rig_mismatches or [], cfg.health),
+                  imu_rms_whitened=residuals.get("imu_rms_whitened"), echoes=echoes)
 
 
 def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:

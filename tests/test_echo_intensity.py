@@ -163,6 +163,36 @@ def test_a_run_reads_the_configured_echo_and_keeps_its_intensities(ghost_run: tu
     assert len(np.unique(c.intensity)) > 500  # per beam, not one value
 
 
+def test_reading_a_ghost_echo_fails_naming_the_echo(ghost_run: tuple[Path, Path, Path], tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """The same recording read with ``input.echo: first`` (the ghost at 0.6 r: a scaled copy of the
+    scene, whose lines fit as well as the surface's, walked at 0.6 times the speed the IMU
+    measures) is 0.69 m off. The IMU factors' residuals give it away (2.5 times the IMU's noise;
+    0.16 with the strongest echo) and the recording has several echoes per beam, so the run
+    fails with exit code 3 and one line naming the echo it read; the strongest echo is healthy."""
+    import json
+
+    from slam.health import EXIT_FAILED
+
+    run_dir, gt, bag = ghost_run
+    good = json.loads((run_dir / "summary.json").read_text())["health"]
+    assert good["verdict"] == "ok" and good["measures"]["several_echoes_share"] > 0.9, good
+    assert good["measures"]["imu_rms_whitened"] < 0.5, good
+    cfg = tmp_path / "first.yaml"
+    cfg.write_text("input:\n  echo: first\noutput:\n  cloud: false\n  rerun: false\n")
+    out = tmp_path / "first"
+    capsys.readouterr()
+    rc = main(["run", str(bag), "--config", str(cfg), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.splitlines()
+    assert rc == EXIT_FAILED, err
+    failures = [ln for ln in err if "failure:" in ln]
+    assert len(failures) == 1 and "disagrees with the IMU" in failures[0], err
+    assert "read the first echo (input.echo)" in failures[0] and "input.echo: last or strongest" in failures[0]
+    health = json.loads((out / "summary.json").read_text())["health"]
+    assert health["verdict"] == "failed" and [p["code"] for p in health["problems"]] == ["imu_disagrees"], health
+    assert bs.evaluate(out, gt, write=False).trajectory.ate["start_aligned"].rmse > 0.2  # the map is wrong indeed
+
+
 def test_the_runs_intensities_round_trip_through_las_e57_and_pcd(ghost_run: tuple[Path, Path, Path],
                                                                  tmp_path: Path) -> None:
     import laspy

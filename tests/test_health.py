@@ -61,11 +61,53 @@ def test_a_corridor_leaves_its_direction_unobserved() -> None:
     t, T = _walk(n=1400)  # 70 s along x between walls facing y, floor and ceiling
     st, pid = _segments(t, [1, 2])
     spans = unobserved_spans(st, np.array([ROOM[int(i)] for i in pid]), t[0], t[-1], 2.0, np.radians(5.0))
-    assert spans == {"x": 70.0}
+    assert spans == {"x": 69.95}  # the knots' span: 35 windows, the last 1.95 s
     h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, False, CFG)
     assert h.failed and h.problems[0].code == "unobserved_x"
     with_imu = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG)
     assert with_imu.verdict == "degraded"
+
+
+def test_without_an_imu_a_few_seconds_unobserved_fail() -> None:
+    """Without an IMU nothing holds a direction the planes leave unobserved (door edges do not):
+    one window degrades the run, from 3 s it fails; with an IMU it is only degraded from 10 s."""
+    t, T = _walk(n=80)  # 4 s along a corridor
+    st, pid = _segments(t, [1, 2])
+    counts = {"segments": len(st), "segments_associated": len(st)}
+    h = assess(t, T, st, pid, ROOM, counts, 0.6, False, CFG)
+    assert h.failed and [p.code for p in h.problems] == ["unobserved_x"]
+    assert "not observed by the planes for 4.0 s in a row and there is no IMU" in h.lines()[0]
+    assert assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG).verdict == "ok"
+    # a single window (2 s of 4) without a wall across: degraded
+    st1, pid1 = _segments(t, [0, 1, 2])
+    keep = ~((st1 < t[0] + 2.0) & (pid1 == 0))
+    one = assess(t, T, st1[keep], pid1[keep], ROOM, counts, 0.6, False, CFG)
+    assert one.verdict == "degraded" and one.problems[0].value == 2.0
+    # a remainder shorter than half a window joins the last one instead of flagging every direction
+    assert unobserved_spans(st1, np.array([ROOM[int(i)] for i in pid1]), t[0], t[-1] + 0.3, 2.0,
+                            np.radians(5.0)) == {}
+
+
+def test_the_imu_against_the_trajectory_and_the_echo_read() -> None:
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    counts = {"segments": len(st), "segments_associated": len(st)}
+    assert assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG, imu_rms_whitened=0.19).verdict == "ok"
+    assert assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG, imu_rms_whitened=0.7).verdict == "degraded"
+    bad = assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG, imu_rms_whitened=2.5)
+    assert bad.failed and [p.code for p in bad.problems] == ["imu_disagrees"]
+    assert "input.echo" not in bad.lines()[0]  # single-echo scans: no echo to blame
+    ghost = assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG, imu_rms_whitened=2.5, echoes=("first", 1.0))
+    assert ghost.failed and len(ghost.lines()) == 1
+    assert "2.5x the IMU's noise" in ghost.lines()[0] and "read the first echo (input.echo)" in ghost.lines()[0]
+    assert ghost.lines()[0].endswith("re-run with input.echo: last or strongest")
+    # few beams with a second echo (glass, edges): not the likely cause
+    rare = assess(t, T, st, pid, ROOM, counts, 0.6, True, CFG, imu_rms_whitened=2.5, echoes=("first", 0.05))
+    assert "input.echo" not in rare.lines()[0] and rare.measures["several_echoes_share"] == 0.05
+    # the echo hint goes to failures an echo can cause, not to a runaway start
+    few = assess(t, T, st, pid, ROOM, {"segments": 1000, "segments_associated": 200}, 0.6, True, CFG,
+                 echoes=("strongest", 0.9))
+    assert "re-run with input.echo: first or last" in few.lines()[0]
 
 
 def test_a_walk_starting_along_an_unobserved_direction_fails() -> None:

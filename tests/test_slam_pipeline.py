@@ -6,6 +6,7 @@ module and shared. Long walks (the demo, office) live in scripts/bench_slam.py.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -238,6 +239,10 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
     assert walked > 3.0
     assert err_imu < 0.15 * walked, f"along-corridor error with the IMU {err_imu:.3f} m of {walked:.2f} m"
     assert err_off > 2 * err_imu, f"without the IMU {err_off:.3f} m, with {err_imu:.3f} m"
+    # the run says so: without the IMU nothing holds the corridor's direction (slam.health)
+    assert with_imu["health"]["verdict"] != "failed", with_imu["health"]
+    assert without["health"]["verdict"] == "failed", without["health"]
+    assert [p["code"] for p in without["health"]["problems"]] == ["unobserved_x"], without["health"]
 
 
 def test_the_gyro_deskew_fits_the_points_to_their_planes_better(corridor_imu: SimulationResult, rig: Any,
@@ -274,6 +279,33 @@ def test_door_edges_observe_the_corridor_direction(door_corridor: SimulationResu
     # a fit across a wall and its door, a few degrees off vertical, is no plane of this corridor
     oblique = [p for p in _planes(tmp_path / "edges") if p["kind"] == "other"]
     assert not oblique, oblique
+
+
+def test_a_corridor_walk_without_an_imu_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The door corridor walked from a standstill without an IMU (4 s): the walls observe nothing
+    along it and the doors' edges do not hold it (the map ends tens of centimetres off), so the
+    run ends with the failure verdict and exit code 3, its outputs written and marked failed,
+    and one line naming the cause (``slam.health``: a direction unobserved by the planes for
+    3 s without an IMU). It used to print a normal summary and exit 0."""
+    from backpack_slam.cli import main
+    from slam.health import EXIT_FAILED
+
+    sim = _simulate(tmp_path, "doors", DOOR_CORRIDOR_WORLD, 4.0, None, imu=False)
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("output:\n  cloud: false\n  rerun: false\n")
+    out = tmp_path / "run"
+    capsys.readouterr()
+    rc = main(["run", str(sim.bag), "--rig", "itc_backpack", "--config", str(cfg), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.splitlines()
+    assert rc == EXIT_FAILED, err
+    lines = [ln for ln in err if "failure:" in ln]
+    assert len(lines) == 1 and "motion along world x is not observed by the planes" in lines[0], err
+    assert "no IMU" in lines[0]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["health"]["verdict"] == "failed" and summary["counts"]["imu_used"] == 0
+    assert [p["code"] for p in summary["health"]["problems"]] == ["unobserved_x"]
+    err_along, walked = _final_along_error(out, sim.gt)
+    assert walked > 1.5 and err_along > 0.2, f"along-corridor error {err_along:.2f} m of {walked:.2f} m"
 
 
 def test_linearisation_error_is_the_graph_error(door_corridor: SimulationResult, rig: Any) -> None:

@@ -262,13 +262,21 @@ class Backend:
 
     # ----------------------------------------------------------------- statistics
     def residual_statistics(self) -> dict[str, float]:
-        """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5)."""
+        """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5);
+        with IMU factors also their count and whitened RMS (``imu_factors``, ``imu_rms_whitened``:
+        how far the trajectory is from what the IMU measured, in units of its noise)."""
         es = [e for _, e in self.blocks.all_whitened_residuals()]
         e = np.concatenate(es) if es else np.zeros(0)
         w = robust_weights(e, self.config.kernel)
-        return {
+        out = {
             "blocks": float(len(self.blocks.blocks)),
             "points": float(e.size),
             "rms_whitened": float(np.sqrt(np.mean(e**2))) if e.size else 0.0,
             "outlier_fraction": float(np.mean(w < 0.5)) if e.size else 0.0,
         }
+        imu = [r.factor for r in self.graph.records.values() if isinstance(r.factor, gtsam.ImuFactor)]
+        if imu:
+            chi2 = sum(2.0 * f.error(self.graph.values) for f in imu)  # error() is half the whitened square
+            out["imu_factors"] = float(len(imu))
+            out["imu_rms_whitened"] = float(np.sqrt(chi2 / (9.0 * len(imu))))
+        return out
