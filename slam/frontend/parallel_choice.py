@@ -119,7 +119,7 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
                 if column[k] == NONE:
                     column[k], grows[k] = js[0], True
             continue
-        delta, support = _common_offset(members, dist, weight, tau, sp2)
+        delta, support = _common_offset(members, dist, weight, tau, sp2, tau_host, hosts)
         for k, js in members:
             rho = np.array([dist[k, j] - delta for j in js])
             ok = np.flatnonzero(np.abs(rho) < tau[k])
@@ -152,13 +152,15 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
 
 
 def _common_offset(members: list[tuple[int, list[int]]], dist: FloatArray, weight: FloatArray, tau: FloatArray,
-                   sp2: float) -> tuple[float, int]:
+                   sp2: float, tau_host: FloatArray, hosts: NDArray[np.bool_] | None) -> tuple[float, int]:
     """The scan's common offset along a family's normal and the number of segments it explains:
     the hypothesis (no offset, or one segment's distance to one of its candidates) of the highest
     likelihood, each segment left unexplained (no candidate within ``tau``) costing
     ``OUTLIER_NATS`` and the offset its prior ``N(0, sp2)``; refined to the point-weighted mean of
-    its inliers' distances. (Testing all hypotheses at once in numpy is no faster: a family has a
-    few segments.)"""
+    its inliers' distances, where an inlier of a host wall (``hosts``) must pass the host test
+    (``tau_host``): a door's segments 1 cm off the wall, inliers of the wall's wide gate, would
+    pull the offset towards the door and let the segment straddling its edge onto the wall.
+    (Testing all hypotheses at once in numpy is no faster: a family has a few segments.)"""
     best_score, delta, support = -np.inf, 0.0, 0
     # no offset at all is a hypothesis too: a lone segment 1.5 cm off its only candidate (a door's
     # off the wall's plane, the door's plane not made yet) is then unexplained rather than the
@@ -167,11 +169,12 @@ def _common_offset(members: list[tuple[int, list[int]]], dist: FloatArray, weigh
     for h in hyps:
         w_in, n_in, acc = 0.0, 0, 0.0
         for k, js in members:
-            r = min((dist[k, j] - h for j in js), key=abs)
+            j, r = min(((j, dist[k, j] - h) for j in js), key=lambda jr: abs(jr[1]))
             if abs(r) < tau[k]:
-                w_in += weight[k]
                 n_in += 1
-                acc += weight[k] * (h + r)
+                if hosts is None or not hosts[j] or abs(r) < tau_host[k]:
+                    w_in += weight[k]
+                    acc += weight[k] * (h + r)
         score = n_in * OUTLIER_NATS - 0.5 * h * h / sp2
         if score > best_score:
             best_score, delta, support = score, acc / w_in if w_in > 0 else h, n_in
