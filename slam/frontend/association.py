@@ -202,9 +202,12 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
                         if (all(pmap.overlaps_cells(ids[j], [c], dilate[j]) for c in cells[k, j].tolist()) if j in whole
                             else pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j]))]
         weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
-        # the walls that may carry a door or board (not the children themselves, nor floors and ceilings)
-        hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
-        hosts[child_rows] = False
+        # the walls that may carry a door or board (not the children themselves, nor floors and
+        # ceilings); not in the tracking's veto, whose poses are still the prediction's
+        hosts = None
+        if not gates.choice.veto:
+            hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
+            hosts[child_rows] = False
         ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range, hosts)
         id_arr = np.asarray(ids, dtype=np.int64)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
