@@ -162,19 +162,26 @@ def _common_offset(members: list[tuple[int, list[int]]], dist: FloatArray, weigh
     pull the offset towards the door and let the segment straddling its edge onto the wall.
     (Testing all hypotheses at once in numpy is no faster: a family has a few segments.)"""
     best_score, delta, support = -np.inf, 0.0, 0
+    # per segment as Python floats (the same doubles, without numpy's per-scalar cost): its
+    # candidates' distances, whether each is a host wall, its weight and both gates
+    rows = [([float(dist[k, j]) for j in js], [hosts is not None and bool(hosts[j]) for j in js], float(weight[k]),
+             float(tau[k]), float(tau_host[k])) for k, js in members]
     # no offset at all is a hypothesis too: a lone segment 1.5 cm off its only candidate (a door's
     # off the wall's plane, the door's plane not made yet) is then unexplained rather than the
     # proof of a 1.5 cm pose error
-    hyps = sorted({0.0} | {float(dist[k, j]) for k, js in members for j in js})
+    hyps = sorted({0.0} | {d for ds, _, _, _, _ in rows for d in ds})
     for h in hyps:
         w_in, n_in, acc = 0.0, 0, 0.0
-        for k, js in members:
-            j, r = min(((j, dist[k, j] - h) for j in js), key=lambda jr: abs(jr[1]))
-            if abs(r) < tau[k]:
+        for ds, hs, w, t, t_host in rows:
+            if len(ds) == 1:
+                i, r = 0, ds[0] - h
+            else:
+                i, r = min(enumerate(d - h for d in ds), key=lambda ir: abs(ir[1]))
+            if abs(r) < t:
                 n_in += 1
-                if hosts is None or not hosts[j] or abs(r) < tau_host[k]:
-                    w_in += weight[k]
-                    acc += weight[k] * (h + r)
+                if not hs[i] or abs(r) < t_host:
+                    w_in += w
+                    acc += w * (h + r)
         score = n_in * OUTLIER_NATS - 0.5 * h * h / sp2
         if score > best_score:
             best_score, delta, support = score, acc / w_in if w_in > 0 else h, n_in
