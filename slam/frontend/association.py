@@ -205,13 +205,13 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         # the walls that may carry a door or board (not the children themselves, nor floors and
         # ceilings); not in the tracking's veto, whose poses are still the prediction's
         hosts = None
-        if not gates.choice.veto:
+        if gates.choice.host_test and not gates.choice.veto:
             hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
             hosts[child_rows] = False
         ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range, hosts)
         id_arr = np.asarray(ids, dtype=np.int64)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
-        if not gates.choice.veto:
+        if gates.choice.host_test and not gates.choice.veto:
             return Association(chosen, ch.grows & (ch.column >= 0))
     else:
         chosen = None
