@@ -211,7 +211,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range, hosts)
         id_arr = np.asarray(ids, dtype=np.int64)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
-        if gates.choice.host_test and not gates.choice.veto:
+        if not gates.choice.veto:
             return Association(chosen, ch.grows & (ch.column >= 0))
     else:
         chosen = None
