@@ -89,3 +89,49 @@ def test_families_are_chosen_apart_and_a_lone_candidate_grows() -> None:
     assert ch.grows.all()
     one = choose(cands[:1], dist[:1], sig[:1], np.full(1, 60.0), NORMALS, _params())
     assert one.column[0] == WALL and not one.grows[0]  # the offset rests on this segment alone
+
+
+def _office_params() -> ChoiceParams:
+    """The defaults (``slam.params.gates``): the pose-widened relative sigma with its 0.05 deg lever."""
+    return ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=0.002,
+                        sigma_lever=float(np.radians(0.05)), walls_only=False, veto=False)
+
+
+def test_a_wall_does_not_take_the_segments_of_a_door_it_has_no_plane_for() -> None:
+    """The office walk's mechanism (issue 26): a door 10 mm behind its wall, its plane not a
+    candidate (not made yet, or the segment runs past its extent across the door's edge). The
+    scan's wall segments fix its offset at 0; at 3 m the relative gate (4 sigmas of the lever-
+    widened sigma: 12 mm) takes the door's segment 10 mm off, and the one straddling the door's
+    edge 6 mm off, onto the wall. The host test of the wall holds both back; the wall's own far
+    segment 1 mm off stays; a floor (not a host) keeps its old gate."""
+    rng = np.random.default_rng(4)
+    k = 6
+    dist = np.zeros((k, 3))
+    dist[:4, WALL] = rng.normal(0.0, 0.0003, 4)
+    dist[3, WALL] = 0.001
+    dist[4, WALL] = -0.010  # the door's segment
+    dist[5, WALL] = -0.006  # across the door's edge: two thirds on the door, a third on the wall
+    cands = [[WALL]] * k
+    sig = np.full(k, 0.0008)
+    ranges = np.full(k, 3.0)
+    old = choose(cands, dist, sig, np.full(k, 80.0), NORMALS, _office_params(), ranges)
+    np.testing.assert_array_equal(old.column, [WALL] * k)  # without the host test: the wall takes all
+    hosts = np.array([True, False, False])
+    ch = choose(cands, dist, sig, np.full(k, 80.0), NORMALS, _office_params(), ranges, hosts)
+    np.testing.assert_array_equal(ch.column, [WALL, WALL, WALL, WALL, HELD, HELD])
+    assert not ch.grows[4:].any()
+    floor_dist = np.zeros((k, 3))
+    floor_dist[:, FLOOR] = dist[:, WALL]
+    fl = choose([[FLOOR]] * k, floor_dist, sig, np.full(k, 80.0), NORMALS, _office_params(), ranges, hosts)
+    assert (fl.column == FLOOR).all()
+
+
+def test_the_host_test_leaves_the_choice_between_a_wall_and_its_board_alone() -> None:
+    """With the board's plane a candidate the likelihood ratio decides as before: the host test
+    only refuses the wall a segment its own line puts off it."""
+    rng = np.random.default_rng(5)
+    on = [WALL, WALL, WALL, BOARD, BOARD]
+    cands, dist, sig = _scan(on, 0.003, rng)
+    ch = choose(cands, dist, sig, np.full(len(on), 100.0), NORMALS, _office_params(), np.full(len(on), 2.0),
+                np.array([True, False, False]))
+    np.testing.assert_array_equal(ch.column, on)

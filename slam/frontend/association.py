@@ -30,7 +30,7 @@ from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.parallel_choice import NONE, ChoiceParams, choose
 from slam.frontend.pending import PendingScan
-from slam.frontend.planemap import PlaneMap
+from slam.frontend.planemap import KIND_WALL, PlaneMap
 
 FloatArray = NDArray[np.float64]
 CHI2_2DOF_99 = 9.21
@@ -202,7 +202,13 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
                         if (all(pmap.overlaps_cells(ids[j], [c], dilate[j]) for c in cells[k, j].tolist()) if j in whole
                             else pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j]))]
         weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
-        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range)
+        # the walls that may carry a door or board (not the children themselves, nor floors and
+        # ceilings); not in the tracking's veto, whose poses are still the prediction's
+        hosts = None
+        if gates.choice.host_test and not gates.choice.veto:
+            hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
+            hosts[child_rows] = False
+        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range, hosts)
         id_arr = np.asarray(ids, dtype=np.int64)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
         if not gates.choice.veto:
