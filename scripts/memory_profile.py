@@ -40,8 +40,9 @@ HOLDERS: tuple[tuple[str, str], ...] = (
     ("frontend: knot mirror", "knots"),
     ("frontend: tracker", "tracker"),
     ("motion model (IMU)", "motion"),
-    ("runner: rest", ""),
 )
+# objects of other packages (tqdm, numba dispatchers, logging, ...) are not followed
+_OURS = ("builtins", "numpy", "slam", "segmentation", "common", "collections", "gtsam")
 _SKIP = (type, types.ModuleType, types.FunctionType, types.BuiltinFunctionType, types.MethodType, types.CodeType)
 _TOP = 25
 
@@ -49,12 +50,13 @@ _TOP = 25
 def deep_size(root: object, seen: set[int]) -> tuple[int, int]:
     """(bytes, objects) reachable from ``root`` not in ``seen`` (which gets them): containers and
     instances through ``gc.get_referents``, numpy arrays by their buffer (a view by its base);
-    types, modules and functions are not followed."""
+    types, modules, functions and objects of other packages than ours, numpy and gtsam are not
+    followed."""
     total = count = 0
     stack = [root]
     while stack:
         obj = stack.pop()
-        if id(obj) in seen or isinstance(obj, _SKIP):
+        if id(obj) in seen or isinstance(obj, _SKIP) or not type(obj).__module__.startswith(_OURS):
             continue
         seen.add(id(obj))
         count += 1

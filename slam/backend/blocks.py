@@ -63,6 +63,8 @@ class BlockColumns:
         self.live = np.zeros(0, dtype=bool)
         self.start = np.zeros(0, dtype=np.int64)
         self.size = np.zeros(0, dtype=np.int64)
+        self.held = np.zeros(0, dtype=bool)  # summarised (its scatter below is its plane's share)
+        self.scatter = np.zeros((0, 4, 4))  # a held block's scatter (its plane's anchor)
         self.points = np.zeros((0, 3))
         self.alphas = np.zeros(0)
         self.sigmas = np.zeros(0)
@@ -75,9 +77,9 @@ class BlockColumns:
         n = max(1024, 2 * self.knot.shape[0])
         while n <= bid:
             n *= 2
-        for name in ("knot", "plane", "two", "live", "start", "size"):
+        for name in ("knot", "plane", "two", "live", "start", "size", "held", "scatter"):
             old = getattr(self, name)
-            new = np.zeros(n, dtype=old.dtype)
+            new = np.zeros((n, *old.shape[1:]), dtype=old.dtype)
             new[: old.shape[0]] = old
             setattr(self, name, new)
 
@@ -112,6 +114,7 @@ class BlockColumns:
     def drop(self, bid: int) -> None:
         """Forget live block ``bid`` (its rows become garbage; rewritten once they outweigh the rest)."""
         self.live[bid] = False
+        self.held[bid] = False
         self.count -= 1
         n = int(self.size[bid])
         self.n_points -= n
@@ -157,8 +160,8 @@ class BlockColumns:
         return self.points[idx], self.alphas[idx], self.sigmas[idx], starts
 
     def nbytes(self) -> int:
-        return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "points",
-                                                      "alphas", "sigmas"))
+        return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "held",
+                                                      "scatter", "points", "alphas", "sigmas"))
 
 
 class BlockView(Mapping[int, ObservationBlock]):
@@ -197,7 +200,6 @@ class BlockStore:
         self._open: dict[tuple[int, int, bool], int] = {}  # coalescing: (knot, plane, two poses)
         self._groups: dict[int, tuple[tuple[int, ...], gtsam.NonlinearFactor]] = {}  # knot -> group
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
-        self.summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
         self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
 
@@ -234,10 +236,9 @@ class BlockStore:
             cols.plane[bid] = keep
             self.graph.records[bid] = Record(None, keys_of(knot, two, keep), None)
             self.plane_blocks[keep].add(bid)
-            C = self.summarized.get(bid)
-            if C is not None:
-                C = shift_anchor(C, anchors[drop], anchors[keep])
-                self.summarized[bid] = C
+            if cols.held[bid]:
+                C = shift_anchor(cols.scatter[bid].copy(), anchors[drop], anchors[keep])
+                cols.scatter[bid] = C
                 self.summary[keep] = self.summary.get(keep, np.zeros((4, 4))) + C
         self.summary.pop(drop, None)
         return len(moved)
@@ -261,7 +262,7 @@ class BlockStore:
                 np.concatenate((old.sigmas, block.sigmas)))
             self.remove(self._open[key])
         bid = self._insert(block)
-        if self.coalesce and bid not in self.summarized:
+        if self.coalesce and not self.cols.held[bid]:
             self._open[key] = bid
         return bid
 
@@ -278,13 +279,13 @@ class BlockStore:
             raise ValueError(f"block_id: no observation block {block_id}")
         cols = self.cols
         knot, j, two = int(cols.knot[block_id]), int(cols.plane[block_id]), bool(cols.two[block_id])
+        C = cols.scatter[block_id].copy() if cols.held[block_id] else None
         self.graph.remove_factor(block_id)
         cols.drop(block_id)
         self.plane_blocks[j].discard(block_id)
         key = (knot, j, two)
         if self._open.get(key) == block_id:
             del self._open[key]
-        C = self.summarized.pop(block_id, None)
         if C is not None:
             self.summary[j] -= C
 
@@ -424,7 +425,7 @@ class BlockStore:
             for fid in self.graph.by_knot.get(k, ()):
                 if self.cols.has(fid):
                     records[fid].factor = None
-                    if fid not in self.summarized:
+                    if not self.cols.held[fid]:
                         self._summarize(fid)
         for knot in [k for k in self._groups if k + 1 < first]:
             del self._groups[knot]
@@ -432,7 +433,8 @@ class BlockStore:
 
     def drop_summaries(self) -> None:
         """Forget the summaries (the held poses have moved)."""
-        self.summary, self.summarized, self.summarized_upto = {}, {}, 0
+        self.summary, self.summarized_upto = {}, 0
+        self.cols.held[:] = False
 
     def _summarize(self, bid: int) -> None:
         """Fold block ``bid`` into its plane's scatter at the current poses (held from now on) and
@@ -452,7 +454,8 @@ class BlockStore:
         pl = v.atOrientedPlane3(P(j))
         e = ((x - a) @ pl.normal().point3() + pl.distance()) / blk.sigmas
         C = scatter(x, a, robust_weights(e, self.kernel) / blk.sigmas**2)
-        self.summarized[bid] = C
+        self.cols.held[bid] = True
+        self.cols.scatter[bid] = C
         self.summary[j] = self.summary.get(j, np.zeros((4, 4))) + C
         key = (blk.knot, j, blk.alphas is not None)
         if self._open.get(key) == bid:
