@@ -204,6 +204,12 @@ class BlockStore:
         self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
 
     @property
+    def summarized(self) -> dict[int, FloatArray]:
+        """Held (summarised) block id -> its scatter about its plane's anchor (copies, to inspect)."""
+        cols = self.cols
+        return {int(b): cols.scatter[b].copy() for b in np.flatnonzero(cols.held)}
+
+    @property
     def n_points(self) -> int:
         """Points of the live blocks."""
         return self.cols.n_points
