@@ -174,6 +174,8 @@ class Profiler:
         p = self.points[-1]
         print(f"  [{label}] data {data_time:.0f} s: rss {p.rss / 1e6:.0f} MB, traced {cur / 1e6:.0f} MB "
               f"(peak {peak / 1e6:.0f} MB), {p.gtsam}", file=sys.stderr, flush=True)
+        for name, h in p.holders.items():  # also here: a run cut short keeps what it measured
+            print(f"    {name}: {h['bytes'] / 1e6:.1f} MB, {h['objects']} objects", file=sys.stderr, flush=True)
 
     def hook(self, runner_cls: Any) -> Callable[[], None]:
         """Wrap ``runner_cls._process_knot`` and ``result``; returns the undo."""
