@@ -1,7 +1,8 @@
 """Plot peak memory against walk length (issue 27) from measured points.
 
 The input is a JSON list of measurements ``{"label", "minutes", "peak_gb", "source"}`` (one
-line per code revision: the points of one label are joined); the goal lines of issue 27 (4 GB
+line per code revision: the points of one label are joined, dashed when their ``source`` is
+``"extrapolated"``); the goal lines of issue 27 (4 GB
 at 60 minutes, growth under 0.5 GB per further hour) are drawn for reference.
 
 Usage:
@@ -31,8 +32,10 @@ def main() -> int:
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for label in dict.fromkeys(r["label"] for r in rows):
-        pts = sorted((r["minutes"], r["peak_gb"]) for r in rows if r["label"] == label)
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=label)
+        mine = [r for r in rows if r["label"] == label]
+        pts = sorted((r["minutes"], r["peak_gb"]) for r in mine)
+        style = "o--" if any(r.get("source") == "extrapolated" for r in mine) else "o-"
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
         for m, g in pts:
             ax.annotate(f"{g:.2f}", (m, g), textcoords="offset points", xytext=(4, 4), fontsize=8)
     ax.axhline(4.0, color="grey", ls="--", lw=0.8)
