@@ -14,9 +14,22 @@ same invocation, and the table gives both and their ratio; the baseline's and th
 ``cloud.ply`` (their points, after the header) and cloud figures are compared. ``--current REV``
 measures revision REV instead of the working tree (e.g. to leave out uncommitted changes).
 
+With ``--profile`` each bag is instead run once in a ``profile`` child that finds what holds
+the memory: at ``--points`` evenly spaced data times of the walk, after the estimation (the
+final batch included) and after the export it records the process's RSS and peak, the
+Python heap traced by ``tracemalloc`` (current, and the peak since the previous point: so the
+peak of each stage) grouped by the file and line that allocated it, the gc-tracked objects by
+type, the gtsam objects ``tracemalloc`` cannot see (the graph's factor records and built
+factors, the variables of the estimate) and the size of each holder (:data:`HOLDERS`, deep
+sizes with shared objects counted once, in that order). The report gives each holder's bytes
+at every point and its growth per data minute (least-squares slope over the walk's points).
+``tracemalloc`` slows the run about 1.5-2x; the figures are for finding holders, not timing.
+
 Usage (2 cores: the children run one at a time; use ``nice``):
     nice .venv/bin/python scripts/bench_memory.py [BAG ...] [--baseline REV] [--current REV]
         [--out DIR] [--markdown FILE]
+    nice .venv/bin/python scripts/bench_memory.py --profile [BAG ...] [--points 6] [--json FILE]
+        [--markdown FILE]
 BAG defaults to the 60 s and 120 s office walks in /tmp/bench_slam_cache (``bench_slam.py``
 simulates them); each needs its ``<stem>.gt`` folder beside it.
 """
@@ -159,6 +172,26 @@ def table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
     return "\n".join(lines)
 
 
+def profile(args: argparse.Namespace) -> int:
+    """``--profile``: every bag in a ``profile`` child; the holder tables."""
+    from memory_profile import report
+
+    if args.points < 2:
+        raise SystemExit(f"--points {args.points}: need at least 2")
+    runs = []
+    tree = export_revision(args.current, Path(tempfile.mkdtemp(prefix="bench_memory_"))) if args.current else REPO
+    for bag in args.bags:
+        print(f"{bag.name}: profile ...", flush=True)
+        runs.append(_spawn(tree, "profile", str(bag), str(args.out / bag.stem / "profile"), str(args.points)))
+    text = "\n\n".join(report(r) for r in runs) + "\n"
+    print(text)
+    if args.markdown:
+        args.markdown.write_text(text)
+    if args.json:
+        args.json.write_text(json.dumps(runs))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("bags", nargs="*", type=Path, default=list(DEFAULT_BAGS), help="bags (default: 60 s, 120 s)")
@@ -167,16 +200,26 @@ def main() -> int:
                     help="measure git revision REV as the current code (default: the working tree)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_memory"), help="run folders (default %(default)s)")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")
+    ap.add_argument("--profile", action="store_true", help="find the holders of the memory (see above)")
+    ap.add_argument("--points", type=int, default=6, help="--profile: points over the walk (default %(default)s)")
+    ap.add_argument("--json", type=Path, default=None, help="--profile: also write the raw points to this file")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         mode, *rest = args.child
-        row = _child_run(*rest) if mode == "run" else _child_eval(*rest)
+        if mode == "profile":
+            from memory_profile import profile_run
+
+            row = profile_run(rest[0], rest[1], int(rest[2]))
+        else:
+            row = _child_run(*rest) if mode == "run" else _child_eval(*rest)
         print(_ROW + json.dumps(row), flush=True)
         return 0
     for bag in args.bags:
         if not bag.exists() or not (bag.parent / f"{bag.stem}.gt").is_dir():
             ap.error(f"{bag}: no such bag, or no {bag.stem}.gt beside it")
+    if args.profile:
+        return profile(args)
     results: dict[str, dict[str, dict[str, Any]]] = {}
     with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
         trees = {"current": export_revision(args.current, Path(tmp) / "current") if args.current else REPO}

@@ -10,6 +10,7 @@ holds for good is folded into its plane's scatter (:mod:`slam.backend.plane_summ
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import gtsam
@@ -47,22 +48,171 @@ class ObservationBlock:
     sigmas: FloatArray
 
 
+class BlockColumns:
+    """The observation blocks' data as columns: per block id (the graph's factor id, so ids of
+    other factors are unused slots) its knot, plane, whether it spans two knots, its rows and
+    whether it is live; per row its point (3,), fraction and sigma. Rows of a block are
+    contiguous; a removed block's rows are garbage until :meth:`compact` rewrites the live ones
+    (in block order). Arrays grow by doubling, so an hour's million blocks are a few numpy
+    arrays, not a million Python objects."""
+
+    def __init__(self) -> None:
+        self.knot = np.zeros(0, dtype=np.int64)
+        self.plane = np.zeros(0, dtype=np.int64)
+        self.two = np.zeros(0, dtype=bool)
+        self.live = np.zeros(0, dtype=bool)
+        self.start = np.zeros(0, dtype=np.int64)
+        self.size = np.zeros(0, dtype=np.int64)
+        self.held = np.zeros(0, dtype=bool)  # summarised (its scatter below is its plane's share)
+        self.scatter = np.zeros((0, 4, 4))  # a held block's scatter (its plane's anchor)
+        self.points = np.zeros((0, 3))
+        self.alphas = np.zeros(0)
+        self.sigmas = np.zeros(0)
+        self.rows = 0  # rows used (live and garbage)
+        self.garbage = 0  # rows of removed blocks
+        self.count = 0  # live blocks
+        self.n_points = 0  # rows of live blocks
+
+    def _grow_ids(self, bid: int) -> None:
+        n = max(1024, 2 * self.knot.shape[0])
+        while n <= bid:
+            n *= 2
+        for name in ("knot", "plane", "two", "live", "start", "size", "held", "scatter"):
+            old = getattr(self, name)
+            new = np.zeros((n, *old.shape[1:]), dtype=old.dtype)
+            new[: old.shape[0]] = old
+            setattr(self, name, new)
+
+    def _grow_rows(self, need: int) -> None:
+        n = max(4096, 2 * self.points.shape[0])
+        while n < need:
+            n *= 2
+        for name in ("points", "alphas", "sigmas"):
+            old = getattr(self, name)
+            new = np.zeros((n, *old.shape[1:]), dtype=old.dtype)
+            new[: self.rows] = old[: self.rows]
+            setattr(self, name, new)
+
+    def put(self, bid: int, blk: ObservationBlock) -> None:
+        """Store new block ``bid``."""
+        if bid >= self.knot.shape[0]:
+            self._grow_ids(bid)
+        n = blk.points.shape[0]
+        if self.rows + n > self.points.shape[0]:
+            self._grow_rows(self.rows + n)
+        s = self.rows
+        self.points[s:s + n] = blk.points
+        self.sigmas[s:s + n] = blk.sigmas
+        if blk.alphas is not None:
+            self.alphas[s:s + n] = blk.alphas
+        self.rows += n
+        self.knot[bid], self.plane[bid], self.two[bid] = blk.knot, blk.plane_id, blk.alphas is not None
+        self.start[bid], self.size[bid], self.live[bid] = s, n, True
+        self.count += 1
+        self.n_points += n
+
+    def drop(self, bid: int) -> None:
+        """Forget live block ``bid`` (its rows become garbage; rewritten once they outweigh the rest)."""
+        self.live[bid] = False
+        self.held[bid] = False
+        self.count -= 1
+        n = int(self.size[bid])
+        self.n_points -= n
+        self.garbage += n
+        if self.garbage > max(self.n_points, 1 << 16):
+            self.compact()
+
+    def compact(self) -> None:
+        """Rewrite the live blocks' rows, in block order, without the garbage."""
+        ids = self.ids()
+        starts, sizes = self.start[ids], self.size[ids]
+        idx = np.repeat(starts - np.concatenate(([0], np.cumsum(sizes)[:-1])), sizes) + np.arange(int(sizes.sum()))
+        self.points = self.points[idx]
+        self.alphas = self.alphas[idx]
+        self.sigmas = self.sigmas[idx]
+        new_start = np.zeros(ids.shape[0], dtype=np.int64)
+        np.cumsum(sizes[:-1], out=new_start[1:])
+        self.start[ids] = new_start
+        self.rows = int(sizes.sum())
+        self.garbage = 0
+
+    def ids(self) -> NDArray[np.int64]:
+        """The live block ids, increasing."""
+        return np.flatnonzero(self.live)
+
+    def has(self, bid: int) -> bool:
+        return 0 <= bid < self.live.shape[0] and bool(self.live[bid])
+
+    def block(self, bid: int) -> ObservationBlock:
+        """Live block ``bid`` with its own (copied) arrays."""
+        s, e = int(self.start[bid]), int(self.start[bid] + self.size[bid])
+        al = self.alphas[s:e].copy() if self.two[bid] else None
+        return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), self.points[s:e].copy(), al,
+                                self.sigmas[s:e].copy())
+
+    def gather(self, bids: NDArray[np.int64]) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]]:
+        """The rows of blocks ``bids`` in that order: points (M, 3), alphas (M,), sigmas (M,) and
+        each block's first row in them (len(bids) + 1,)."""
+        sizes = self.size[bids]
+        starts = np.zeros(bids.shape[0] + 1, dtype=np.int64)
+        np.cumsum(sizes, out=starts[1:])
+        idx = np.repeat(self.start[bids] - starts[:-1], sizes) + np.arange(int(starts[-1]))
+        return self.points[idx], self.alphas[idx], self.sigmas[idx], starts
+
+    def nbytes(self) -> int:
+        return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "held",
+                                                      "scatter", "points", "alphas", "sigmas"))
+
+
+class BlockView(Mapping[int, ObservationBlock]):
+    """The live blocks by id, in increasing id order (each looked up builds its record)."""
+
+    def __init__(self, cols: BlockColumns) -> None:
+        self._cols = cols
+
+    def __getitem__(self, bid: int) -> ObservationBlock:
+        if not self._cols.has(bid):
+            raise KeyError(bid)
+        return self._cols.block(bid)
+
+    def __contains__(self, bid: object) -> bool:
+        return isinstance(bid, (int, np.integer)) and self._cols.has(int(bid))
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._cols.ids().tolist())
+
+    def __len__(self) -> int:
+        return self._cols.count
+
+
 class BlockStore:
     """The observation blocks of a :class:`FactorGraph` (block id = its factor id), by plane,
-    with their interval groups and the summaries of the held ones."""
+    with their interval groups and the summaries of the held ones. The blocks' data are
+    :class:`BlockColumns`; ``blocks`` is their read-only view by id."""
 
     def __init__(self, graph: FactorGraph, kernel: RobustKernel, coalesce: bool) -> None:
         self.graph = graph
         self.kernel = kernel
         self.coalesce = coalesce
-        self.blocks: dict[int, ObservationBlock] = {}
+        self.cols = BlockColumns()
+        self.blocks = BlockView(self.cols)
         self.plane_blocks: dict[int, set[int]] = {}  # plane id -> its block ids (every plane)
         self._open: dict[tuple[int, int, bool], int] = {}  # coalescing: (knot, plane, two poses)
         self._groups: dict[int, tuple[tuple[int, ...], gtsam.NonlinearFactor]] = {}  # knot -> group
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
-        self.summarized: dict[int, FloatArray] = {}  # block id -> its scatter (its plane's anchor)
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
         self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
+
+    @property
+    def summarized(self) -> dict[int, FloatArray]:
+        """Held (summarised) block id -> its scatter about its plane's anchor (copies, to inspect)."""
+        cols = self.cols
+        return {int(b): cols.scatter[b].copy() for b in np.flatnonzero(cols.held)}
+
+    @property
+    def n_points(self) -> int:
+        """Points of the live blocks."""
+        return self.cols.n_points
 
     # ----------------------------------------------------------------- planes
     def add_plane(self, plane_id: int) -> None:
@@ -84,18 +234,17 @@ class BlockStore:
         ``keep``'s anchor) and forget ``drop``; returns the number of moved blocks."""
         anchors = self.graph.anchors
         moved = sorted(self.plane_blocks[drop])
+        cols = self.cols
         for bid in moved:
-            old = self.blocks[bid]
-            self._open.pop((old.knot, drop, old.alphas is not None), None)
-            new = ObservationBlock(old.knot, keep, old.points, old.alphas, old.sigmas)
-            self._groups.pop(old.knot, None)
-            self.graph.records[bid] = Record(None, block_keys(new), None)
-            self.blocks[bid] = new
+            knot, two = int(cols.knot[bid]), bool(cols.two[bid])
+            self._open.pop((knot, drop, two), None)
+            self._groups.pop(knot, None)
+            cols.plane[bid] = keep
+            self.graph.records[bid] = Record(None, keys_of(knot, two, keep), None)
             self.plane_blocks[keep].add(bid)
-            C = self.summarized.get(bid)
-            if C is not None:
-                C = shift_anchor(C, anchors[drop], anchors[keep])
-                self.summarized[bid] = C
+            if cols.held[bid]:
+                C = shift_anchor(cols.scatter[bid].copy(), anchors[drop], anchors[keep])
+                cols.scatter[bid] = C
                 self.summary[keep] = self.summary.get(keep, np.zeros((4, 4))) + C
         self.summary.pop(drop, None)
         return len(moved)
@@ -112,14 +261,14 @@ class BlockStore:
         block = self._make(knot, plane_id, points, alphas, sigmas)
         key = (block.knot, block.plane_id, block.alphas is not None)
         if self.coalesce and key in self._open:
-            old = self.blocks[self._open[key]]
+            old = self.cols.block(self._open[key])
             block = ObservationBlock(
                 block.knot, block.plane_id, np.concatenate((old.points, block.points)),
                 None if block.alphas is None or old.alphas is None else np.concatenate((old.alphas, block.alphas)),
                 np.concatenate((old.sigmas, block.sigmas)))
             self.remove(self._open[key])
         bid = self._insert(block)
-        if self.coalesce and bid not in self.summarized:
+        if self.coalesce and not self.cols.held[bid]:
             self._open[key] = bid
         return bid
 
@@ -132,25 +281,28 @@ class BlockStore:
 
     def remove(self, block_id: int) -> None:
         """Remove a block."""
-        blk = self.get(block_id)
+        if not self.cols.has(block_id):
+            raise ValueError(f"block_id: no observation block {block_id}")
+        cols = self.cols
+        knot, j, two = int(cols.knot[block_id]), int(cols.plane[block_id]), bool(cols.two[block_id])
+        C = cols.scatter[block_id].copy() if cols.held[block_id] else None
         self.graph.remove_factor(block_id)
-        del self.blocks[block_id]
-        self.plane_blocks[blk.plane_id].discard(block_id)
-        key = (blk.knot, blk.plane_id, blk.alphas is not None)
+        cols.drop(block_id)
+        self.plane_blocks[j].discard(block_id)
+        key = (knot, j, two)
         if self._open.get(key) == block_id:
             del self._open[key]
-        C = self.summarized.pop(block_id, None)
         if C is not None:
-            self.summary[blk.plane_id] -= C
+            self.summary[j] -= C
 
     def get(self, block_id: int) -> ObservationBlock:
-        if block_id not in self.blocks:
+        if not self.cols.has(block_id):
             raise ValueError(f"block_id: no observation block {block_id}")
-        return self.blocks[block_id]
+        return self.cols.block(block_id)
 
     def _insert(self, block: ObservationBlock) -> int:
         bid = self.graph.add_record(None, block_keys(block))
-        self.blocks[bid] = block
+        self.cols.put(bid, block)
         self.plane_blocks[block.plane_id].add(bid)
         top = block.knot + (1 if block.alphas is not None else 0)  # the highest knot it touches
         if top < self.summarized_upto:  # its poses are held by the window already
@@ -185,30 +337,26 @@ class BlockStore:
         """(block id, :meth:`whitened_residuals`) of every block, in the store's order: the
         two-pose blocks in one compiled pass (each knot and plane read once), the same numbers."""
         v = self.graph.values
-        two = [b for b, blk in self.blocks.items() if blk.alphas is not None]
+        cols = self.cols
+        ids = cols.ids()
+        two = ids[cols.two[ids]]
         out: dict[int, FloatArray] = {}
-        if two:
-            blks = [self.blocks[b] for b in two]
-            knots = sorted({k for blk in blks for k in (blk.knot, blk.knot + 1)})
-            krow = {k: i for i, k in enumerate(knots)}
-            M = np.array([v.atPose3(X(k)).matrix() for k in knots])
-            planes = sorted({blk.plane_id for blk in blks})
-            prow = {j: i for i, j in enumerate(planes)}
-            rows = [plane_row(v, P(j)) for j in planes]
-            sizes = np.array([blk.points.shape[0] for blk in blks], dtype=np.int64)
-            starts = np.zeros(len(blks) + 1, dtype=np.int64)
-            np.cumsum(sizes, out=starts[1:])
+        if two.shape[0]:
+            bknot, bplane = cols.knot[two], cols.plane[two]
+            knots = np.unique(np.concatenate((bknot, bknot + 1)))
+            M = np.array([v.atPose3(X(int(k))).matrix() for k in knots])
+            planes = np.unique(bplane)
+            rows = [plane_row(v, P(int(j))) for j in planes]
+            pts, al, sg, starts = cols.gather(two)
             res = _fk.blocks_residuals(
                 np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
-                np.array([krow[blk.knot] for blk in blks], dtype=np.int64),
+                np.searchsorted(knots, bknot).astype(np.int64),
                 np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                np.array([prow[blk.plane_id] for blk in blks], dtype=np.int64),
-                np.array([self.graph.anchors[j] for j in planes]),
-                np.concatenate([blk.points for blk in blks]),
-                np.concatenate([blk.alphas for blk in blks]), starts)  # type: ignore[misc]
-            for b, blk, s, e in zip(two, blks, starts[:-1], starts[1:], strict=True):
-                out[b] = res[s:e] / blk.sigmas
-        return [(b, out[b] if b in out else self.whitened_residuals(blk)) for b, blk in self.blocks.items()]
+                np.searchsorted(planes, bplane).astype(np.int64),
+                np.array([self.graph.anchors[int(j)] for j in planes]), pts, al, starts)
+            for b, s, e in zip(two.tolist(), starts[:-1], starts[1:], strict=True):
+                out[b] = res[s:e] / sg[s:e]
+        return [(b, out[b] if b in out else self.whitened_residuals(cols.block(b))) for b in ids.tolist()]
 
     def residuals(self, block_id: int) -> tuple[FloatArray, FloatArray]:
         """Whitened residuals (N,) of a block and the robust weights (N,) its kernel gives them."""
@@ -220,7 +368,7 @@ class BlockStore:
         """The factor of record ``fid`` (an observation block's built on first use)."""
         rec = self.graph.records[fid]
         if rec.factor is None:
-            rec.factor = self.block_factor(self.blocks[fid])
+            rec.factor = self.block_factor(self.cols.block(fid))
         return rec.factor
 
     def block_factor(self, blk: ObservationBlock, kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
@@ -230,26 +378,27 @@ class BlockStore:
                                   kernel or self.kernel, anchor=self.graph.anchors.get(blk.plane_id))
 
     def group_factor(self, knot: int, bids: list[int], kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
-        """One factor for the blocks ``bids`` of interval ``knot`` (:func:`point_planes_factor`).
-        The factor of the configured kernel is kept until the interval's blocks change."""
+        """One factor for the blocks ``bids`` of interval ``knot`` (:func:`point_planes_factor`),
+        built from the columns. The factor of the configured kernel is kept until the interval's
+        blocks change or leave the window (:meth:`hold_before`)."""
         key = tuple(sorted(bids))
         if kernel is None:
             hit = self._groups.get(knot)
             if hit is not None and hit[0] == key:
                 return hit[1]
-        blks = [self.blocks[b] for b in key]
-        if len(blks) == 1 and kernel is None:
+        if len(key) == 1 and kernel is None:
             factor = self.factor(key[0])
         else:
-            plane_ids = sorted({b.plane_id for b in blks})
+            ids = np.array(key, dtype=np.int64)
+            cols = self.cols
+            assert bool(cols.two[ids].all())
+            bplane = cols.plane[ids]
+            plane_ids = sorted(set(bplane.tolist()))
             slot = {j: i for i, j in enumerate(plane_ids)}
-            alphas = [b.alphas for b in blks]
-            assert all(a is not None for a in alphas)
+            pts, al, sg, starts = cols.gather(ids)
+            index = np.repeat(np.array([slot[j] for j in bplane.tolist()], dtype=np.int64), np.diff(starts))
             factor = point_planes_factor(
-                X(knot), X(knot + 1), [P(j) for j in plane_ids],
-                np.concatenate([np.full(b.points.shape[0], slot[b.plane_id]) for b in blks]),
-                np.concatenate([b.points for b in blks]), np.concatenate(alphas),  # type: ignore[arg-type]
-                np.concatenate([b.sigmas for b in blks]), kernel or self.kernel,
+                X(knot), X(knot + 1), [P(j) for j in plane_ids], index, pts, al, sg, kernel or self.kernel,
                 np.array([self.graph.anchors[j] for j in plane_ids]), self.planes)
         if kernel is None:
             self._groups[knot] = (key, factor)
@@ -260,12 +409,13 @@ class BlockStore:
         with ``kernel`` if given."""
         graph = gtsam.NonlinearFactorGraph()
         groups: dict[int, list[int]] = {}
+        cols = self.cols
         for fid in sorted(self.graph.records):
-            blk = self.blocks.get(fid)
-            if blk is not None and blk.alphas is not None:
-                groups.setdefault(blk.knot, []).append(fid)
-            elif kernel is not None and blk is not None:
-                graph.add(self.block_factor(blk, kernel))
+            block = cols.has(fid)
+            if block and cols.two[fid]:
+                groups.setdefault(int(cols.knot[fid]), []).append(fid)
+            elif kernel is not None and block:
+                graph.add(self.block_factor(cols.block(fid), kernel))
             else:
                 graph.add(self.factor(fid))
         for knot, bids in groups.items():
@@ -274,21 +424,28 @@ class BlockStore:
 
     # ----------------------------------------------------------------- summaries
     def hold_before(self, first: int) -> None:
-        """Summarise every block of the knots below ``first`` (their poses are held from now on)."""
+        """Summarise every block of the knots below ``first`` (their poses are held from now on)
+        and let go of their factors (built again, the same, if the final batch needs them)."""
+        records = self.graph.records
         for k in range(self.summarized_upto, first):
             for fid in self.graph.by_knot.get(k, ()):
-                if fid in self.blocks and fid not in self.summarized:
-                    self._summarize(fid)
+                if self.cols.has(fid):
+                    records[fid].factor = None
+                    if not self.cols.held[fid]:
+                        self._summarize(fid)
+        for knot in [k for k in self._groups if k + 1 < first]:
+            del self._groups[knot]
         self.summarized_upto = max(self.summarized_upto, first)
 
     def drop_summaries(self) -> None:
         """Forget the summaries (the held poses have moved)."""
-        self.summary, self.summarized, self.summarized_upto = {}, {}, 0
+        self.summary, self.summarized_upto = {}, 0
+        self.cols.held[:] = False
 
     def _summarize(self, bid: int) -> None:
         """Fold block ``bid`` into its plane's scatter at the current poses (held from now on) and
         robust weights (frozen): see :mod:`slam.backend.plane_summary`."""
-        blk = self.blocks[bid]
+        blk = self.cols.block(bid)
         v = self.graph.values
         pts = blk.points
         Ta = v.atPose3(X(blk.knot)).matrix()
@@ -303,7 +460,8 @@ class BlockStore:
         pl = v.atOrientedPlane3(P(j))
         e = ((x - a) @ pl.normal().point3() + pl.distance()) / blk.sigmas
         C = scatter(x, a, robust_weights(e, self.kernel) / blk.sigmas**2)
-        self.summarized[bid] = C
+        self.cols.held[bid] = True
+        self.cols.scatter[bid] = C
         self.summary[j] = self.summary.get(j, np.zeros((4, 4))) + C
         key = (blk.knot, j, blk.alphas is not None)
         if self._open.get(key) == bid:
@@ -312,5 +470,10 @@ class BlockStore:
 
 def block_keys(blk: ObservationBlock) -> tuple[int, ...]:
     """The keys of a block's factor (:meth:`BlockStore.block_factor`)."""
-    keys = [X(blk.knot)] + ([X(blk.knot + 1)] if blk.alphas is not None else []) + [P(blk.plane_id)]
+    return keys_of(blk.knot, blk.alphas is not None, blk.plane_id)
+
+
+def keys_of(knot: int, two: bool, plane_id: int) -> tuple[int, ...]:
+    """The keys of the factor of a block of interval ``knot`` (``two``: spanning two knots) on a plane."""
+    keys = [X(knot)] + ([X(knot + 1)] if two else []) + [P(plane_id)]
     return tuple(int(k) for k in keys)

@@ -1,0 +1,56 @@
+"""Plot peak memory against walk length (issue 27) from measured points.
+
+The input is a JSON list of measurements ``{"label", "minutes", "peak_gb", "source"}`` (one
+line per code revision: the points of one label are joined, dashed when their ``source`` is
+``"extrapolated"``); the goal lines of issue 27 (4 GB
+at 60 minutes, growth under 0.5 GB per further hour) are drawn for reference.
+
+Usage:
+    .venv/bin/python scripts/plot_memory.py docs/figures/memory_vs_length.json docs/figures/memory_vs_length.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", type=Path, help="JSON list of {label, minutes, peak_gb, source}")
+    ap.add_argument("out", type=Path, help="image to write (.png or .svg)")
+    args = ap.parse_args()
+    rows = json.loads(args.data.read_text())
+    if not isinstance(rows, list) or not all({"label", "minutes", "peak_gb"} <= set(r) for r in rows):
+        ap.error(f"{args.data}: expected a list of {{label, minutes, peak_gb}} records")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for label in dict.fromkeys(r["label"] for r in rows):
+        mine = [r for r in rows if r["label"] == label]
+        pts = sorted((r["minutes"], r["peak_gb"]) for r in mine)
+        style = "o--" if any(r.get("source") == "extrapolated" for r in mine) else "o-"
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
+        for m, g in pts:
+            ax.annotate(f"{g:.2f}", (m, g), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.axhline(4.0, color="grey", ls="--", lw=0.8)
+    ax.plot([60], [4.0], "kx")
+    ax.annotate("goal: < 4 GB at 60 min", (60, 4.0), textcoords="offset points", xytext=(-120, 6), fontsize=8)
+    ax.set_xlabel("walk length (data minutes, office world)")
+    ax.set_ylabel("peak memory (GB)")
+    ax.set_xlim(0, 65)
+    ax.set_ylim(0, None)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=120)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
