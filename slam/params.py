@@ -118,7 +118,8 @@ def gates(cfg: SlamConfig) -> Gates:
         child_host_normal=fe.child_host_normal,
         choice=ChoiceParams(relative_sigma=fe.relative_sigma, gate=fe.relative_gate, ratio=fe.ambiguity_ratio,
                             sigma_pose=fe.choice_sigma_pose, sigma_lever=np.radians(fe.choice_sigma_lever_deg),
-                            walls_only=False, veto=False)
+                            walls_only=False, veto=False, host_sigma=fe.host_sigma,
+                            host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test)
         if fe.parallel_choice else None,
     )
 

@@ -10,11 +10,13 @@ WALL, BOARD, FLOOR = 0, 1, 2
 # a wall facing -y, a board 2 cm proud of it (nearer the scanner), a floor
 NORMALS = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 GAP = 0.02
+# the configuration's host-test defaults (slam.config: host_sigma, host_lever_deg, host_test)
+HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False}
 
 
 def _params(sigma_pose: float = 0.004) -> ChoiceParams:
     return ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=sigma_pose, sigma_lever=0.0,
-                        walls_only=False, veto=False)
+                        walls_only=False, veto=False, **HOST_OFF)
 
 
 def _scan(on: list[int], offset: float, rng: np.random.Generator) -> tuple[list[list[int]], np.ndarray, np.ndarray]:
@@ -94,7 +96,7 @@ def test_families_are_chosen_apart_and_a_lone_candidate_grows() -> None:
 def _office_params() -> ChoiceParams:
     """The defaults (``slam.params.gates``): the pose-widened relative sigma with its 0.05 deg lever."""
     return ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=0.002,
-                        sigma_lever=float(np.radians(0.05)), walls_only=False, veto=False)
+                        sigma_lever=float(np.radians(0.05)), walls_only=False, veto=False, **HOST_OFF)
 
 
 def test_a_wall_does_not_take_the_segments_of_a_door_it_has_no_plane_for() -> None:

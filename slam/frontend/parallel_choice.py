@@ -55,13 +55,10 @@ class ChoiceParams:
     walls_only: bool  # floors, ceilings and slopes (normal over 30 deg off horizontal) take the nearest
     veto: bool  # the association keeps the nearest candidate where the choice agrees (else none)
     # the host test (``choose``'s ``hosts``): what a wall's own segment misses of its distance to the
-    # wall once the scan's offset is removed (m; office: 99 % within 1.6 mm up to 2.5 m), and the
-    # rotation's lever in it (rad)
-    host_sigma: float = 0.0004
-    host_lever: float = float(np.radians(0.015))
-    # off by default: on the office walk it halves the confusions, but on the demo a board's plane
-    # then loses its segments to the wall (largest position error 1.3 -> 21.9 mm): see issue 26
-    host_test: bool = False
+    # wall once the scan's offset is removed (m), and the rotation's lever in it (rad)
+    host_sigma: float
+    host_lever: float
+    host_test: bool
 
 
 @dataclass(frozen=True)
