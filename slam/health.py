@@ -227,6 +227,15 @@ def _unobserved_message(label: str, seconds: float, with_imu: bool, severity: Se
             f"hold it){tail}")
 
 
+def _above(code: str, value: float, warn: float, fail: float, message: str) -> list[Problem]:
+    """The problem ``code`` of a figure that degrades the run above ``warn`` and fails it above
+    ``fail`` (none below ``warn``)."""
+    if not value > warn:
+        return []
+    sev: Severity = "failure" if value > fail else "warning"
+    return [Problem(code, sev, message, value, fail if sev == "failure" else warn)]
+
+
 def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArray, seg_plane_id: NDArray[np.integer],
            plane_normals: Mapping[int, FloatArray], counts: Mapping[str, float], rms_whitened: float | None,
            with_imu: bool, cfg: HealthSection, extra: list[Problem] | None = None,
@@ -259,21 +268,14 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
         problems.append(Problem("no_planes", "failure", "the map has no planes", 0.0, 1.0))
     if rms_whitened is not None and math.isfinite(rms_whitened):
         measures["rms_whitened"] = rms_whitened
-        if rms_whitened > cfg.warn_rms_whitened:
-            sev = "failure" if rms_whitened > cfg.max_rms_whitened else "warning"
-            problems.append(Problem("residuals", sev,
-                                    f"point-to-plane residuals are {rms_whitened:.1f}x the noise they were weighted with "
-                                    "(range noise larger than assumed, or an inconsistent map)", rms_whitened,
-                                    cfg.max_rms_whitened if sev == "failure" else cfg.warn_rms_whitened))
+        problems += _above("residuals", rms_whitened, cfg.warn_rms_whitened, cfg.max_rms_whitened,
+                           f"point-to-plane residuals are {rms_whitened:.1f}x the noise they were weighted with "
+                           "(range noise larger than assumed, or an inconsistent map)")
     if imu_rms_whitened is not None and math.isfinite(imu_rms_whitened):
         measures["imu_rms_whitened"] = imu_rms_whitened
-        if imu_rms_whitened > cfg.warn_imu_rms_whitened:
-            sev = "failure" if imu_rms_whitened > cfg.max_imu_rms_whitened else "warning"
-            problems.append(Problem("imu_disagrees", sev,
-                                    f"the trajectory disagrees with the IMU: its residuals are {imu_rms_whitened:.1f}x "
-                                    "the IMU's noise (the scans' scale or timing does not match what the IMU measured)",
-                                    imu_rms_whitened,
-                                    cfg.max_imu_rms_whitened if sev == "failure" else cfg.warn_imu_rms_whitened))
+        problems += _above("imu_disagrees", imu_rms_whitened, cfg.warn_imu_rms_whitened, cfg.max_imu_rms_whitened,
+                           f"the trajectory disagrees with the IMU: its residuals are {imu_rms_whitened:.1f}x the IMU's "
+                           "noise (the scans' scale or timing does not match what the IMU measured)")
     motion, m = motion_problems(knot_times, T_world_body, cfg)
     problems += motion
     measures.update(m)
