@@ -26,9 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import assoc_kernels as ak
 from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
-from slam.frontend.parallel_choice import NONE, ChoiceParams, choose
+from slam.frontend.parallel_choice import NONE, ChoiceParams, choose_pairs
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import KIND_WALL, PlaneMap
 
@@ -142,7 +143,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     extent is dilated by that many cells only (a door's extent does not reach the next board).
 
     The per-pair gates (angle and distance, end points, facing side) and every pair's extent
-    cells are computed in one compiled pass (``slam.kernels.association_gates``); the
+    cells are computed in one compiled pass (``slam.frontend.assoc_kernels.gate_pairs``); the
     extents (Python sets of cells) are then tested only for the pairs under the gates.
     """
     out = np.full(segs.n, NONE, dtype=np.int64)
@@ -172,35 +173,41 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     since = odometer - rows[:, 5]
     rate = np.where(horizontal, gates.drift_rate_vertical, gates.drift_rate)
     sig_drift = np.minimum(rate * np.maximum(since, 0.0), gates.max_drift_sigma)
-    _, _, dist_c, sig_d2, cells, order, count = fk.association_gates(
+    # the candidates (cols[start[k]:start[k + 1]] by increasing m2) with their extent cells
+    start, cols, cells, dist_c, sig_d2 = ak.gate_pairs(
         segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
         segs.origin, normals, np.ascontiguousarray(rows[:, 3]), np.ascontiguousarray(rows[:, 4]), sig_drift,
         np.ascontiguousarray(rows[:, 6:9]), np.ascontiguousarray(rows[:, 9:12]), float(pmap.cell_size),
         float(gates.sigma_pose), float(gates.sigma_rotation), float(gates.sigma_lever),
         float(gates.max_endpoint_distance), float(gates.chi2),
     )
-    hit = np.flatnonzero(count)
-    if hit.size == 0:
+    if cols.size == 0:
         return Association(out, np.zeros(segs.n, dtype=bool))
     cell = pmap.cell_size
     # per plane: the extent margin grown with the drift since it was seen (cells)
-    dilate = [gates.extent_margin_cells + min(int(3.0 * sd / cell), gates.max_extra_cells) for sd in sig_drift.tolist()]
+    dilate = gates.extent_margin_cells + np.minimum((3.0 * sig_drift / cell).astype(np.int64), gates.max_extra_cells)
     if gates.child_margin_cells >= 0:
-        for j in child_rows:
-            dilate[j] = gates.child_margin_cells
+        dilate[child_rows] = gates.child_margin_cells
+    id_arr = np.asarray(ids, dtype=np.int64)
+    # every candidate pair's end points and centroid against its plane's (dilated) extent, once
+    overlaps = pmap.overlaps_cells
+    pair_ids = id_arr[cols].tolist()
+    pair_cells = cells.tolist()
+    pair_dilate = dilate[cols].tolist()
+    near = np.array([overlaps(i, c, d) for i, c, d in zip(pair_ids, pair_cells, pair_dilate, strict=True)], dtype=bool)
     same_normal = float(np.cos(np.radians(2.0)))
     if gates.choice is not None:
-        # the candidates by increasing m2 under the gates and over the (dilated) extents, then
-        # the choice between parallel planes from the segments' own lines
-        # a door's or board's segments end at its edges (the segmenter breaks there): both end
-        # points and the centroid of a segment on it lie within its extent (dilated by the child
-        # margin), where a wall's segment runs on past it
-        whole = set(child_rows)
-        cands: list[list[int]] = [[] for _ in range(segs.n)]
-        for k in hit.tolist():
-            cands[k] = [j for j in order[k, : count[k]].tolist()
-                        if (all(pmap.overlaps_cells(ids[j], [c], dilate[j]) for c in cells[k, j].tolist()) if j in whole
-                            else pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j]))]
+        # the choice between parallel planes from the segments' own lines, among the candidates
+        # over their (dilated) extents; a door's or board's segments end at its edges (the
+        # segmenter breaks there): both end points and the centroid of a segment on it lie within
+        # its extent (dilated by the child margin), where a wall's segment runs on past it
+        keep = near
+        if child_rows:
+            is_child = np.zeros(len(ids), dtype=bool)
+            is_child[child_rows] = True
+            keep = near.copy()
+            for i in np.flatnonzero(near & is_child[cols]).tolist():
+                keep[i] = all(overlaps(pair_ids[i], [c], pair_dilate[i]) for c in pair_cells[i])
         weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
         # the walls that may carry a door or board (not the children themselves, nor floors and
         # ceilings); not in the tracking's veto, whose poses are still the prediction's
@@ -208,29 +215,16 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         if gates.choice.host_test and not gates.choice.veto:
             hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
             hosts[child_rows] = False
-        ch = choose(cands, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range, hosts)
-        id_arr = np.asarray(ids, dtype=np.int64)
+        ch = choose_pairs(start, cols, keep, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range,
+                          hosts)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
         if not gates.choice.veto:
             return Association(chosen, ch.grows & (ch.column >= 0))
     else:
         chosen = None
-    for k in hit.tolist():
-        # the candidates by increasing m2; the segment's two end points and centroid (world
-        # frame) against their extents
-        passing = [j for j in order[k, : count[k]].tolist() if pmap.overlaps_cells(ids[j], cells[k, j].tolist(), dilate[j])]
-        if not passing:
-            continue
-        best = passing[0]
-        ambiguous = False
-        for j in passing[1:]:
-            # same surface seen twice (a duplicate awaiting merge) is not ambiguity
-            same = (float(normals[best] @ normals[j]) > same_normal) and abs(dist_c[k, best] - dist_c[k, j]) < 3.0 * np.sqrt(sig_d2[k, best])
-            if not same:
-                ambiguous = True
-                break
-        if not ambiguous:
-            out[k] = ids[best]
+    # the nearest candidate over its extent, unless another lies on a different surface (the same
+    # surface seen twice, a duplicate awaiting merge, is not ambiguity)
+    out = ak.nearest_unambiguous(start, cols, near, dist_c, sig_d2, normals, id_arr, same_normal)
     if chosen is not None:
         # the choice as a veto: the nearest candidate where the choice agrees, else none
         out = np.where(out == chosen, out, NONE)

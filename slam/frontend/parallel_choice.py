@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import assoc_kernels as ak
+
 FloatArray = NDArray[np.float64]
 NONE, HELD = -1, -2
 PARALLEL_DEG = 2.0
@@ -96,93 +98,29 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
     more than the scan's common offset: ``sigma_lever`` times the range). ``hosts`` (P,) marks
     the walls that may carry a door or board not mapped yet: a segment chosen for one of them
     must also pass the host test (``host_sigma``, ``host_lever``), else it is held back."""
-    k_n = len(candidates)
-    column = np.full(k_n, NONE, dtype=np.int64)
-    grows = np.zeros(k_n, dtype=bool)
-    used = sorted({j for c in candidates for j in c})
-    if not used:
-        return Choice(column, grows)
-    fam = families(normals, used)
-    lever = 0.0 if seg_range is None else (params.sigma_lever * seg_range) ** 2
-    s_rel = np.sqrt(sigma_own**2 + params.relative_sigma**2 + lever)
-    tau = params.gate * s_rel
-    host_lever = 0.0 if seg_range is None else (params.host_lever * seg_range) ** 2
-    tau_host = params.gate * np.sqrt(sigma_own**2 + params.host_sigma**2 + host_lever)
-    sp2 = max(params.sigma_pose, 1e-6) ** 2
-    for f in sorted(set(fam.values())):
-        members = [(k, [j for j in c if fam[j] == f]) for k, c in enumerate(candidates)]
-        members = [(k, js) for k, js in members if js]
-        if not members:
-            continue
-        if params.walls_only and abs(float(normals[f, 2])) > 0.5:
-            for k, js in members:
-                if column[k] == NONE:
-                    column[k], grows[k] = js[0], True
-            continue
-        delta, support = _common_offset(members, dist, weight, tau, sp2, tau_host, hosts)
-        for k, js in members:
-            rho = np.array([dist[k, j] - delta for j in js])
-            ok = np.flatnonzero(np.abs(rho) < tau[k])
-            if ok.size == 0:
-                continue  # on none of this family's planes: NONE unless another family takes it
-            if column[k] >= 0 or column[k] == HELD:
-                continue  # taken by a family seen earlier (planes of two facings: not expected)
-            order = ok[np.argsort(np.abs(rho[ok]), kind="stable")]
-            a = order[0]
-            decided = True
-            for b in order[1:]:
-                same = abs(rho[b] - rho[a]) < s_rel[k]
-                if same:
-                    continue
-                llr = 0.5 * (rho[b] ** 2 - rho[a] ** 2) / s_rel[k] ** 2
-                if llr < np.log(params.ratio):
-                    decided = False
-                    break
-            # a wall's segment that its own line puts off the wall by more than the host test: as
-            # likely a door's or board's whose plane is not a candidate (not made yet, or the
-            # segment runs past its extent, straddling its edge); neither the wall's nor pooled
-            if decided and hosts is not None and hosts[js[a]] and abs(rho[a]) >= tau_host[k]:
-                decided = False
-            if not decided:
-                column[k] = HELD
-                continue
-            column[k] = js[a]
-            grows[k] = len(js) == 1 or (support >= 2 and ok.size == 1)
+    start = np.zeros(len(candidates) + 1, dtype=np.int64)
+    start[1:] = np.cumsum([len(c) for c in candidates])
+    cols = np.array([j for c in candidates for j in c], dtype=np.int64)
+    return choose_pairs(start, cols, np.ones(cols.size, dtype=bool), dist, sigma_own, weight, normals, params,
+                        seg_range, hosts)
+
+
+def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArray[np.bool_], dist: FloatArray,
+                 sigma_own: FloatArray, weight: FloatArray, normals: FloatArray, params: ChoiceParams,
+                 seg_range: FloatArray | None = None, hosts: NDArray[np.bool_] | None = None) -> Choice:
+    """:func:`choose` with the candidates as pairs: segment ``k``'s are the ``cols[i]`` where
+    ``keep[i]``, ``start[k] <= i < start[k + 1]`` (in order). One compiled call
+    (``slam.frontend.assoc_kernels.choose_columns``)."""
+    k_n = start.shape[0] - 1
+    column, grows = ak.choose_columns(
+        start, cols, np.ascontiguousarray(keep, dtype=np.bool_), np.ascontiguousarray(dist, dtype=np.float64),
+        np.ascontiguousarray(sigma_own, dtype=np.float64),
+        np.ascontiguousarray(weight, dtype=np.float64),
+        np.zeros(k_n) if seg_range is None else np.ascontiguousarray(seg_range, dtype=np.float64), seg_range is not None,
+        np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3),
+        np.zeros(normals.shape[0], dtype=bool) if hosts is None else np.ascontiguousarray(hosts, dtype=np.bool_),
+        hosts is not None, params.relative_sigma**2, params.host_sigma**2, max(params.sigma_pose, 1e-6) ** 2,
+        float(params.gate), float(params.sigma_lever), float(params.host_lever), float(np.cos(np.radians(PARALLEL_DEG))),
+        float(np.log(params.ratio)), OUTLIER_NATS, bool(params.walls_only), 2.0,
+    )
     return Choice(column, grows)
-
-
-def _common_offset(members: list[tuple[int, list[int]]], dist: FloatArray, weight: FloatArray, tau: FloatArray,
-                   sp2: float, tau_host: FloatArray, hosts: NDArray[np.bool_] | None) -> tuple[float, int]:
-    """The scan's common offset along a family's normal and the number of segments it explains:
-    the hypothesis (no offset, or one segment's distance to one of its candidates) of the highest
-    likelihood, each segment left unexplained (no candidate within ``tau``) costing
-    ``OUTLIER_NATS`` and the offset its prior ``N(0, sp2)``; refined to the point-weighted mean of
-    its inliers' distances, where an inlier of a host wall (``hosts``) must pass the host test
-    (``tau_host``): a door's segments 1 cm off the wall, inliers of the wall's wide gate, would
-    pull the offset towards the door and let the segment straddling its edge onto the wall.
-    (Testing all hypotheses at once in numpy is no faster: a family has a few segments.)"""
-    best_score, delta, support = -np.inf, 0.0, 0
-    # per segment as Python floats (the same doubles, without numpy's per-scalar cost): its
-    # candidates' distances, whether each is a host wall, its weight and both gates
-    rows = [([float(dist[k, j]) for j in js], [hosts is not None and bool(hosts[j]) for j in js], float(weight[k]),
-             float(tau[k]), float(tau_host[k])) for k, js in members]
-    # no offset at all is a hypothesis too: a lone segment 1.5 cm off its only candidate (a door's
-    # off the wall's plane, the door's plane not made yet) is then unexplained rather than the
-    # proof of a 1.5 cm pose error
-    hyps = sorted({0.0} | {d for ds, _, _, _, _ in rows for d in ds})
-    for h in hyps:
-        w_in, n_in, acc = 0.0, 0, 0.0
-        for ds, hs, w, t, t_host in rows:
-            if len(ds) == 1:
-                i, r = 0, ds[0] - h
-            else:
-                i, r = min(enumerate(d - h for d in ds), key=lambda ir: abs(ir[1]))
-            if abs(r) < t:
-                n_in += 1
-                if not hs[i] or abs(r) < t_host:
-                    w_in += w
-                    acc += w * (h + r)
-        score = n_in * OUTLIER_NATS - 0.5 * h * h / sp2
-        if score > best_score:
-            best_score, delta, support = score, acc / w_in if w_in > 0 else h, n_in
-    return delta, support

@@ -1,0 +1,289 @@
+"""Compiled (numba) kernels of the association of one scan's segments with the map's planes
+(``slam.frontend.association``, ``slam.frontend.parallel_choice``, which document the model):
+the gates as a list of candidate pairs, the choice between parallel planes and the nearest
+unambiguous candidate, each one call per scan where the Python code went segment by segment and
+candidate by candidate.
+
+The numbers are those of the Python code they replaced (tests/test_assoc_kernels.py holds it):
+the same formulas in the same order. Where that code squared a numpy or Python scalar (``x ** 2``:
+the C library's ``pow``, which rounds differently from ``x * x`` in about one case in a thousand)
+these kernels call ``math.pow`` with the exponent ``two`` passed in at run time, so that the
+compiler cannot fold it into a product.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+NONE, HELD = -1, -2
+
+
+@nb.njit(cache=True)
+def gate_pairs(
+    centroid: FloatArray, direction: FloatArray, endpoints: FloatArray, sigma_centroid: FloatArray,
+    sigma_direction: FloatArray, seg_range: FloatArray, origin: FloatArray, normals: FloatArray, offsets: FloatArray,
+    sigma_plane: FloatArray, sigma_drift: FloatArray, plane_u: FloatArray, plane_v: FloatArray, cell_size: float,
+    sigma_pose: float, sigma_rotation: float, sigma_lever: float, max_endpoint_distance: float, chi2: float,
+) -> tuple[IntArray, IntArray, IntArray, FloatArray, FloatArray]:
+    """The gates of ``slam.frontend.kernels.association_gates`` (same inputs, same numbers) as a
+    list of candidate pairs: segment ``k``'s candidates (planes passing the chi-square, end-point
+    and facing gates) are ``cols[start[k]:start[k + 1]]`` (``start`` (k + 1,)), by increasing
+    squared Mahalanobis distance (ties in plane order), with their extent cells ``cells`` (n, 3, 2)
+    (the two end points' and the centroid's, in the plane's (u, v) frame). Also returns every
+    pair's centroid signed distance ``dist`` (k, P) and its variance ``sig_d2`` (k, P) (m^2)."""
+    k_n, p_n = centroid.shape[0], normals.shape[0]
+    dist = np.empty((k_n, p_n))
+    sig_d2 = np.empty((k_n, p_n))
+    m2 = np.empty(p_n)
+    facing = np.empty(p_n, dtype=np.bool_)
+    for j in range(p_n):
+        # map normals face the side they were seen from: the scanner must be on that side
+        facing[j] = normals[j, 0] * origin[0] + normals[j, 1] * origin[1] + normals[j, 2] * origin[2] + offsets[j] > 0.0
+    start = np.zeros(k_n + 1, dtype=np.int64)
+    cols = np.empty(k_n * p_n, dtype=np.int64)
+    n = 0
+    for k in range(k_n):
+        c = centroid[k]
+        c_n = 0
+        for j in range(p_n):
+            nx, ny, nz, d = normals[j, 0], normals[j, 1], normals[j, 2], offsets[j]
+            sd = sigma_drift[j]
+            dc = nx * c[0] + ny * c[1] + nz * c[2] + d
+            sa = abs(nx * direction[k, 0] + ny * direction[k, 1] + nz * direction[k, 2])
+            lever = (sigma_lever * seg_range[k]) ** 2
+            s2 = sigma_centroid[k] ** 2 + sigma_plane[j] ** 2 + sigma_pose**2 + lever + sd**2
+            a2 = sigma_direction[k] ** 2 + sigma_rotation**2 + (sd / 5.0) ** 2
+            mk = dc**2 / s2 + sa**2 / a2
+            e0 = abs(nx * endpoints[k, 0, 0] + ny * endpoints[k, 0, 1] + nz * endpoints[k, 0, 2] + d)
+            e1 = abs(nx * endpoints[k, 1, 0] + ny * endpoints[k, 1, 1] + nz * endpoints[k, 1, 2] + d)
+            cap = max_endpoint_distance + 3.0 * sd + 3.0 * sigma_lever * seg_range[k]
+            m2[j], dist[k, j], sig_d2[k, j] = mk, dc, s2
+            if (mk < chi2) and (e0 < cap) and (e1 < cap) and facing[j]:
+                # insertion by increasing m2 (few candidates), after the equal ones
+                q = c_n
+                while q > 0 and m2[cols[n + q - 1]] > mk:
+                    cols[n + q] = cols[n + q - 1]
+                    q -= 1
+                cols[n + q] = j
+                c_n += 1
+        n += c_n
+        start[k + 1] = n
+    cells = np.empty((n, 3, 2), dtype=np.int64)
+    for k in range(k_n):
+        for i in range(start[k], start[k + 1]):
+            j = cols[i]
+            for q in range(3):
+                if q < 2:
+                    px, py, pz = endpoints[k, q, 0], endpoints[k, q, 1], endpoints[k, q, 2]
+                else:
+                    px, py, pz = centroid[k, 0], centroid[k, 1], centroid[k, 2]
+                pu = px * plane_u[j, 0] + py * plane_u[j, 1] + pz * plane_u[j, 2]
+                pv = px * plane_v[j, 0] + py * plane_v[j, 1] + pz * plane_v[j, 2]
+                cells[i, q, 0] = int(np.floor(pu / cell_size))
+                cells[i, q, 1] = int(np.floor(pv / cell_size))
+    return start, cols[:n].copy(), cells, dist, sig_d2
+
+
+@nb.njit(cache=True)
+def _dot3(normals: FloatArray, a: int, b: int) -> float:
+    """``normals[a] @ normals[b]`` as numpy computes it for 3-vectors (in order, no fused terms)."""
+    return normals[a, 0] * normals[b, 0] + normals[a, 1] * normals[b, 1] + normals[a, 2] * normals[b, 2]
+
+
+@nb.njit(cache=True)
+def family_labels(normals: FloatArray, used: IntArray, cos_min: float) -> IntArray:
+    """``parallel_choice.families`` as an array (P,): each column of ``used`` (sorted) labelled
+    with the smallest column of its family (normals' dot above ``cos_min``), -1 elsewhere."""
+    label = np.full(normals.shape[0], -1, dtype=np.int64)
+    fams = np.empty(used.shape[0], dtype=np.int64)  # the family labels, increasing
+    f_n = 0
+    for i in range(used.shape[0]):
+        j = used[i]
+        label[j] = j
+        for q in range(f_n):
+            if _dot3(normals, j, fams[q]) > cos_min:
+                label[j] = fams[q]
+                break
+        if label[j] == j:
+            fams[f_n] = j
+            f_n += 1
+    return label
+
+
+@nb.njit(cache=True)
+def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: FloatArray, weight: FloatArray,
+                   tau: FloatArray, tau_host: FloatArray, hosts: BoolArray, has_hosts: bool, sp2: float,
+                   outlier_nats: float) -> tuple[float, int]:
+    """``parallel_choice._common_offset`` for one family: member ``i`` is segment ``m_seg[i]``
+    with its candidates ``m_cols[m_start[i]:m_start[i + 1]]`` of the family."""
+    m_n = m_seg.shape[0]
+    n_h = m_start[m_n] + 1
+    hyps = np.empty(n_h)
+    hyps[0] = 0.0
+    for i in range(m_n):
+        for q in range(m_start[i], m_start[i + 1]):
+            hyps[q + 1] = dist[m_seg[i], m_cols[q]]
+    # sorted; a repeated hypothesis scores the same and is never strictly better, as the set's one
+    hyps = np.sort(hyps)
+    best_score, delta, support = -np.inf, 0.0, 0
+    for hi in range(n_h):
+        h = hyps[hi]
+        w_in, n_in, acc = 0.0, 0, 0.0
+        for i in range(m_n):
+            k = m_seg[i]
+            lo, up = m_start[i], m_start[i + 1]
+            best_q, r = lo, dist[k, m_cols[lo]] - h
+            for q in range(lo + 1, up):
+                rq = dist[k, m_cols[q]] - h
+                if abs(rq) < abs(r):
+                    best_q, r = q, rq
+            if abs(r) < tau[k]:
+                n_in += 1
+                if not (has_hosts and hosts[m_cols[best_q]]) or abs(r) < tau_host[k]:
+                    w_in += weight[k]
+                    acc += weight[k] * (h + r)
+        score = n_in * outlier_nats - 0.5 * h * h / sp2
+        if score > best_score:
+            best_score, support = score, n_in
+            delta = acc / w_in if w_in > 0 else h
+    return delta, support
+
+
+@nb.njit(cache=True)
+def choose_columns(
+    start: IntArray, cols: IntArray, keep: BoolArray, dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
+    seg_range: FloatArray, has_range: bool, normals: FloatArray, hosts: BoolArray, has_hosts: bool,
+    rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float, cos_min: float,
+    log_ratio: float, outlier_nats: float, walls_only: bool, two: float,
+) -> tuple[IntArray, BoolArray]:
+    """``parallel_choice.choose`` (which documents it) on candidate lists given as pairs: segment
+    ``k``'s candidates are the ``cols[i]``, ``start[k] <= i < start[k + 1]``, where ``keep[i]``.
+    ``rel2``, ``host2`` and ``sp2`` are the squares of ``relative_sigma``, ``host_sigma`` and the
+    offset prior's sigma, ``log_ratio`` the log of ``ratio``, ``cos_min`` the cosine of
+    ``PARALLEL_DEG``; ``seg_range`` is used with ``has_range``, ``hosts`` with ``has_hosts``.
+    Returns per segment its column (``NONE``, ``HELD``) and whether it may grow the extent."""
+    k_n, p_n = start.shape[0] - 1, normals.shape[0]
+    column = np.full(k_n, NONE, dtype=np.int64)
+    grows = np.zeros(k_n, dtype=np.bool_)
+    s_rel = np.empty(k_n)
+    tau = np.empty(k_n)
+    tau_host = np.empty(k_n)
+    for k in range(k_n):
+        lever = (sigma_lever * seg_range[k]) ** 2 if has_range else 0.0
+        hlever = (host_lever * seg_range[k]) ** 2 if has_range else 0.0
+        s_rel[k] = math.sqrt(sigma_own[k] ** 2 + rel2 + lever)
+        tau[k] = gate * s_rel[k]
+        tau_host[k] = gate * math.sqrt(sigma_own[k] ** 2 + host2 + hlever)
+    seen = np.zeros(p_n, dtype=np.bool_)
+    for i in range(cols.shape[0]):
+        if keep[i]:
+            seen[cols[i]] = True
+    used = np.flatnonzero(seen)
+    if used.shape[0] == 0:
+        return column, grows
+    label = family_labels(normals, used, cos_min)
+    n_pairs = cols.shape[0]
+    m_seg = np.empty(k_n, dtype=np.int64)
+    m_start = np.empty(k_n + 1, dtype=np.int64)
+    m_cols = np.empty(n_pairs, dtype=np.int64)
+    rho = np.empty(p_n)
+    ok = np.empty(p_n, dtype=np.int64)
+    for f in used:
+        if label[f] != f:
+            continue
+        # the family's members: the segments with a candidate in it, and those candidates in order
+        m_n, n = 0, 0
+        m_start[0] = 0
+        for k in range(k_n):
+            n0 = n
+            for i in range(start[k], start[k + 1]):
+                if keep[i] and label[cols[i]] == f:
+                    m_cols[n] = cols[i]
+                    n += 1
+            if n > n0:
+                m_seg[m_n] = k
+                m_n += 1
+                m_start[m_n] = n
+        if m_n == 0:
+            continue
+        if walls_only and abs(normals[f, 2]) > 0.5:
+            for i in range(m_n):
+                k = m_seg[i]
+                if column[k] == NONE:
+                    column[k], grows[k] = m_cols[m_start[i]], True
+            continue
+        delta, support = _common_offset(m_seg[:m_n], m_start[: m_n + 1], m_cols, dist, weight, tau, tau_host, hosts,
+                                        has_hosts, sp2, outlier_nats)
+        for i in range(m_n):
+            k = m_seg[i]
+            lo, c_n = m_start[i], m_start[i + 1] - m_start[i]
+            o_n = 0
+            for q in range(c_n):
+                rho[q] = dist[k, m_cols[lo + q]] - delta
+                if abs(rho[q]) < tau[k]:
+                    # stable insertion by increasing |rho|
+                    p = o_n
+                    while p > 0 and abs(rho[ok[p - 1]]) > abs(rho[q]):
+                        ok[p] = ok[p - 1]
+                        p -= 1
+                    ok[p] = q
+                    o_n += 1
+            if o_n == 0:
+                continue  # on none of this family's planes: NONE unless another family takes it
+            if column[k] >= 0 or column[k] == HELD:
+                continue  # taken by a family seen earlier
+            a = ok[0]
+            decided = True
+            for p in range(1, o_n):
+                b = ok[p]
+                if abs(rho[b] - rho[a]) < s_rel[k]:
+                    continue  # the same surface
+                llr = 0.5 * (math.pow(rho[b], two) - math.pow(rho[a], two)) / math.pow(s_rel[k], two)
+                if llr < log_ratio:
+                    decided = False
+                    break
+            if decided and has_hosts and hosts[m_cols[lo + a]] and abs(rho[a]) >= tau_host[k]:
+                decided = False
+            if not decided:
+                column[k] = HELD
+                continue
+            column[k] = m_cols[lo + a]
+            grows[k] = c_n == 1 or (support >= 2 and o_n == 1)
+    return column, grows
+
+
+@nb.njit(cache=True)
+def nearest_unambiguous(start: IntArray, cols: IntArray, keep: BoolArray, dist: FloatArray, sig_d2: FloatArray,
+                        normals: FloatArray, ids: IntArray, same_normal: float) -> IntArray:
+    """Per segment the plane id (``ids`` per column) of its nearest candidate (the first kept of
+    ``cols[start[k]:start[k + 1]]``), or ``NONE`` when none is kept or a later kept one lies on
+    another surface: normals' dot not above ``same_normal``, or centroid distances apart by 3
+    sigmas (``sig_d2``) of the nearest's or more."""
+    k_n = start.shape[0] - 1
+    out = np.full(k_n, NONE, dtype=np.int64)
+    for k in range(k_n):
+        best = -1
+        ambiguous = False
+        for i in range(start[k], start[k + 1]):
+            if not keep[i]:
+                continue
+            j = cols[i]
+            if best < 0:
+                best = j
+                continue
+            same = (_dot3(normals, best, j) > same_normal) and abs(dist[k, best] - dist[k, j]) < 3.0 * math.sqrt(
+                sig_d2[k, best])
+            if not same:
+                ambiguous = True
+                break
+        if best >= 0 and not ambiguous:
+            out[k] = ids[best]
+    return out
