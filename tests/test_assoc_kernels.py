@@ -6,6 +6,8 @@ candidates, one segment, an empty scan, no active plane, children of a host wall
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,7 +16,13 @@ from numpy.typing import NDArray
 from slam.config import SlamConfig
 from slam.frontend import assoc_kernels as ak
 from slam.frontend import kernels as fk
-from slam.frontend.association import Association, Gates, WorldSegments, associate_scan
+from slam.frontend.association import (
+    Association,
+    Gates,
+    ScanAssociator,
+    WorldSegments,
+    associate_scan,
+)
 from slam.frontend.parallel_choice import (
     HELD,
     NONE,
@@ -475,3 +483,72 @@ def test_family_labels_match_families() -> None:
         label = ak.family_labels(normals, np.array(used, dtype=np.int64), cos_min)
         assert {j: int(label[j]) for j in used} == families(normals, used) == _families_reference(normals, used)
     assert OUTLIER_NATS > 0
+
+
+class _Knots:
+    """A stand-in for ``KnotMirror``: ``place`` row by row (a rotation and a time-dependent shift),
+    ``pose_at`` a pose per stamp; it counts the points placed."""
+
+    odometer = 0.0
+
+    def __init__(self) -> None:
+        self.R = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+        self.placed = 0
+
+    def place(self, points_body: FloatArray, times: FloatArray) -> FloatArray:
+        self.placed += points_body.shape[0]
+        return points_body @ self.R.T + times[:, None] * np.array([0.3, -0.1, 0.05])
+
+    def pose_at(self, t: float) -> FloatArray:
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = [t, 2.0 * t, -t]
+        return T
+
+
+def _pending(rng: np.random.Generator, serial: int) -> SimpleNamespace:
+    k = int(rng.integers(1, 8))
+    counts = rng.integers(2, 30, k)
+    offsets = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    m = int(offsets[-1])
+    segs = SimpleNamespace(offsets=offsets, points_body=rng.normal(size=(m, 3)), times=rng.uniform(0.0, 1.0, m),
+                           virtual_body=rng.normal(size=(k, 2, 3)), virtual_times=rng.uniform(0.0, 1.0, (k, 2)),
+                           n_segments=k, stamp=float(rng.uniform()), scanner=int(rng.integers(0, 2)))
+    return SimpleNamespace(serial=serial, segs=segs)
+
+
+def _summaries_reference(knots: _Knots, T_body_scanner: list[FloatArray], ps: list[Any]) -> list[Any]:
+    """``ScanAssociator.summaries`` before the gathered points were kept."""
+    pts, tms, sizes = [], [], []
+    for p in ps:
+        segs = p.segs
+        ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
+        pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
+        tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
+        sizes += [2 * segs.n_segments, 2 * segs.n_segments]
+    w = np.split(knots.place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
+    return [(w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
+             knots.pose_at(p.segs.stamp) @ T_body_scanner[p.segs.scanner][:, 3]) for i, p in enumerate(ps)]
+
+
+def test_summaries_match_the_reference_over_overlapping_calls() -> None:
+    """The tracking's and the observation's calls share scans (their gathered points are kept);
+    every call's summaries are those of the old code, whatever was kept."""
+    rng = np.random.default_rng(3)
+    knots = _Knots()
+    T_bs = [np.eye(4), np.eye(4)]
+    T_bs[1][:3, 3] = [0.1, 0.2, 0.3]
+    sa = ScanAssociator(PlaneMap(), knots, T_bs, 0.003, 4, dict)  # type: ignore[arg-type]
+    scans = [_pending(rng, i) for i in range(400)]
+    for first in range(0, 390, 3):
+        ps = scans[first : first + int(rng.integers(1, 8))]
+        got = sa.summaries(ps)  # type: ignore[arg-type]
+        ref = _summaries_reference(knots, T_bs, ps)
+        assert len(got) == len(ref)
+        for g, r in zip(got, ref, strict=True):
+            for a, b in zip(g, r, strict=True):
+                assert a.shape == b.shape and np.array_equal(a, b)
+    scans[5] = SimpleNamespace(serial=5, segs=_pending(rng, 5).segs)  # a serial seen before, other segments
+    got = sa.summaries([scans[5]])  # type: ignore[list-item]
+    np.testing.assert_array_equal(got[0][0], _summaries_reference(knots, T_bs, [scans[5]])[0][0])
+    assert sa.summaries([]) == []

@@ -287,3 +287,88 @@ def nearest_unambiguous(start: IntArray, cols: IntArray, keep: BoolArray, dist: 
         if best >= 0 and not ambiguous:
             out[k] = ids[best]
     return out
+
+
+@nb.njit(cache=True)
+def scan_pairs(
+    centroid: FloatArray, direction: FloatArray, endpoints: FloatArray, sigma_centroid: FloatArray,
+    sigma_direction: FloatArray, seg_range: FloatArray, origin: FloatArray, rows: FloatArray,
+    horizontal: BoolArray, ids: IntArray, child_rows: IntArray, odometer: float, drift_rate: float,
+    drift_rate_vertical: float, max_drift_sigma: float, extent_margin_cells: int, max_extra_cells: int,
+    child_margin_cells: int, cell_size: float, sigma_pose: float, sigma_rotation: float, sigma_lever: float,
+    max_endpoint_distance: float, chi2: float,
+) -> tuple[IntArray, IntArray, IntArray, FloatArray, FloatArray, IntArray, IntArray]:
+    """:func:`gate_pairs` for the segments of one scan against the active planes' ``rows`` (P, 12)
+    (``PlaneMap.active_rows``: normal, offset, offset sigma, odometer when last seen, axes u and
+    v; world frame), with the drift since each plane was last seen (``odometer`` now; the vertical
+    rate for the ``horizontal`` planes) in their sigmas and extent margins. Returns ``start``,
+    ``cols``, ``cells``, ``dist`` and ``sig_d2`` as :func:`gate_pairs`, and per pair its plane's
+    id (``ids`` per row) and extent margin (cells; ``child_margin_cells`` for the ``child_rows``
+    when >= 0)."""
+    p_n = rows.shape[0]
+    normals = np.empty((p_n, 3))
+    offsets = np.empty(p_n)
+    sigma_plane = np.empty(p_n)
+    sig_drift = np.empty(p_n)
+    plane_u = np.empty((p_n, 3))
+    plane_v = np.empty((p_n, 3))
+    dilate = np.empty(p_n, dtype=np.int64)
+    for j in range(p_n):
+        for r in range(3):
+            normals[j, r] = rows[j, r]
+            plane_u[j, r] = rows[j, 6 + r]
+            plane_v[j, r] = rows[j, 9 + r]
+        offsets[j] = rows[j, 3]
+        sigma_plane[j] = rows[j, 4]
+        rate = drift_rate_vertical if horizontal[j] else drift_rate
+        sig_drift[j] = min(rate * max(odometer - rows[j, 5], 0.0), max_drift_sigma)
+        # the extent margin grown with the drift since the plane was seen (cells)
+        dilate[j] = extent_margin_cells + min(int(3.0 * sig_drift[j] / cell_size), max_extra_cells)
+    if child_margin_cells >= 0:
+        for q in range(child_rows.shape[0]):
+            dilate[child_rows[q]] = child_margin_cells
+    start, cols, cells, dist, sig_d2 = gate_pairs(
+        centroid, direction, endpoints, sigma_centroid, sigma_direction, seg_range, origin, normals, offsets,
+        sigma_plane, sig_drift, plane_u, plane_v, cell_size, sigma_pose, sigma_rotation, sigma_lever,
+        max_endpoint_distance, chi2)
+    pair_ids = np.empty(cols.shape[0], dtype=np.int64)
+    pair_dilate = np.empty(cols.shape[0], dtype=np.int64)
+    for i in range(cols.shape[0]):
+        pair_ids[i] = ids[cols[i]]
+        pair_dilate[i] = dilate[cols[i]]
+    return start, cols, cells, dist, sig_d2, pair_ids, pair_dilate
+
+
+@nb.njit(cache=True)
+def decide(
+    start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, dist: FloatArray, sig_d2: FloatArray,
+    rows: FloatArray, ids: IntArray, same_normal: float, with_choice: bool, veto: bool, sigma_own: FloatArray,
+    weight: FloatArray, seg_range: FloatArray, hosts: BoolArray, has_hosts: bool, rel2: float, host2: float, sp2: float,
+    gate: float, sigma_lever: float, host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float,
+    walls_only: bool, two: float,
+) -> tuple[IntArray, BoolArray]:
+    """The association of one scan's segments from their candidate pairs (:func:`scan_pairs`):
+    with the choice (``with_choice``) among the pairs over their extents as the choice takes
+    them (``keep``; :func:`choose_columns` with the scalars it documents), its plane ids and
+    grows; as a ``veto``, or without the choice, :func:`nearest_unambiguous` among the pairs over
+    their extents (``near``), kept where the choice agrees. Returns per segment its plane id
+    (``NONE``, ``HELD``) and whether it may grow the plane's extent."""
+    k_n = start.shape[0] - 1
+    normals = np.ascontiguousarray(rows[:, 0:3])
+    chosen = np.full(k_n, NONE, dtype=np.int64)
+    if with_choice:
+        column, grows = choose_columns(start, cols, keep, dist, sigma_own, weight, seg_range, True, normals, hosts,
+                                       has_hosts, rel2, host2, sp2, gate, sigma_lever, host_lever, cos_min, log_ratio,
+                                       outlier_nats, walls_only, two)
+        for k in range(k_n):
+            chosen[k] = ids[column[k]] if column[k] >= 0 else column[k]
+            grows[k] = grows[k] and column[k] >= 0
+        if not veto:
+            return chosen, grows
+    out = nearest_unambiguous(start, cols, near, dist, sig_d2, normals, ids, same_normal)
+    grows = np.empty(k_n, dtype=np.bool_)
+    for k in range(k_n):
+        if with_choice and out[k] != chosen[k]:
+            out[k] = NONE  # the choice as a veto: the nearest candidate where the choice agrees
+        grows[k] = out[k] >= 0
+    return out, grows

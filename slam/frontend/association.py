@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,9 +30,10 @@ from numpy.typing import NDArray
 from slam.frontend import assoc_kernels as ak
 from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
-from slam.frontend.parallel_choice import NONE, ChoiceParams, choose_pairs
+from slam.frontend.observations import ScanSegments
+from slam.frontend.parallel_choice import NONE, ChoiceParams, ChoiceScalars, choice_scalars
 from slam.frontend.pending import PendingScan
-from slam.frontend.planemap import KIND_WALL, PlaneMap
+from slam.frontend.planemap import KIND_WALL, Plane, PlaneMap
 
 FloatArray = NDArray[np.float64]
 CHI2_2DOF_99 = 9.21
@@ -146,17 +148,15 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     cells are computed in one compiled pass (``slam.frontend.assoc_kernels.gate_pairs``); the
     extents (Python sets of cells) are then tested only for the pairs under the gates.
     """
-    out = np.full(segs.n, NONE, dtype=np.int64)
     active = pmap.active_planes()
     if not active or segs.n == 0:
-        return Association(out, np.zeros(segs.n, dtype=bool))
+        return Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
     # the active planes' arrays (world frame): normal, offset, offset sigma, odometer when last
     # seen, in-plane axes u and v
-    ids = [p.id for p in active]
+    ids, id_arr, pos, is_wall = _active_index(active)
     rows, horizontal = pmap.active_rows()
     child_rows: list[int] = []
     if children:
-        pos = {pid: j for j, pid in enumerate(ids)}
         child_rows = [pos[c] for c in children if c in pos]
         if gates.child_host_normal:
             for j in child_rows:
@@ -169,66 +169,76 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
                 c = c - (float(rows[j, 0:3] @ c) + rows[j, 3]) * rows[j, 0:3]  # onto the child's plane
                 rows[j, 0:3] = n
                 rows[j, 3] = -float(n @ c)
-    normals = np.ascontiguousarray(rows[:, 0:3])
-    since = odometer - rows[:, 5]
-    rate = np.where(horizontal, gates.drift_rate_vertical, gates.drift_rate)
-    sig_drift = np.minimum(rate * np.maximum(since, 0.0), gates.max_drift_sigma)
-    # the candidates (cols[start[k]:start[k + 1]] by increasing m2) with their extent cells
-    start, cols, cells, dist_c, sig_d2 = ak.gate_pairs(
+    g = _gate_scalars(gates)
+    # the candidates (cols[start[k]:start[k + 1]] by increasing m2) with their extent cells, and
+    # per pair its plane's id and extent margin (grown with the drift since the plane was seen)
+    start, cols, cells, dist_c, sig_d2, pair_id, pair_dilate = ak.scan_pairs(
         segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
-        segs.origin, normals, np.ascontiguousarray(rows[:, 3]), np.ascontiguousarray(rows[:, 4]), sig_drift,
-        np.ascontiguousarray(rows[:, 6:9]), np.ascontiguousarray(rows[:, 9:12]), float(pmap.cell_size),
-        float(gates.sigma_pose), float(gates.sigma_rotation), float(gates.sigma_lever),
-        float(gates.max_endpoint_distance), float(gates.chi2),
-    )
+        segs.origin, rows, horizontal, id_arr, np.array(child_rows, dtype=np.int64), float(odometer), *g[0],
+        float(pmap.cell_size), *g[1])
     if cols.size == 0:
-        return Association(out, np.zeros(segs.n, dtype=bool))
-    cell = pmap.cell_size
-    # per plane: the extent margin grown with the drift since it was seen (cells)
-    dilate = gates.extent_margin_cells + np.minimum((3.0 * sig_drift / cell).astype(np.int64), gates.max_extra_cells)
-    if gates.child_margin_cells >= 0:
-        dilate[child_rows] = gates.child_margin_cells
-    id_arr = np.asarray(ids, dtype=np.int64)
+        return Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
     # every candidate pair's end points and centroid against its plane's (dilated) extent, once
     overlaps = pmap.overlaps_cells
-    pair_ids = id_arr[cols].tolist()
+    pair_ids = pair_id.tolist()
     pair_cells = cells.tolist()
-    pair_dilate = dilate[cols].tolist()
-    near = np.array([overlaps(i, c, d) for i, c, d in zip(pair_ids, pair_cells, pair_dilate, strict=True)], dtype=bool)
-    same_normal = float(np.cos(np.radians(2.0)))
-    if gates.choice is not None:
+    pair_dil = pair_dilate.tolist()
+    near = np.array([overlaps(i, c, d) for i, c, d in zip(pair_ids, pair_cells, pair_dil, strict=True)], dtype=bool)
+    keep = near
+    choice = gates.choice
+    hosts = _NO_HOSTS
+    if choice is not None:
         # the choice between parallel planes from the segments' own lines, among the candidates
         # over their (dilated) extents; a door's or board's segments end at its edges (the
         # segmenter breaks there): both end points and the centroid of a segment on it lie within
         # its extent (dilated by the child margin), where a wall's segment runs on past it
-        keep = near
         if child_rows:
             is_child = np.zeros(len(ids), dtype=bool)
             is_child[child_rows] = True
             keep = near.copy()
             for i in np.flatnonzero(near & is_child[cols]).tolist():
-                keep[i] = all(overlaps(pair_ids[i], [c], pair_dilate[i]) for c in pair_cells[i])
-        weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
+                keep[i] = all(overlaps(pair_ids[i], [c], pair_dil[i]) for c in pair_cells[i])
         # the walls that may carry a door or board (not the children themselves, nor floors and
         # ceilings); not in the tracking's veto, whose poses are still the prediction's
-        hosts = None
-        if gates.choice.host_test and not gates.choice.veto:
-            hosts = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
+        if choice.host_test and not choice.veto:
+            hosts = is_wall.copy()
             hosts[child_rows] = False
-        ch = choose_pairs(start, cols, keep, dist_c, segs.sigma_centroid, weight, normals, gates.choice, segs.range,
-                          hosts)
-        chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
-        if not gates.choice.veto:
-            return Association(chosen, ch.grows & (ch.column >= 0))
-    else:
-        chosen = None
-    # the nearest candidate over its extent, unless another lies on a different surface (the same
-    # surface seen twice, a duplicate awaiting merge, is not ambiguity)
-    out = ak.nearest_unambiguous(start, cols, near, dist_c, sig_d2, normals, id_arr, same_normal)
-    if chosen is not None:
-        # the choice as a veto: the nearest candidate where the choice agrees, else none
-        out = np.where(out == chosen, out, NONE)
-    return Association(out, out >= 0)
+    weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
+    # the choice (compiled: parallel_choice.choose_pairs documents it), its ids; as a veto, or
+    # without the choice, the nearest candidate over its extent unless another lies on a different
+    # surface (the same surface seen twice, a duplicate awaiting merge, is not ambiguity)
+    out, grows = ak.decide(start, cols, near, keep, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL, choice is not None,
+                           choice is not None and choice.veto, segs.sigma_centroid, weight, segs.range, hosts,
+                           hosts is not _NO_HOSTS, *g[2])
+    return Association(out, grows)
+
+
+_SAME_NORMAL = float(np.cos(np.radians(2.0)))  # normals of one surface seen twice
+_NO_HOSTS = np.zeros(0, dtype=bool)
+# the index of the last active-plane list seen (``PlaneMap.active_planes`` keeps one list until a
+# plane is added or merged): the list, its ids, as an array, row by id, and which are walls
+_active_cache: list[tuple[list[Plane], list[int], NDArray[np.int64], dict[int, int], NDArray[np.bool_]]] = []
+
+
+def _active_index(active: list[Plane]) -> tuple[list[int], NDArray[np.int64], dict[int, int], NDArray[np.bool_]]:
+    """The active planes' ids (a list and an array), row by id and whether each is a wall."""
+    if not _active_cache or _active_cache[0][0] is not active:
+        ids = [p.id for p in active]
+        _active_cache[:] = [(active, ids, np.asarray(ids, dtype=np.int64), {pid: j for j, pid in enumerate(ids)},
+                             np.array([p.kind == KIND_WALL for p in active], dtype=bool))]
+    return _active_cache[0][1:]
+
+
+@lru_cache(maxsize=16)
+def _gate_scalars(gates: Gates) -> tuple[tuple[float, float, float, int, int, int], tuple[float, float, float, float, float],
+                                          ChoiceScalars]:
+    """The gates' numbers as ``scan_pairs`` and ``decide`` take them (the choice's squares as
+    ``parallel_choice.choose`` computed them)."""
+    drift = (float(gates.drift_rate), float(gates.drift_rate_vertical), float(gates.max_drift_sigma),
+             int(gates.extent_margin_cells), int(gates.max_extra_cells), int(gates.child_margin_cells))
+    tests = (float(gates.sigma_pose), float(gates.sigma_rotation), float(gates.sigma_lever),
+             float(gates.max_endpoint_distance), float(gates.chi2))
+    return drift, tests, choice_scalars(gates.choice)
 
 
 # per scan, placed in the world: virtual points (k, 2, 3), end points (k, 2, 3), the scanner's
@@ -257,6 +267,7 @@ class ScanAssociator:
         self._point_sigma = point_sigma
         self._min_segment_points = min_segment_points
         self._children = children
+        self._gathered: dict[int, tuple[FloatArray, FloatArray, ScanSegments]] = {}
 
     def summaries(self, ps: list[PendingScan]) -> list[ScanSummary]:
         """Per scan, with the current knots (world frame): its segments' virtual points (k, 2, 3),
@@ -267,19 +278,34 @@ class ScanAssociator:
         takes another (matrix-vector) route through ``exp_coefficients``, with other last bits."""
         if not ps:
             return []
-        pts, tms, sizes = [], [], []
+        # per scan its virtual points and end points (body frame) with their times, gathered once
+        # (the tracking's pre-association and the observation place the same scans)
+        gathered = []
         for p in ps:
-            segs = p.segs
-            ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
-            pts += [segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx]]
-            tms += [segs.virtual_times.ravel(), segs.times[ends_idx]]
-            sizes += [2 * segs.n_segments, 2 * segs.n_segments]
-        w = np.split(self._knots.place(np.concatenate(pts), np.concatenate(tms)), np.cumsum(sizes)[:-1])
-        return [
-            (w[2 * i].reshape(-1, 2, 3), w[2 * i + 1].reshape(-1, 2, 3),
-             self._knots.pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3])
-            for i, p in enumerate(ps)
-        ]
+            hit = self._gathered.get(p.serial)
+            if hit is None or hit[2] is not p.segs:
+                hit = self._gathered[p.serial] = self._gather(p)
+            gathered.append(hit)
+        if len(self._gathered) > 256:  # the scans of the last few knots are enough
+            self._gathered = dict(list(self._gathered.items())[-128:])
+        w = self._knots.place(np.concatenate([g[0] for g in gathered]), np.concatenate([g[1] for g in gathered]))
+        out: list[ScanSummary] = []
+        o = 0
+        for p in ps:
+            m = 2 * p.segs.n_segments
+            out.append((w[o : o + m].reshape(-1, 2, 3), w[o + m : o + 2 * m].reshape(-1, 2, 3),
+                        self._knots.pose_at(p.segs.stamp) @ self._T_body_scanner[p.segs.scanner][:, 3]))
+            o += 2 * m
+        return out
+
+    @staticmethod
+    def _gather(p: PendingScan) -> tuple[FloatArray, FloatArray, ScanSegments]:
+        """The scan's virtual points (2k, 3) then end points (2k, 3), body frame, and their times
+        (4k,)."""
+        segs = p.segs
+        ends_idx = np.stack((segs.offsets[:-1], segs.offsets[1:] - 1), axis=1).ravel()
+        return (np.concatenate((segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx])),
+                np.concatenate((segs.virtual_times.ravel(), segs.times[ends_idx])), segs)
 
     def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> Association:
         """The scan's :class:`Association` under ``gates``, from its ``summary``."""

@@ -30,6 +30,7 @@ candidate passed.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -114,13 +115,27 @@ def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArra
     k_n = start.shape[0] - 1
     column, grows = ak.choose_columns(
         start, cols, np.ascontiguousarray(keep, dtype=np.bool_), np.ascontiguousarray(dist, dtype=np.float64),
-        np.ascontiguousarray(sigma_own, dtype=np.float64),
-        np.ascontiguousarray(weight, dtype=np.float64),
+        np.ascontiguousarray(sigma_own, dtype=np.float64), np.ascontiguousarray(weight, dtype=np.float64),
         np.zeros(k_n) if seg_range is None else np.ascontiguousarray(seg_range, dtype=np.float64), seg_range is not None,
         np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3),
         np.zeros(normals.shape[0], dtype=bool) if hosts is None else np.ascontiguousarray(hosts, dtype=np.bool_),
-        hosts is not None, params.relative_sigma**2, params.host_sigma**2, max(params.sigma_pose, 1e-6) ** 2,
-        float(params.gate), float(params.sigma_lever), float(params.host_lever), float(np.cos(np.radians(PARALLEL_DEG))),
-        float(np.log(params.ratio)), OUTLIER_NATS, bool(params.walls_only), 2.0,
+        hosts is not None, *choice_scalars(params),
     )
     return Choice(column, grows)
+
+
+ChoiceScalars = tuple[float, float, float, float, float, float, float, float, float, bool, float]
+
+
+@lru_cache(maxsize=16)
+def choice_scalars(params: ChoiceParams | None) -> ChoiceScalars:
+    """The numbers of ``params`` as ``assoc_kernels.choose_columns`` takes them after ``hosts``:
+    the squares of ``relative_sigma``, ``host_sigma`` and the offset prior's sigma (Python's or
+    numpy's scalar ``** 2``: the C library's ``pow``), ``gate``, ``sigma_lever``, ``host_lever``,
+    the cosine of ``PARALLEL_DEG``, the log of ``ratio``, ``OUTLIER_NATS``, ``walls_only`` and
+    the exponent 2 (at run time); zeros without a choice."""
+    if params is None:
+        return (0.0,) * 8 + (OUTLIER_NATS, False, 2.0)
+    return (params.relative_sigma**2, params.host_sigma**2, max(params.sigma_pose, 1e-6) ** 2, float(params.gate),
+            float(params.sigma_lever), float(params.host_lever), float(np.cos(np.radians(PARALLEL_DEG))),
+            float(np.log(params.ratio)), OUTLIER_NATS, bool(params.walls_only), 2.0)
