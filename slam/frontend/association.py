@@ -144,9 +144,10 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     which the child's own tilt cannot move), and with ``gates.child_margin_cells`` >= 0 its
     extent is dilated by that many cells only (a door's extent does not reach the next board).
 
-    The per-pair gates (angle and distance, end points, facing side) and every pair's extent
-    cells are computed in one compiled pass (``slam.frontend.assoc_kernels.gate_pairs``); the
-    extents (Python sets of cells) are then tested only for the pairs under the gates.
+    The per-pair gates (angle and distance, end points, facing side) and the extent cells of the
+    pairs under them are computed in one compiled pass (``slam.frontend.assoc_kernels.scan_pairs``);
+    the extents (the plane map's) are then tested once per such pair, and the choice and the
+    nearest candidate are made in one compiled call (``assoc_kernels.decide``).
     """
     active = pmap.active_planes()
     if not active or segs.n == 0:

@@ -75,7 +75,8 @@ class Choice:
 
 def families(normals: FloatArray, columns: list[int]) -> dict[int, int]:
     """Column -> family label (the smallest column of its family) for the planes ``columns``
-    (rows of ``normals`` (P, 3), world frame): parallel within ``PARALLEL_DEG``, same facing."""
+    (rows of ``normals`` (P, 3), world frame): parallel within ``PARALLEL_DEG``, same facing.
+    (:func:`choose` labels them in its compiled pass: ``assoc_kernels.family_labels``.)"""
     cos_min = float(np.cos(np.radians(PARALLEL_DEG)))
     label: dict[int, int] = {}
     for j in sorted(columns):
