@@ -194,10 +194,9 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         # segmenter breaks there): both end points and the centroid of a segment on it lie within
         # its extent (dilated by the child margin), where a wall's segment runs on past it
         if child_rows:
-            is_child = np.zeros(len(ids), dtype=bool)
-            is_child[child_rows] = True
             keep = near.copy()
-            for i in np.flatnonzero(near & is_child[cols]).tolist():
+            whole = set(child_rows)
+            for i in [i for i, (j, ok) in enumerate(zip(cols.tolist(), near.tolist(), strict=True)) if ok and j in whole]:
                 keep[i] = all(overlaps(pair_ids[i], [c], pair_dil[i]) for c in pair_cells[i])
         # the walls that may carry a door or board (not the children themselves, nor floors and
         # ceilings); not in the tracking's veto, whose poses are still the prediction's
