@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import batch_kernels as bk
+
 FloatArray = NDArray[np.float64]
 
 
@@ -78,6 +80,7 @@ class SegmentPool:
     items: list[PooledSegment] = field(default_factory=list)
     dropped: int = 0
     _tried: set[int] = field(default_factory=set)
+    _cache: tuple[list[PooledSegment], int, FloatArray, FloatArray, NDArray[np.int64]] | None = None
 
     def add(self, seg: PooledSegment) -> None:
         self.items.append(seg)
@@ -198,6 +201,21 @@ class SegmentPool:
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))), vertical_hypothesis=True)
 
+    def _arrays(self) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+        """The pooled segments' fitted lines (k, 2, 3) and samples (all of them, world frame) with
+        each one's first row (k + 1,) in them; kept while the pool is unchanged (``add`` only
+        appends to the list, the others replace it)."""
+        hit = self._cache
+        if hit is None or hit[0] is not self.items or hit[1] != len(self.items):
+            items = self.items
+            lines = np.array([s.line for s in items], dtype=np.float64).reshape(-1, 2, 3)
+            samples = np.concatenate([np.empty((0, 3)), *(s.samples for s in items)]).astype(np.float64, copy=False)
+            start = np.zeros(len(items) + 1, dtype=np.int64)
+            np.cumsum(np.array([s.samples.shape[0] for s in items], dtype=np.int64), out=start[1:])
+            hit = (items, len(items), lines, samples, start)
+            self._cache = hit
+        return hit[2], hit[3], hit[4]
+
     def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_]) -> NewPlane | None:
         p = self.params
         items = self.items
@@ -208,11 +226,11 @@ class SegmentPool:
         U = np.array([items[i].direction for i in cand])
         SN = np.array([items[i].scan_normal for i in cand])
         ok = (np.abs(U @ n) <= np.sin(p.coplanar_angle)) & (np.abs(SN @ n) <= np.cos(p.min_scan_plane_angle))
-        members = []
-        for i in cand[ok]:
-            s = items[i]
-            if on_plane(s, n, d, p):
-                members.append(s)
+        lines, samples, sample_start = self._arrays()
+        idx = cand[ok]
+        lying = bk.on_plane_many(lines, samples, sample_start, idx, np.ascontiguousarray(n, dtype=np.float64),
+                                 float(d), p.coplanar_distance, p.sample_distance)
+        members = [items[i] for i in idx[lying].tolist()]
         if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
             return None
         pts = np.vstack([s.samples for s in members])
