@@ -225,3 +225,35 @@ def test_on_plane_many_matches_on_plane() -> None:
         assert got.tolist() == want
         n_total += sum(want)
     assert n_total > 10
+
+
+def _overlaps_reference(ext: set[tuple[int, int]], cells: list[list[int]], dilate: int) -> bool:
+    """The dilated-extent test by brute force."""
+    if not ext:
+        return False
+    return any(abs(eu - c[0]) <= max(dilate, 0) and abs(ev - c[1]) <= max(dilate, 0) for eu, ev in ext for c in cells)
+
+
+def test_overlaps_cells_matches_brute_force_as_the_extent_grows() -> None:
+    rng = np.random.default_rng(13)
+    pm = PlaneMap()
+    pid = pm.add(np.array([0.0, 1.0, 0.0]), 0.0, 1, 0.0, 0.0).id
+    assert not pm.overlaps_cells(pid, [[0, 0]], 3)  # no extent yet
+    hits = 0
+    for _ in range(30):
+        pm.extend(pid, rng.normal(0.0, 1.0, (int(rng.integers(1, 6)), 3)))
+        for _ in range(20):
+            cells = rng.integers(-12, 12, (int(rng.integers(0, 4)), 2)).tolist()
+            dilate = int(rng.integers(-1, 4))
+            got = pm.overlaps_cells(pid, cells, dilate)
+            assert got == _overlaps_reference(pm.planes[pid].cells, cells, dilate)
+            hits += got
+    assert hits > 50
+
+
+def test_cross_rows_is_numpys_cross_bit_for_bit() -> None:
+    rng = np.random.default_rng(14)
+    for n in (0, 1, 2, 7, 100):
+        a = rng.normal(size=3) * rng.uniform(0.01, 100.0)
+        b = rng.normal(size=(n, 3)) * rng.uniform(0.01, 100.0)
+        np.testing.assert_array_equal(bk.cross_rows(a, b), np.cross(a, b).reshape(-1, 3))

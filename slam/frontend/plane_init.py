@@ -120,6 +120,7 @@ class SegmentPool:
         C = np.array([s.centroid for s in items])
         U = np.array([s.direction for s in items])
         serial = np.array([s.scan_serial for s in items])
+        SN = np.array([s.scan_normal for s in items])
         # a segment already tried as a seed is still found as a partner of newer seeds
         for a in range(len(items) - 1, -1, -1):
             if id(items[a]) in self._tried:
@@ -131,7 +132,7 @@ class SegmentPool:
             other[a] = False
             if not other.any():
                 continue
-            cross = np.cross(ua, U)
+            cross = bk.cross_rows(ua, U)
             sin_ab = np.linalg.norm(cross, axis=1)
             sep = C - ca
             sep_perp = sep - (sep @ ua)[:, None] * ua
@@ -139,7 +140,7 @@ class SegmentPool:
             normals = np.where(
                 (sin_ab > np.sin(p.min_angle_between))[:, None],
                 cross / np.maximum(sin_ab, 1e-12)[:, None],
-                np.cross(ua, sep_perp) / np.maximum(sep_norm, 1e-12)[:, None],
+                bk.cross_rows(ua, sep_perp) / np.maximum(sep_norm, 1e-12)[:, None],
             )
             usable = other & ((sin_ab > np.sin(p.min_angle_between)) | (sep_norm > p.min_parallel_separation))
             # coplanarity of b with the plane through a: b's centroid and direction
@@ -147,7 +148,6 @@ class SegmentPool:
             ang_b = np.abs(np.einsum("ij,ij->i", normals, U))
             # every segment lies in its scanner's scan plane: segments of one scanner at nearly
             # one pose are "coplanar" in that plane, which is no surface
-            SN = np.array([s.scan_normal for s in items])
             not_scan = (np.abs(np.einsum("ij,ij->i", normals, SN)) < np.cos(p.min_scan_plane_angle)) & (
                 np.abs(normals @ items[a].scan_normal) < np.cos(p.min_scan_plane_angle)
             )
@@ -155,7 +155,7 @@ class SegmentPool:
                 usable & not_scan & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle))
             )
             for b in cand[np.argsort(dist_b[cand])][: p.max_partners]:
-                plane = self._grow(a, int(b), normals[b], near)
+                plane = self._grow(a, int(b), normals[b], near, U, SN)
                 if plane is not None:
                     return _facing(plane, items[a].origin)
             if (p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance)
@@ -216,15 +216,19 @@ class SegmentPool:
             self._cache = hit
         return hit[2], hit[3], hit[4]
 
-    def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_]) -> NewPlane | None:
+    def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_], U_all: FloatArray,
+              SN_all: FloatArray) -> NewPlane | None:
+        """The plane of the seed pair ``a``, ``b`` (about ``normal``) with the pooled segments
+        ``near`` the seed that lie on it (``U_all``, ``SN_all``: every pooled segment's direction
+        and scan normal), or None."""
         p = self.params
         items = self.items
         n, d, _ = fit_plane(np.vstack((items[a].samples, items[b].samples)))
         if n @ normal < 0:
             n, d = -n, -d
         cand = np.flatnonzero(near)
-        U = np.array([items[i].direction for i in cand])
-        SN = np.array([items[i].scan_normal for i in cand])
+        U = U_all[cand]
+        SN = SN_all[cand]
         ok = (np.abs(U @ n) <= np.sin(p.coplanar_angle)) & (np.abs(SN @ n) <= np.cos(p.min_scan_plane_angle))
         lines, samples, sample_start = self._arrays()
         idx = cand[ok]

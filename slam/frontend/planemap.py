@@ -270,13 +270,15 @@ class PlaneMap:
         ext = self.planes[pid].cells
         if not ext:
             return False
-        own = set(map(tuple, cells))
-        if not own.isdisjoint(ext):  # the usual answer: a point inside the extent itself
-            return True
-        if dilate <= 0:
+        for c in cells:  # the usual answer: a point inside the extent itself
+            if (c[0], c[1]) in ext:
+                return True
+        if dilate <= 0 or not cells:
             return False
         # within dilate cells of one of the extent's: one compiled pass over the extent's cells
-        return bool(fk.near_cells(self._extent_array(pid), np.array(list(own), dtype=np.int64), int(dilate)))
+        hit = self._extent_arrays.get(pid)
+        extent = hit[2] if hit is not None and hit[0] is ext and hit[1] == len(ext) else self._extent_array(pid)
+        return bool(fk.near_cells(extent, np.array(cells, dtype=np.int64).reshape(-1, 2), int(dilate)))
 
     def _extent_array(self, pid: int) -> NDArray[np.int64]:
         """The plane's extent cells as an (n, 2) array, rebuilt when the set was replaced or has
