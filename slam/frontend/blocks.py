@@ -79,8 +79,12 @@ def block_order(knot: NDArray[np.int64], pid: NDArray[np.int64]) -> tuple[NDArra
     """Rows (knot, plane id) (n,) grouped by key, the keys in the order they first occur, the
     rows of a key in their order: the rows' permutation (n,), each group's start in it (g + 1,)
     and each group's first row (g,)."""
-    keys = np.stack((knot, pid), axis=1)
-    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    if knot.size == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, np.zeros(1, dtype=np.int64), empty
+    lo = int(pid.min())
+    keys = (knot - knot.min()) * (int(pid.max()) - lo + 1) + (pid - lo)  # one integer per (knot, plane id)
+    _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
     rank = np.empty(first.size, dtype=np.int64)
     by_first = np.argsort(first, kind="stable")
     rank[by_first] = np.arange(first.size)

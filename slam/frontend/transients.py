@@ -139,17 +139,28 @@ class TransientFilter:
             pr.margin, pr.near, MIN_RANGE, MIN_COS)
         # the counts, scan by scan: a plane is found transient on the counts up to its scan (a
         # plane whose counts a scan left unchanged was already tested after an earlier scan)
-        found: list[int] = []
         plane_ids = [pl.id for pl in planes]
-        through_l, on_l = through.tolist(), on.tolist()
-        for i in range(n_cross.shape[0]):
-            changed = np.flatnonzero(n_cross[i]).tolist()
-            for q in changed:
-                pid = plane_ids[q]
-                self.through[pid] = self.through.get(pid, 0) + through_l[i][q]
-                self.returned[pid] = self.returned.get(pid, 0) + on_l[i][q]
-            for pid in ids if i == 0 else [plane_ids[q] for q in changed]:
-                if pid not in found and self.through.get(pid, 0) >= pr.min_through \
-                        and self.through[pid] > pr.ratio * self.returned.get(pid, 0):
-                    found.append(pid)
+        through_sum = np.cumsum(through, axis=0) + np.array([self.through.get(pid, 0) for pid in plane_ids],
+                                                            dtype=np.int64)
+        on_sum = np.cumsum(on, axis=0) + np.array([self.returned.get(pid, 0) for pid in plane_ids], dtype=np.int64)
+        for q in np.flatnonzero(n_cross.any(axis=0)).tolist():
+            self.through[plane_ids[q]] = int(through_sum[-1, q])
+            self.returned[plane_ids[q]] = int(on_sum[-1, q])
+        transient = (through_sum >= pr.min_through) & (through_sum > pr.ratio * on_sum)
+        # after the first scan every plane on probation, after the others the planes whose counts changed
+        found: list[int] = []
+        row = {pid: q for q, pid in enumerate(plane_ids)}
+        for pid in ids:
+            r = row.get(pid)
+            if (self._transient(pid) if r is None else bool(transient[0, r])) and pid not in found:
+                found.append(pid)
+        for q in np.nonzero((n_cross[1:] != 0) & transient[1:])[1].tolist():
+            pid = plane_ids[q]
+            if pid not in found:
+                found.append(pid)
         return found
+
+    def _transient(self, pid: int) -> bool:
+        """Whether plane ``pid``'s counts so far make it a transient."""
+        pr = self.params
+        return self.through.get(pid, 0) >= pr.min_through and self.through[pid] > pr.ratio * self.returned.get(pid, 0)
