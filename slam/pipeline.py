@@ -97,8 +97,8 @@ class SlamRunner:
         self.associator = ScanAssociator(self.pmap, self.knots, T_body_scanner, cfg.frontend.point_sigma,
                                          cfg.frontend.min_segment_points, children,
                                          line_direction=self.noise.shared > 1.0)
-        def fixed(pid: int) -> bool:  # merged with another or a host of ties: not taken out alone
-            return self.pmap.has_merged(pid) or pid in children().values()
+        def fixed() -> set[int]:  # merged with another or a host of ties: not taken out alone
+            return self.pmap.merge_hosts() | set(children().values())
 
         self.transients = TransientFilter(self.params.transients, self.pmap, self.knots, T_body_scanner, fixed)
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,

@@ -182,11 +182,34 @@ def test_transient_check_matches_the_scan_by_scan_reference() -> None:
                                    scanner=0, beam_angles=a, beam_ranges=ranges.astype(np.float32))
             scans.append(SimpleNamespace(segs=segs))
         T_bs = [np.eye(4)]
-        new = TransientFilter(params, pmaps[0], knots, T_bs, lambda pid: pid == 3)
-        old = TransientFilter(params, pmaps[1], knots, T_bs, lambda pid: pid == 3)
+        new = TransientFilter(params, pmaps[0], knots, T_bs, lambda: {3})
+        old = TransientFilter(params, pmaps[1], knots, T_bs, lambda: {3})
         for chunk in (scans[:2], scans[2:]):
             got = new.check(chunk)  # type: ignore[arg-type]
             assert got == _check_reference(old, chunk)
             found_any += len(got)
         assert new.through == old.through and new.returned == old.returned
     assert found_any > 0
+
+
+def test_near_test_decides_as_the_2d_tree_query() -> None:
+    """``_near_any`` over points sorted by u against ``cKDTree.query(distance_upper_bound=near)``,
+    with queries exactly around ``near`` from a point (the last bits decide) and far off."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(12)
+    near = 0.02
+    for trial in range(40):
+        n = int(rng.integers(1, 60))
+        pts = rng.uniform(-0.3, 0.3, (n, 2)) if trial % 2 else np.round(rng.uniform(-0.3, 0.3, (n, 2)) * 50) / 50
+        k = rng.integers(0, n, 200)
+        ang = rng.uniform(0.0, 2.0 * np.pi, 200)
+        r = near * (1.0 + rng.integers(-3, 4, 200) * 2.2e-16)
+        r[:50] = rng.uniform(0.0, 0.1, 50)
+        q = pts[k] + np.column_stack((r * np.cos(ang), r * np.sin(ang)))
+        want = np.isfinite(cKDTree(pts).query(q, distance_upper_bound=near)[0])
+        order = np.argsort(pts[:, 0], kind="stable")
+        su, sv = np.ascontiguousarray(pts[order, 0]), np.ascontiguousarray(pts[order, 1])
+        got = np.array([bk._near_any(su, sv, float(a), float(b), near) for a, b in q])
+        np.testing.assert_array_equal(got, want)
+    assert not bk._near_any(np.empty(0), np.empty(0), 0.0, 0.0, near)

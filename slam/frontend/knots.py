@@ -104,9 +104,22 @@ class KnotMirror:
         :meth:`place` call for all of them (per point the same numbers as one call per segment)."""
         if js.size == 0:
             return []
+        placed, bounds = self.place_segments_flat(segs, js, per)
+        return np.split(placed, bounds[1:-1])
+
+    def place_segments_flat(self, segs: ScanSegments, js: NDArray[np.int64],
+                            per: int | NDArray[np.int64]) -> tuple[FloatArray, NDArray[np.int64]]:
+        """:meth:`place_segments` as one array (n, 3), world frame, and each segment's start
+        row (len(js) + 1,: the last is n)."""
+        if js.size == 0:
+            return np.empty((0, 3)), np.zeros(1, dtype=np.int64)
         pers = np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64)
         sel, splits = fk.subsample_rows(np.ascontiguousarray(segs.offsets, dtype=np.int64),
                                         np.ascontiguousarray(segs.n_points, dtype=np.int64),
                                         np.ascontiguousarray(js, dtype=np.int64), pers)
         placed = self.place(segs.points_body[sel], segs.times[sel])
-        return np.split(placed, splits)
+        bounds = np.empty(js.size + 1, dtype=np.int64)
+        bounds[0] = 0
+        bounds[1:-1] = splits
+        bounds[-1] = placed.shape[0]
+        return placed, bounds

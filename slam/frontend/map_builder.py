@@ -143,17 +143,17 @@ class MapBuilder:
         associated = np.flatnonzero(ids >= 0)
         pooled = np.flatnonzero((ids == -1) & (segs.n_points >= self.params.min_segment_points))
         # every 8th point of the associated segments (extents), every 12th of the pooled ones
-        placed = self._knots.place_segments(segs, np.concatenate((associated, pooled)),
-                                            np.repeat([8, 12], [associated.size, pooled.size]))
-        blocks.segments(segs, associated, ids[associated].tolist())
-        for j, pts in zip(associated.tolist(), placed[: associated.size], strict=True):
-            pid = int(ids[j])
-            if grows is None or grows[j]:
-                self.pmap.extend(pid, pts)
-            self.pmap.planes[pid].n_segments += 1
-            self.pmap.seen(pid, now, self._knots.odometer)
-        self._stats.associated += int((ids >= 0).sum())
-        for j, samples in zip(map(int, pooled), placed[associated.size :], strict=True):
+        placed, bounds = self._knots.place_segments_flat(segs, np.concatenate((associated, pooled)),
+                                                         np.repeat([8, 12], [associated.size, pooled.size]))
+        pids = ids[associated].tolist()
+        blocks.segments(segs, associated, pids)
+        self.pmap.observe_segments(pids, placed, bounds[: associated.size + 1],
+                                   np.ones(associated.size, dtype=np.bool_) if grows is None else grows[associated],
+                                   now, self._knots.odometer)
+        self._stats.associated += associated.size
+        b = bounds.tolist()
+        for i, j in enumerate(pooled.tolist(), start=associated.size):
+            samples = placed[b[i] : b[i + 1]]
             v, e = v_world[j], e_world[j]
             d = e[1] - e[0]
             t_mid = float(segs.virtual_times[j].mean())

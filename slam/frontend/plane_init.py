@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import batch_kernels as bk
+
 FloatArray = NDArray[np.float64]
 
 
@@ -78,6 +80,7 @@ class SegmentPool:
     items: list[PooledSegment] = field(default_factory=list)
     dropped: int = 0
     _tried: set[int] = field(default_factory=set)
+    _cache: tuple[list[PooledSegment], int, FloatArray, FloatArray, NDArray[np.int64]] | None = None
 
     def add(self, seg: PooledSegment) -> None:
         self.items.append(seg)
@@ -117,6 +120,7 @@ class SegmentPool:
         C = np.array([s.centroid for s in items])
         U = np.array([s.direction for s in items])
         serial = np.array([s.scan_serial for s in items])
+        SN = np.array([s.scan_normal for s in items])
         # a segment already tried as a seed is still found as a partner of newer seeds
         for a in range(len(items) - 1, -1, -1):
             if id(items[a]) in self._tried:
@@ -128,7 +132,7 @@ class SegmentPool:
             other[a] = False
             if not other.any():
                 continue
-            cross = np.cross(ua, U)
+            cross = bk.cross_rows(ua, U)
             sin_ab = np.linalg.norm(cross, axis=1)
             sep = C - ca
             sep_perp = sep - (sep @ ua)[:, None] * ua
@@ -136,7 +140,7 @@ class SegmentPool:
             normals = np.where(
                 (sin_ab > np.sin(p.min_angle_between))[:, None],
                 cross / np.maximum(sin_ab, 1e-12)[:, None],
-                np.cross(ua, sep_perp) / np.maximum(sep_norm, 1e-12)[:, None],
+                bk.cross_rows(ua, sep_perp) / np.maximum(sep_norm, 1e-12)[:, None],
             )
             usable = other & ((sin_ab > np.sin(p.min_angle_between)) | (sep_norm > p.min_parallel_separation))
             # coplanarity of b with the plane through a: b's centroid and direction
@@ -144,7 +148,6 @@ class SegmentPool:
             ang_b = np.abs(np.einsum("ij,ij->i", normals, U))
             # every segment lies in its scanner's scan plane: segments of one scanner at nearly
             # one pose are "coplanar" in that plane, which is no surface
-            SN = np.array([s.scan_normal for s in items])
             not_scan = (np.abs(np.einsum("ij,ij->i", normals, SN)) < np.cos(p.min_scan_plane_angle)) & (
                 np.abs(normals @ items[a].scan_normal) < np.cos(p.min_scan_plane_angle)
             )
@@ -152,7 +155,7 @@ class SegmentPool:
                 usable & not_scan & (dist_b < p.coplanar_distance) & (ang_b < np.sin(p.coplanar_angle))
             )
             for b in cand[np.argsort(dist_b[cand])][: p.max_partners]:
-                plane = self._grow(a, int(b), normals[b], near)
+                plane = self._grow(a, int(b), normals[b], near, U, SN)
                 if plane is not None:
                     return _facing(plane, items[a].origin)
             if (p.vertical_walls and abs(float(ua[2])) < np.sin(p.horizontal_tolerance)
@@ -198,21 +201,40 @@ class SegmentPool:
             return None
         return NewPlane(n2, d2, members, float(np.sqrt(np.mean(res**2))), vertical_hypothesis=True)
 
-    def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_]) -> NewPlane | None:
+    def _arrays(self) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+        """The pooled segments' fitted lines (k, 2, 3) and samples (all of them, world frame) with
+        each one's first row (k + 1,) in them; kept while the pool is unchanged (``add`` only
+        appends to the list, the others replace it)."""
+        hit = self._cache
+        if hit is None or hit[0] is not self.items or hit[1] != len(self.items):
+            items = self.items
+            lines = np.array([s.line for s in items], dtype=np.float64).reshape(-1, 2, 3)
+            samples = np.concatenate([np.empty((0, 3)), *(s.samples for s in items)]).astype(np.float64, copy=False)
+            start = np.zeros(len(items) + 1, dtype=np.int64)
+            np.cumsum(np.array([s.samples.shape[0] for s in items], dtype=np.int64), out=start[1:])
+            hit = (items, len(items), lines, samples, start)
+            self._cache = hit
+        return hit[2], hit[3], hit[4]
+
+    def _grow(self, a: int, b: int, normal: FloatArray, near: NDArray[np.bool_], U_all: FloatArray,
+              SN_all: FloatArray) -> NewPlane | None:
+        """The plane of the seed pair ``a``, ``b`` (about ``normal``) with the pooled segments
+        ``near`` the seed that lie on it (``U_all``, ``SN_all``: every pooled segment's direction
+        and scan normal), or None."""
         p = self.params
         items = self.items
         n, d, _ = fit_plane(np.vstack((items[a].samples, items[b].samples)))
         if n @ normal < 0:
             n, d = -n, -d
         cand = np.flatnonzero(near)
-        U = np.array([items[i].direction for i in cand])
-        SN = np.array([items[i].scan_normal for i in cand])
+        U = U_all[cand]
+        SN = SN_all[cand]
         ok = (np.abs(U @ n) <= np.sin(p.coplanar_angle)) & (np.abs(SN @ n) <= np.cos(p.min_scan_plane_angle))
-        members = []
-        for i in cand[ok]:
-            s = items[i]
-            if on_plane(s, n, d, p):
-                members.append(s)
+        lines, samples, sample_start = self._arrays()
+        idx = cand[ok]
+        lying = bk.on_plane_many(lines, samples, sample_start, idx, np.ascontiguousarray(n, dtype=np.float64),
+                                 float(d), p.coplanar_distance, p.sample_distance)
+        members = [items[i] for i in idx[lying].tolist()]
         if len(members) < p.min_support or len({s.scan_serial for s in members}) < p.min_scans:
             return None
         pts = np.vstack([s.samples for s in members])

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import batch_kernels as bk
 from slam.frontend import kernels as fk
 
 FloatArray = NDArray[np.float64]
@@ -114,6 +115,7 @@ class PlaneMap:
         # per plane: its cell set (held, so that identity means the same set), the set's size then
         # and the cells as an (n, 2) array
         self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
+        self._hosts: set[int] = set()  # the planes another plane was merged into (``has_merged``)
 
     def __len__(self) -> int:
         return len(self.planes)
@@ -199,6 +201,52 @@ class PlaneMap:
             p.samples.append(np.array(points_world, dtype=np.float64))
         self._grow_extremes(p, np.asarray(points_world, dtype=np.float64))
 
+    def observe_segments(self, pids: list[int], points_world: FloatArray, bounds: NDArray[np.int64],
+                         grows: NDArray[np.bool_], time: float, odometer: float) -> None:
+        """A scan's segments observe their planes ``pids`` in order: segment s (rows ``bounds[s]``
+        to ``bounds[s + 1] - 1`` of ``points_world`` (n, 3), world frame) extends its plane where
+        ``grows[s]`` (as :meth:`extend`), counts as one of its segments and sights it at ``time``
+        (s) and ``odometer`` (m, as :meth:`seen`): the same planes as those calls one by one."""
+        if not pids:
+            return
+        planes = self.planes
+        local: dict[int, int] = {}
+        for pid in pids:
+            local.setdefault(pid, len(local))
+        uniq = list(local)
+        us = np.array([planes[pid].u for pid in uniq], dtype=np.float64).reshape(-1, 3)
+        vs = np.array([planes[pid].v for pid in uniq], dtype=np.float64).reshape(-1, 3)
+        extremes = np.zeros((len(uniq), 4, 3))
+        has = np.zeros(len(uniq), dtype=np.bool_)
+        for q, pid in enumerate(uniq):
+            e = planes[pid].extremes
+            if e is not None:
+                extremes[q] = e
+                has[q] = True
+        seg_plane = np.array([local[pid] for pid in pids], dtype=np.int64)
+        pts = np.ascontiguousarray(points_world, dtype=np.float64)
+        grows = np.ascontiguousarray(grows, dtype=np.bool_)
+        cells, start = bk.segment_cells(pts, bounds, seg_plane, grows, us, vs, float(self.cell_size))
+        bk.grow_extremes(pts, bounds, seg_plane, grows, extremes, has, us, vs)
+        cu, cv, cs, bs = cells[:, 0].tolist(), cells[:, 1].tolist(), start.tolist(), bounds.tolist()
+        grown = grows.tolist()
+        for s, pid in enumerate(pids):
+            p = planes[pid]
+            if grown[s]:
+                if cs[s + 1] > cs[s]:
+                    p.cells.update(zip(cu[cs[s]:cs[s + 1]], cv[cs[s]:cs[s + 1]], strict=True))
+                if p.n_segments < self.samples_until:
+                    p.samples.append(np.array(pts[bs[s]:bs[s + 1]]))
+            p.n_segments += 1
+        bucket = self._bucket_of(time)
+        for q, pid in enumerate(uniq):
+            p = planes[pid]
+            if has[q]:
+                p.extremes = extremes[q].copy()
+            p.last_seen_time = time
+            p.last_seen_odometer = odometer
+            p.seen_buckets.add(bucket)
+
     @staticmethod
     def _grow_extremes(p: Plane, points_world: FloatArray) -> None:
         """Keep the points (world frame) of least and most ``u`` and ``v`` among the plane's
@@ -222,13 +270,15 @@ class PlaneMap:
         ext = self.planes[pid].cells
         if not ext:
             return False
-        own = set(map(tuple, cells))
-        if not own.isdisjoint(ext):  # the usual answer: a point inside the extent itself
-            return True
-        if dilate <= 0:
+        for c in cells:  # the usual answer: a point inside the extent itself
+            if (c[0], c[1]) in ext:
+                return True
+        if dilate <= 0 or not cells:
             return False
         # within dilate cells of one of the extent's: one compiled pass over the extent's cells
-        return bool(fk.near_cells(self._extent_array(pid), np.array(list(own), dtype=np.int64), int(dilate)))
+        hit = self._extent_arrays.get(pid)
+        extent = hit[2] if hit is not None and hit[0] is ext and hit[1] == len(ext) else self._extent_array(pid)
+        return bool(fk.near_cells(extent, np.array(cells, dtype=np.int64).reshape(-1, 2), int(dilate)))
 
     def _extent_array(self, pid: int) -> NDArray[np.int64]:
         """The plane's extent cells as an (n, 2) array, rebuilt when the set was replaced or has
@@ -313,6 +363,7 @@ class PlaneMap:
         pk.seen_buckets |= pd.seen_buckets
         pd.active = False
         pd.merged_into = keep
+        self._hosts.add(keep)
         self.merges += 1
         self._active = None
         self._version += 1
@@ -327,7 +378,11 @@ class PlaneMap:
 
     def has_merged(self, pid: int) -> bool:
         """Whether another plane was merged into plane ``pid``."""
-        return any(q.merged_into == pid for q in self.planes)
+        return pid in self._hosts
+
+    def merge_hosts(self) -> set[int]:
+        """The planes another plane was merged into (a shared set: do not modify)."""
+        return self._hosts
 
     def set_estimate(self, pid: int, normal: FloatArray, d: float, sigma_offset: float | None = None) -> None:
         """Copy a back-end estimate in, keeping the in-plane basis continuous."""

@@ -23,12 +23,11 @@ segments are marked (``TRANSIENT`` in place of a plane id).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from slam.frontend import batch_kernels as bk
 from slam.frontend.knots import KnotMirror
@@ -59,12 +58,12 @@ class TransientParams:
 
 class TransientFilter:
     """The see-through test of the young planes of ``pmap`` (module doc), with the scans placed
-    by the current knots (``knots``; ``T_body_scanner`` (4, 4) per scanner). ``fixed`` says
-    which planes must stay (merged with another, or holding ties: removing them would take
+    by the current knots (``knots``; ``T_body_scanner`` (4, 4) per scanner). ``fixed()`` gives
+    the planes that must stay (merged with another, or holding ties: removing them would take
     other planes' constraints along)."""
 
     def __init__(self, params: TransientParams, pmap: PlaneMap, knots: KnotMirror, T_body_scanner: list[FloatArray],
-                 fixed: Callable[[int], bool]) -> None:
+                 fixed: Callable[[], Container[int]]) -> None:
         self.params = params
         self._pmap = pmap
         self._knots = knots
@@ -72,23 +71,31 @@ class TransientFilter:
         self._fixed = fixed
         self.through: dict[int, int] = {}
         self.returned: dict[int, int] = {}
-        self._trees: dict[int, tuple[int, FloatArray, cKDTree]] = {}  # per plane: its samples' 2D tree
+        # per plane: its samples in its (u, v) frame, sorted by u (``_samples_uv``)
+        self._samples: dict[int, tuple[int, FloatArray, FloatArray, FloatArray]] = {}
 
-    def _tree(self, plane: Plane) -> cKDTree:
-        """The 2D tree (the plane's (u, v) frame) of the points the plane's extent was grown by,
-        rebuilt when samples were added (the list only grows) or the plane's axes changed."""
+    def _samples_uv(self, plane: Plane) -> tuple[FloatArray, FloatArray]:
+        """The points the plane's extent was grown by in its (u, v) frame, sorted by u (the
+        coordinates a 2D tree of them would hold), rebuilt when samples were added (the list
+        only grows) or the plane's axes changed."""
         n = len(plane.samples)
-        hit = self._trees.get(plane.id)
+        hit = self._samples.get(plane.id)
         if hit is None or hit[0] != n or hit[1] is not plane.u:
             pts = np.concatenate(plane.samples)
-            hit = (n, plane.u, cKDTree(np.column_stack((pts @ plane.u, pts @ plane.v))))
-            self._trees[plane.id] = hit
-        return hit[2]
+            su, sv = pts @ plane.u, pts @ plane.v
+            order = np.argsort(su, kind="stable")
+            hit = (n, plane.u, su[order], sv[order])
+            self._samples[plane.id] = hit
+        return hit[2], hit[3]
 
     def candidates(self) -> list[int]:
         """The planes on probation."""
-        return [p.id for p in self._pmap.active_planes()
-                if p.n_segments < self.params.probation and not self._fixed(p.id)]
+        probation = self.params.probation
+        young = [p.id for p in self._pmap.active_planes() if p.n_segments < probation]
+        if not young:
+            return young
+        fixed = self._fixed()
+        return [pid for pid in young if pid not in fixed]
 
     def check(self, scans: list[PendingScan]) -> list[int]:
         """Count the beams of ``scans`` through and on each plane on probation; returns the planes
@@ -104,9 +111,8 @@ class TransientFilter:
         offsets = np.array([pl.d for pl in planes])
         us = np.array([pl.u for pl in planes]).reshape(-1, 3)
         vs = np.array([pl.v for pl in planes]).reshape(-1, 3)
-        # per scan with beams to test: the crossings of every plane (``plane_crossings``: start
-        # per plane, points in its (u, v) frame, whether the return lies beyond the margin)
-        crossings: list[tuple[NDArray[np.int64], FloatArray, NDArray[np.bool_]]] = []
+        # the beams to test of every scan, in the world frame
+        dirs, ranges, origins, bounds = [], [], [], [0]
         for p in scans:
             segs = p.segs
             valid = np.flatnonzero(segs.beam_valid)[:: pr.beam_step]
@@ -114,38 +120,47 @@ class TransientFilter:
                 continue
             T = self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner]
             a = segs.beam_angles[valid]
-            r = segs.beam_ranges[valid].astype(np.float64)
-            dirs = np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T  # (m, 3) world frame
-            crossings.append(bk.plane_crossings(np.ascontiguousarray(dirs), r, np.ascontiguousarray(T[:3, 3]),
-                                                normals, offsets, us, vs, pr.margin, MIN_RANGE, MIN_COS))
-        if not crossings:
+            dirs.append(np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T)  # (m, 3) world frame
+            ranges.append(segs.beam_ranges[valid].astype(np.float64))
+            origins.append(T[:3, 3])
+            bounds.append(bounds[-1] + valid.size)
+        if not dirs:
             return []
-        # per scan and plane: the crossings within ``near`` of one of the plane's samples whose
-        # return lies beyond the margin (through) or not (on); one tree query per plane over all
-        # the scans' crossings
-        n_cross = np.diff(np.array([c[0] for c in crossings]), axis=1)  # (scans, planes)
-        ends = np.cumsum(n_cross, axis=0)
-        through = np.zeros(n_cross.shape, dtype=np.int64)
-        on = np.zeros(n_cross.shape, dtype=np.int64)
-        for q in np.flatnonzero(n_cross.sum(axis=0)).tolist():
-            uv = np.concatenate([c[1][c[0][q] : c[0][q + 1]] for c in crossings])
-            far = np.concatenate([c[2][c[0][q] : c[0][q + 1]] for c in crossings])
-            d, _ = self._tree(planes[q]).query(uv, distance_upper_bound=pr.near)
-            near = np.isfinite(d)
-            for out, hit in ((through, near & far), (on, near & ~far)):
-                csum = np.concatenate(([0], np.cumsum(hit)))
-                out[:, q] = csum[ends[:, q]] - csum[ends[:, q] - n_cross[:, q]]
+        # per scan and plane: the crossings, and those within ``near`` of one of the plane's
+        # samples whose return lies beyond the margin (through) or not (on)
+        samples = [self._samples_uv(pl) for pl in planes]
+        sample_start = np.zeros(len(planes) + 1, dtype=np.int64)
+        np.cumsum(np.array([su.size for su, _ in samples], dtype=np.int64), out=sample_start[1:])
+        n_cross, through, on = bk.see_through_counts(
+            np.ascontiguousarray(np.concatenate(dirs)), np.concatenate(ranges), np.array(bounds, dtype=np.int64),
+            np.array(origins).reshape(-1, 3), normals, offsets, us, vs,
+            np.concatenate([np.empty(0), *(su for su, _ in samples)]),
+            np.concatenate([np.empty(0), *(sv for _, sv in samples)]), sample_start,
+            pr.margin, pr.near, MIN_RANGE, MIN_COS)
         # the counts, scan by scan: a plane is found transient on the counts up to its scan (a
         # plane whose counts a scan left unchanged was already tested after an earlier scan)
+        plane_ids = [pl.id for pl in planes]
+        through_sum = np.cumsum(through, axis=0) + np.array([self.through.get(pid, 0) for pid in plane_ids],
+                                                            dtype=np.int64)
+        on_sum = np.cumsum(on, axis=0) + np.array([self.returned.get(pid, 0) for pid in plane_ids], dtype=np.int64)
+        for q in np.flatnonzero(n_cross.any(axis=0)).tolist():
+            self.through[plane_ids[q]] = int(through_sum[-1, q])
+            self.returned[plane_ids[q]] = int(on_sum[-1, q])
+        transient = (through_sum >= pr.min_through) & (through_sum > pr.ratio * on_sum)
+        # after the first scan every plane on probation, after the others the planes whose counts changed
         found: list[int] = []
-        for i in range(n_cross.shape[0]):
-            changed = np.flatnonzero(n_cross[i]).tolist()
-            for q in changed:
-                pid = planes[q].id
-                self.through[pid] = self.through.get(pid, 0) + int(through[i, q])
-                self.returned[pid] = self.returned.get(pid, 0) + int(on[i, q])
-            for pid in ids if i == 0 else [planes[q].id for q in changed]:
-                if pid not in found and self.through.get(pid, 0) >= pr.min_through \
-                        and self.through[pid] > pr.ratio * self.returned.get(pid, 0):
-                    found.append(pid)
+        row = {pid: q for q, pid in enumerate(plane_ids)}
+        for pid in ids:
+            r = row.get(pid)
+            if (self._transient(pid) if r is None else bool(transient[0, r])) and pid not in found:
+                found.append(pid)
+        for q in np.nonzero((n_cross[1:] != 0) & transient[1:])[1].tolist():
+            pid = plane_ids[q]
+            if pid not in found:
+                found.append(pid)
         return found
+
+    def _transient(self, pid: int) -> bool:
+        """Whether plane ``pid``'s counts so far make it a transient."""
+        pr = self.params
+        return self.through.get(pid, 0) >= pr.min_through and self.through[pid] > pr.ratio * self.returned.get(pid, 0)
