@@ -87,17 +87,19 @@ class WindowSolver:
         used: set[int] = set()
         planes: set[int] = set()
         groups: dict[int, list[int]] = {}
+        cols = blocks.cols
+        live, two, bknot, bplane = cols.live, cols.two, cols.knot, cols.plane  # read by block id
+        n_ids = live.shape[0]
         for k in range(first, n):
             for fid in fg.by_knot.get(k, ()):
                 rec = fg.records.get(fid)
                 if rec is None:
                     continue
                 used.update(rec.keys)
-                blk = blocks.blocks.get(fid)
-                if blk is not None:
-                    planes.add(blk.plane_id)
-                    if blk.alphas is not None:
-                        groups.setdefault(blk.knot, []).append(fid)
+                if fid < n_ids and live[fid]:  # an observation block
+                    planes.add(int(bplane[fid]))
+                    if two[fid]:
+                        groups.setdefault(int(bknot[fid]), []).append(fid)
                         continue
                 graph.add(blocks.factor(fid))
         for knot, bids in groups.items():
