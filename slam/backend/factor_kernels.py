@@ -314,3 +314,20 @@ def blocks_residuals(
                              P[s:e], al[s:e], False)[0]
         out[s:e] = res
     return out
+
+
+@nb.njit(cache=True)
+def block_ok(points: FloatArray, sigmas: FloatArray, alphas: FloatArray) -> bool:
+    """Whether a two-pose block passes :func:`slam.backend.factors.check_block`: finite points,
+    finite sigmas > 0 and alphas in [0, 1] (shapes checked by the caller)."""
+    for i in range(sigmas.shape[0]):
+        s = sigmas[i]
+        if not (math.isfinite(s) and s > 0.0):
+            return False
+        a = alphas[i]
+        if not (a >= 0.0 and a <= 1.0):
+            return False
+        for c in range(3):
+            if not math.isfinite(points[i, c]):
+                return False
+    return True

@@ -224,6 +224,11 @@ def check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, 
     """A block's points (N, 3), alphas (N,) or None and sigmas (N,) as arrays, or a ValueError
     naming what is wrong (``name``: the points' argument name)."""
     p = np.ascontiguousarray(points, dtype=float)
+    if (two_poses and alphas is not None and type(sigmas) is np.ndarray and p.ndim == 2 and p.shape[1] == 3
+            and p.shape[0] > 0 and sigmas.dtype == np.float64 and sigmas.shape == (p.shape[0],)):
+        a = np.ascontiguousarray(alphas, dtype=float)
+        if a.shape == (p.shape[0],) and _fk.block_ok(p, sigmas, a):  # one compiled pass: all fine
+            return p, a, sigmas
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
         raise ValueError(f"{name}: expected a non-empty (N, 3) array, got shape {p.shape}")
     s = np.asarray(sigmas, dtype=float)
