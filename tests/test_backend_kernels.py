@@ -12,7 +12,14 @@ from gtsam.symbol_shorthand import P, X
 
 from slam.backend import Backend
 from slam.backend.blocks import BlockStore
-from slam.backend.factors import NO_KERNEL, PlaneTable, RobustKernel, point_planes_factor
+from slam.backend.factors import (
+    NO_KERNEL,
+    PlaneTable,
+    RobustKernel,
+    check_block,
+    point_planes_factor,
+)
+from slam.motion import MotionPriorConfig, constant_velocity_factor, constant_velocity_terms
 
 
 def _random_pose(rng: np.random.Generator, scale: float = 1.0) -> gtsam.Pose3:
@@ -147,3 +154,68 @@ def test_plane_table_slots_survive_growth() -> None:
     n, d, _ = table.get(P(150))
     assert np.allclose(n, [0.0, 0.6, 0.8]) and d == 2.0
     assert np.array_equal(table.t[3000], [1.0, 2.0, 3.0])
+
+
+def test_block_checks_fast_path_agrees_with_the_checks() -> None:
+    """A two-pose block's compiled check accepts what the per-check path accepts, returns the same
+    arrays, and anything it rejects gets the per-check path's message."""
+    rng = np.random.default_rng(9)
+    n = 6
+    pts, al, sg = rng.normal(size=(n, 3)), rng.uniform(0, 1, n), rng.uniform(0.01, 0.02, n)
+    p, a, s = check_block(pts, al, sg, True, "points_body")
+    p2, a2, s2 = check_block(pts.tolist(), al.tolist(), sg.tolist(), True, "points_body")  # per-check path
+    assert np.array_equal(p, p2) and a is not None and a2 is not None and np.array_equal(a, a2)
+    assert np.array_equal(s, s2) and s is sg
+    edges = [(0.0, 1.0), (1.0, 0.0)]
+    for a0, a1 in edges:  # alphas at the bounds are fine
+        al2 = al.copy()
+        al2[0], al2[-1] = a0, a1
+        check_block(pts, al2, sg, True, "points_body")
+    bad = [
+        ("points_body: contains NaN", lambda P, A, S: P.__setitem__((2, 1), np.nan)),
+        ("points_body: contains NaN", lambda P, A, S: P.__setitem__((0, 0), np.inf)),
+        ("sigmas: expected", lambda P, A, S: S.__setitem__(3, 0.0)),
+        ("sigmas: expected", lambda P, A, S: S.__setitem__(1, np.nan)),
+        ("alphas: expected", lambda P, A, S: A.__setitem__(4, 1.0 + 1e-12)),
+        ("alphas: expected", lambda P, A, S: A.__setitem__(0, np.nan)),
+    ]
+    for msg, spoil in bad:
+        P_, A_, S_ = pts.copy(), al.copy(), sg.copy()
+        spoil(P_, A_, S_)
+        with pytest.raises(ValueError, match=msg.replace("(", r"\(")):
+            check_block(P_, A_, S_, True, "points_body")
+    with pytest.raises(ValueError, match="alphas: expected"):
+        check_block(pts, al[:-1], sg, True, "points_body")
+
+
+def test_constant_velocity_factor_is_its_terms() -> None:
+    """The factor's residual and Jacobians (from gtsam's derivative outputs) are
+    :func:`constant_velocity_terms` bit for bit, from standing still to fast turns."""
+    rng = np.random.default_rng(11)
+    cfg = MotionPriorConfig(0.7, 0.2)
+    for scale in (0.0, 1e-9, 1e-4, 0.02, 0.4, 2.5):
+        v = gtsam.Values()
+        T = _random_pose(rng)
+        for i in range(3):
+            v.insert(X(i), T)
+            T = T.compose(gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * scale), rng.normal(size=3) * scale))
+        dt1, dt2 = 0.05, float(rng.uniform(0.02, 0.08))
+        f = constant_velocity_factor(X(0), X(1), X(2), dt1, dt2, cfg)
+        r = constant_velocity_terms(v.atPose3(X(0)), v.atPose3(X(1)), v.atPose3(X(2)), dt1, dt2)[0]
+        assert np.array_equal(f.unwhitenedError(v), r)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(f)
+        ref = gtsam.NonlinearFactorGraph()
+        ref.add(gtsam.CustomFactor(f.noiseModel(), [X(0), X(1), X(2)],
+                                   lambda this, vv, H, a=dt1, b=dt2: _terms_into(vv, H, a, b)))
+        A, b = g.linearize(v).jacobian()
+        A_ref, b_ref = ref.linearize(v).jacobian()
+        assert np.array_equal(A, A_ref) and np.array_equal(b, b_ref)
+        assert g.error(v) == ref.error(v)
+
+
+def _terms_into(v: gtsam.Values, H: list | None, dt1: float, dt2: float) -> np.ndarray:
+    r, H0, H1, H2 = constant_velocity_terms(v.atPose3(X(0)), v.atPose3(X(1)), v.atPose3(X(2)), dt1, dt2)
+    if H is not None:
+        H[0], H[1], H[2] = H0, H1, H2
+    return r
