@@ -219,3 +219,38 @@ def _terms_into(v: gtsam.Values, H: list | None, dt1: float, dt2: float) -> np.n
     if H is not None:
         H[0], H[1], H[2] = H0, H1, H2
     return r
+
+
+def _old_trim(be: Backend, max_whitened: float, min_distance: float) -> tuple[int, int]:
+    """The former block-by-block trim (reference)."""
+    n_points = n_blocks = 0
+    for bid, e in be.blocks.all_whitened_residuals():
+        blk = be.blocks.blocks[bid]
+        out = (np.abs(e) > max_whitened) & (np.abs(e) * blk.sigmas > min_distance)
+        if not out.any():
+            continue
+        n_points += int(out.sum())
+        n_blocks += 1
+        keep = ~out
+        if not keep.any():
+            be.blocks.remove(bid)
+        else:
+            be.blocks.replace(bid, blk.points[keep], None if blk.alphas is None else blk.alphas[keep],
+                              blk.sigmas[keep])
+    return n_points, n_blocks
+
+
+@pytest.mark.parametrize(("seed", "max_whitened", "min_distance"), [(0, 30.0, 0.01), (1, 100.0, 0.0),
+                                                                     (2, 1e9, 0.0), (3, 1e-3, 0.0)])
+def test_trim_in_one_pass_is_the_block_by_block_trim(seed: int, max_whitened: float, min_distance: float) -> None:
+    a, b = _backend(seed, blocks=80), _backend(seed, blocks=80)
+    got = a.trim_observations(max_whitened, min_distance)
+    assert got == _old_trim(b, max_whitened, min_distance)
+    assert list(a.blocks.blocks) == list(b.blocks.blocks)
+    for bid in a.blocks.blocks:
+        x, y = a.block(bid), b.block(bid)
+        assert np.array_equal(x.points, y.points) and np.array_equal(x.sigmas, y.sigmas)
+
+
+def test_trim_of_no_blocks() -> None:
+    assert _backend(6, blocks=0).trim_observations(3.0, 0.01) == (0, 0)
