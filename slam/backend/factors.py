@@ -464,8 +464,8 @@ def point_planes_factor(
     keys = [int(pose_key_a), int(pose_key_b), *pk]
 
     ia, ib = knot_index(keys[0]), knot_index(keys[1])
-    slots = table.slots_of(pk) if table is not None else None
     own_slots = np.arange(J, dtype=np.int64)
+    slots = table.slots_of(pk) if table is not None else own_slots
 
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
         if table is not None and table.values is not None and ia is not None and ib is not None:

@@ -51,6 +51,8 @@ class WindowSolver:
         self.blocks = blocks
         self.batch = batch
         self.config = config
+        # plane id -> (the summary's matrix, its factor): kept while the summary is unchanged
+        self._summaries: dict[int, tuple[FloatArray, gtsam.NonlinearFactor]] = {}
 
     def step(self) -> StepReport:
         n = len(self.graph.times)
@@ -113,7 +115,11 @@ class WindowSolver:
         for j in sorted(planes):
             M = blocks.summary.get(j)
             if M is not None:
-                graph.add(plane_summary_factor(int(P(j)), M))
+                hit = self._summaries.get(j)
+                if hit is None or not np.array_equal(hit[0], M):  # built again only when it changed
+                    hit = (M.copy(), plane_summary_factor(int(P(j)), M))
+                    self._summaries[j] = hit
+                graph.add(hit[1])
         fg.knotless = [fid for fid in fg.knotless if fid in fg.records]
         values = gtsam.Values()
         for k in used:
