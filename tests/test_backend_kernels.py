@@ -254,3 +254,22 @@ def test_trim_in_one_pass_is_the_block_by_block_trim(seed: int, max_whitened: fl
 
 def test_trim_of_no_blocks() -> None:
     assert _backend(6, blocks=0).trim_observations(3.0, 0.01) == (0, 0)
+
+
+@pytest.mark.parametrize("extra_pose", [False, True])
+def test_plane_table_serves_every_knot(extra_pose: bool) -> None:
+    """The table's rotations and positions are each knot's ``atPose3(X(i)).matrix()`` bit for bit,
+    read in one call (or one by one when other Pose3 variables are present)."""
+    rng = np.random.default_rng(21)
+    v = gtsam.Values()
+    knots = [17, 2, 400, 3, 0, 58]
+    for i in knots:
+        v.insert(X(i), _random_pose(rng))
+    if extra_pose:
+        v.insert(gtsam.symbol("e", 1), _random_pose(rng))
+    v.insert(P(4), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), 0.5))
+    table = PlaneTable()
+    table.at(v)
+    for i in knots:
+        M = v.atPose3(X(i)).matrix()
+        assert np.array_equal(table.R[i], M[:3, :3]) and np.array_equal(table.t[i], M[:3, 3])

@@ -397,11 +397,16 @@ class PlaneTable:
                 m = max(1024, 2 * top)
                 self.R = np.concatenate((self.R, np.zeros((m - self.t.shape[0], 3, 3))))
                 self.t = np.concatenate((self.t, np.zeros((m - self.t.shape[0], 3))))
-            R, t = self.R, self.t
-            for key, i in zip(poses.tolist(), index.tolist(), strict=True):
-                M = values.atPose3(key).matrix()
-                R[i] = M[:3, :3]
-                t[i] = M[:3, 3]
+            rows = gtsam.utilities.extractPose3(values)  # every Pose3 by increasing key: [R row-major, t]
+            if rows.shape[0] == poses.shape[0]:  # the poses are the knots' (sorted: the same order)
+                order = np.argsort(poses, kind="stable")
+                self.R[index[order]] = rows[:, :9].reshape(-1, 3, 3)
+                self.t[index[order]] = rows[:, 9:]
+            else:
+                for key, i in zip(poses.tolist(), index.tolist(), strict=True):
+                    M = values.atPose3(key).matrix()
+                    self.R[i] = M[:3, :3]
+                    self.t[i] = M[:3, 3]
         planes = keys[chars == _P_CHR].tolist()
         if planes:
             slots = self.slots_of(planes).tolist()
