@@ -273,3 +273,30 @@ def test_plane_table_serves_every_knot(extra_pose: bool) -> None:
     for i in knots:
         M = v.atPose3(X(i)).matrix()
         assert np.array_equal(table.R[i], M[:3, :3]) and np.array_equal(table.t[i], M[:3, 3])
+
+
+def _old_perpendicular_error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
+    ua = v.atOrientedPlane3(this.keys()[0]).normal()
+    ub = v.atOrientedPlane3(this.keys()[1]).normal()
+    na, nb = ua.point3(), ub.point3()
+    if H is not None:
+        H[0] = np.array([[*(nb @ ua.basis()), 0.0]])
+        H[1] = np.array([[*(na @ ub.basis()), 0.0]])
+    return np.array([float(na @ nb)])
+
+
+def test_perpendicular_tie_rows() -> None:
+    """The perpendicular tie's linearisation and error: the former function's bit for bit."""
+    from slam.backend.ties import perpendicular_error
+    rng = np.random.default_rng(23)
+    for _ in range(50):
+        v = gtsam.Values()
+        v.insert(P(0), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), rng.normal()))
+        v.insert(P(1), gtsam.OrientedPlane3(gtsam.Unit3(rng.normal(size=3)), rng.normal()))
+        out = []
+        for fn in (perpendicular_error, _old_perpendicular_error):
+            g = gtsam.NonlinearFactorGraph()
+            g.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, 0.01), [P(0), P(1)], fn))
+            out.append((*g.linearize(v).jacobian(), g.error(v)))
+        (A, b, e), (A0, b0, e0) = out
+        assert np.array_equal(A, A0) and np.array_equal(b, b0) and e == e0
