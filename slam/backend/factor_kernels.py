@@ -167,18 +167,43 @@ def group_rows(
     bases: FloatArray, anchors: FloatArray, plane: NDArray[np.int64], P: FloatArray, al: FloatArray,
     inv_s: FloatArray, kernel: int, k: float, linearize: bool,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`group_rows_core` with the planes' rows ``normals`` (J, 3), ``dists`` (J,), ``bases``
+    (J, 3, 2) in the factor's plane order."""
+    slots = np.arange(normals.shape[0])
+    return group_rows_core(Ra, ta, Rb, tb, normals, dists, bases, slots, anchors, plane, P, al, inv_s, kernel, k,
+                           linearize)
+
+
+@nb.njit(cache=True)
+def group_rows_at(
+    R: FloatArray, t: FloatArray, ia: int, ib: int, normals: FloatArray, dists: FloatArray, bases: FloatArray,
+    slots: NDArray[np.int64], anchors: FloatArray, plane: NDArray[np.int64], P: FloatArray, al: FloatArray,
+    inv_s: FloatArray, kernel: int, k: float, linearize: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`group_rows_core` with the poses read from tables: rotations ``R`` (K, 3, 3) and
+    positions ``t`` (K, 3), knots ``ia`` and ``ib`` (:class:`slam.backend.factors.PlaneTable`)."""
+    return group_rows_core(R[ia], t[ia], R[ib], t[ib], normals, dists, bases, slots, anchors, plane, P, al, inv_s,
+                           kernel, k, linearize)
+
+
+@nb.njit(cache=True)
+def group_rows_core(
+    Ra: FloatArray, ta: FloatArray, Rb: FloatArray, tb: FloatArray, normals: FloatArray, dists: FloatArray,
+    bases: FloatArray, slots: NDArray[np.int64], anchors: FloatArray, plane: NDArray[np.int64], P: FloatArray,
+    al: FloatArray, inv_s: FloatArray, kernel: int, k: float, linearize: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The whitened rows of one knot interval's points on several planes (one factor).
 
     Point m (body frame ``P[m]`` at fraction ``al[m]`` between the poses (Ra, ta), (Rb, tb)) lies
-    on plane ``plane[m]``: ``normals[j] . (x - anchors[j]) + dists[j] = 0`` with tangent basis
-    ``bases[j]`` (3 x 2). ``kernel``: 0 none, 1 Huber, 2 Cauchy of threshold ``k`` (sigmas).
+    on the factor's plane ``j = plane[m]``: ``normals[i] . (x - anchors[j]) + dists[i] = 0`` with
+    tangent basis ``bases[i]`` (3 x 2), ``i = slots[j]`` the plane's row in the tables. ``kernel``: 0 none, 1 Huber, 2 Cauchy of threshold ``k`` (sigmas).
     Returns (rows (N + r,), H_a (N + r, 6), H_b (N + r, 6), H_planes (J, N + r, 3)) with r = 1 for
     a robust kernel (:func:`robust_rows`'s correction row) else 0: the same rows, point for
     point, as one block per plane (:func:`two_pose_terms` and :func:`robust_rows`); a plane's
     Jacobian is zero on the other planes' rows. Without ``linearize`` only ``rows`` is filled
     (the robust residuals ``sign(e) sqrt(2 rho(e))``)."""
     N = P.shape[0]
-    J = normals.shape[0]
+    J = slots.shape[0]
     r = 0 if kernel == 0 else 1
     RaT = np.ascontiguousarray(Ra.T)
     Rb = np.ascontiguousarray(Rb)
@@ -193,12 +218,13 @@ def group_rows(
     taB = np.empty((J, 2))
     dtB = np.empty((J, 2))
     for j in range(J):
-        n = np.ascontiguousarray(normals[j])
-        Bn = np.ascontiguousarray(bases[j])
+        i = slots[j]
+        n = np.ascontiguousarray(normals[i])
+        Bn = np.ascontiguousarray(bases[i])
         m_a[j] = RaT @ n
         mD[j] = m_a[j] @ D
         tj = ta - anchors[j]
-        d0[j] = n[0] * tj[0] + n[1] * tj[1] + n[2] * tj[2] + dists[j]
+        d0[j] = n[0] * tj[0] + n[1] * tj[1] + n[2] * tj[2] + dists[i]
         dn[j] = n[0] * dtw[0] + n[1] * dtw[1] + n[2] * dtw[2]
         RaTB[j] = RaT @ Bn
         taB[j] = tj @ Bn
@@ -288,3 +314,20 @@ def blocks_residuals(
                              P[s:e], al[s:e], False)[0]
         out[s:e] = res
     return out
+
+
+@nb.njit(cache=True)
+def block_ok(points: FloatArray, sigmas: FloatArray, alphas: FloatArray) -> bool:
+    """Whether a two-pose block passes :func:`slam.backend.factors.check_block`: finite points,
+    finite sigmas > 0 and alphas in [0, 1] (shapes checked by the caller)."""
+    for i in range(sigmas.shape[0]):
+        s = sigmas[i]
+        if not (math.isfinite(s) and s > 0.0):
+            return False
+        a = alphas[i]
+        if not (a >= 0.0 and a <= 1.0):
+            return False
+        for c in range(3):
+            if not math.isfinite(points[i, c]):
+                return False
+    return True

@@ -224,6 +224,11 @@ def check_block(points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike, 
     """A block's points (N, 3), alphas (N,) or None and sigmas (N,) as arrays, or a ValueError
     naming what is wrong (``name``: the points' argument name)."""
     p = np.ascontiguousarray(points, dtype=float)
+    if (two_poses and alphas is not None and type(sigmas) is np.ndarray and p.ndim == 2 and p.shape[1] == 3
+            and p.shape[0] > 0 and sigmas.dtype == np.float64 and sigmas.shape == (p.shape[0],)):
+        a = np.ascontiguousarray(alphas, dtype=float)
+        if a.shape == (p.shape[0],) and _fk.block_ok(p, sigmas, a):  # one compiled pass: all fine
+            return p, a, sigmas
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
         raise ValueError(f"{name}: expected a non-empty (N, 3) array, got shape {p.shape}")
     s = np.asarray(sigmas, dtype=float)
@@ -342,30 +347,82 @@ def _block_factor(
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
 
 
+_INDEX_BITS = 56  # a gtsam Symbol key: its character above these bits, its index below
+_X_CHR, _P_CHR = ord("x"), ord("p")
+
+
 class PlaneTable:
-    """The planes of one evaluation point, each read from the ``gtsam.Values`` once: while a
-    solver linearises a graph of :func:`point_planes_factor` factors at ``values``
-    (between ``at(values)`` and ``at(None)``), every factor takes a plane's unit normal (3,),
-    offset and tangent basis (3, 2) from here instead of reading it again (five gtsam calls per
-    plane and factor: as costly as the factor's arithmetic). Otherwise factors read their values."""
+    """The poses and planes of one evaluation point, each read from the ``gtsam.Values`` once:
+    while a solver linearises a graph of :func:`point_planes_factor` factors at ``values``
+    (between ``at(values)`` and ``at(None)``), every factor takes its knots' rotations (3, 3) and
+    positions (3,) (``R``, ``t`` by knot index) and its planes' unit normals (3,), offsets and
+    tangent bases (3, 2) (``normals``, ``dists``, ``bases`` by the plane's slot, :meth:`slots_of`)
+    from here instead of reading them again (two pose and five gtsam calls per plane and factor:
+    as costly as the factor's arithmetic). Otherwise factors read their values."""
 
     def __init__(self) -> None:
         self.values: gtsam.Values | None = None
-        self.rows: dict[int, tuple[FloatArray, float, FloatArray]] = {}
+        self.slot: dict[int, int] = {}  # plane key -> its row in normals, dists, bases (for good)
+        self.normals = np.zeros((0, 3))
+        self.dists = np.zeros(0)
+        self.bases = np.zeros((0, 3, 2))
+        self.R = np.zeros((0, 3, 3))
+        self.t = np.zeros((0, 3))
+
+    def slots_of(self, keys: Sequence[int]) -> NDArray[np.int64]:
+        """The rows (slots) of plane ``keys`` in the plane tables (new keys get new slots)."""
+        for key in keys:
+            if key not in self.slot:
+                self.slot[key] = len(self.slot)
+        n = len(self.slot)
+        if n > self.dists.shape[0]:
+            m = max(64, 2 * n)
+            self.normals = np.concatenate((self.normals, np.zeros((m - self.dists.shape[0], 3))))
+            self.bases = np.concatenate((self.bases, np.zeros((m - self.dists.shape[0], 3, 2))))
+            self.dists = np.concatenate((self.dists, np.zeros(m - self.dists.shape[0])))
+        return np.array([self.slot[key] for key in keys], dtype=np.int64)
 
     def at(self, values: gtsam.Values | None) -> None:
-        """Serve the planes of ``values`` from now on (None: stop serving)."""
+        """Serve the poses and planes of ``values`` from now on (None: stop serving)."""
         self.values = values
-        self.rows = {}
+        if values is None:
+            return
+        keys = np.array(values.keys(), dtype=np.uint64)
+        chars = keys >> np.uint64(_INDEX_BITS)
+        poses = keys[chars == _X_CHR]
+        if poses.shape[0]:
+            index = (poses & np.uint64((1 << _INDEX_BITS) - 1)).astype(np.int64)
+            top = int(index.max()) + 1
+            if top > self.t.shape[0]:
+                m = max(1024, 2 * top)
+                self.R = np.concatenate((self.R, np.zeros((m - self.t.shape[0], 3, 3))))
+                self.t = np.concatenate((self.t, np.zeros((m - self.t.shape[0], 3))))
+            rows = gtsam.utilities.extractPose3(values)  # every Pose3 by increasing key: [R row-major, t]
+            if rows.shape[0] == poses.shape[0]:  # the poses are the knots' (sorted: the same order)
+                order = np.argsort(poses, kind="stable")
+                self.R[index[order]] = rows[:, :9].reshape(-1, 3, 3)
+                self.t[index[order]] = rows[:, 9:]
+            else:
+                for key, i in zip(poses.tolist(), index.tolist(), strict=True):
+                    M = values.atPose3(key).matrix()
+                    self.R[i] = M[:3, :3]
+                    self.t[i] = M[:3, 3]
+        planes = keys[chars == _P_CHR].tolist()
+        if planes:
+            slots = self.slots_of(planes).tolist()
+            normals, dists, bases = self.normals, self.dists, self.bases
+            for key, s in zip(planes, slots, strict=True):
+                normals[s], dists[s], bases[s] = plane_row(values, key)
 
     def get(self, key: int) -> tuple[FloatArray, float, FloatArray]:
         """Unit normal, offset and tangent basis of plane ``key`` at the served point."""
-        row = self.rows.get(key)
-        if row is None:
-            assert self.values is not None
-            row = plane_row(self.values, key)
-            self.rows[key] = row
-        return row
+        s = self.slot[key]
+        return self.normals[s], float(self.dists[s]), self.bases[s]
+
+
+def knot_index(key: int) -> int | None:
+    """The knot index of pose key ``X(i)``, or None for a key of another symbol."""
+    return key & ((1 << _INDEX_BITS) - 1) if key >> _INDEX_BITS == _X_CHR else None
 
 
 def plane_row(values: gtsam.Values, key: int) -> tuple[FloatArray, float, FloatArray]:
@@ -411,16 +468,24 @@ def point_planes_factor(
     inv_s = 1.0 / s
     keys = [int(pose_key_a), int(pose_key_b), *pk]
 
+    ia, ib = knot_index(keys[0]), knot_index(keys[1])
+    own_slots = np.arange(J, dtype=np.int64)
+    slots = table.slots_of(pk) if table is not None else own_slots
+
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
-        Ma, Mb = v.atPose3(pose_key_a).matrix(), v.atPose3(pose_key_b).matrix()
-        normals = np.empty((J, 3))
-        dists = np.empty(J)
-        bases = np.empty((J, 3, 2))
-        served = table is not None and table.values is not None
-        for j, key in enumerate(pk):
-            normals[j], dists[j], bases[j] = table.get(key) if served else plane_row(v, key)  # type: ignore[union-attr]
-        rows, Ha, Hb, Hp = _fk.group_rows(Ma[:3, :3], Ma[:3, 3].copy(), Mb[:3, :3], Mb[:3, 3].copy(), normals, dists,
-                                          bases, anc, idx, p, al, inv_s, code, thr, H is not None)
+        if table is not None and table.values is not None and ia is not None and ib is not None:
+            rows, Ha, Hb, Hp = _fk.group_rows_at(table.R, table.t, ia, ib, table.normals, table.dists, table.bases,
+                                                 slots, anc, idx, p, al, inv_s, code, thr, H is not None)
+        else:
+            Ma, Mb = v.atPose3(pose_key_a).matrix(), v.atPose3(pose_key_b).matrix()
+            normals = np.empty((J, 3))
+            dists = np.empty(J)
+            bases = np.empty((J, 3, 2))
+            for j, key in enumerate(pk):
+                normals[j], dists[j], bases[j] = plane_row(v, key)
+            rows, Ha, Hb, Hp = _fk.group_rows_core(Ma[:3, :3], Ma[:3, 3].copy(), Mb[:3, :3], Mb[:3, 3].copy(), normals,
+                                                   dists, bases, own_slots, anc, idx, p, al, inv_s, code, thr,
+                                                   H is not None)
         if H is not None:
             H[0] = Ha
             H[1] = Hb

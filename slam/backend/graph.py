@@ -23,6 +23,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
+_INDEX_BITS = 56  # a gtsam Symbol key: its character above these bits, its index below
+_INDEX_MASK = (1 << _INDEX_BITS) - 1
+_KNOT_CHARS = frozenset(map(ord, "xvb"))
 
 
 @dataclass
@@ -107,9 +110,8 @@ def top_knot(keys: Sequence[int]) -> int | None:
     """The highest knot index among ``keys`` (X, V and B symbols), or None."""
     top = None
     for k in keys:
-        sym = gtsam.Symbol(k)
-        if chr(sym.chr()) in "xvb":
-            i = int(sym.index())
+        if (k >> _INDEX_BITS) in _KNOT_CHARS:  # gtsam.Symbol's character and index, by bits
+            i = k & _INDEX_MASK
             top = i if top is None else max(top, i)
     return top
 
@@ -121,8 +123,7 @@ def copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = Fa
     if exists and not update:
         return
     put = dst.update if exists else dst.insert
-    sym = gtsam.Symbol(key)
-    c = chr(sym.chr()).lower()
+    c = chr((key >> _INDEX_BITS) & 0xFF).lower()  # gtsam.Symbol's character
     if c == "x":
         put(key, src.atPose3(key))
     elif c == "p":
@@ -132,7 +133,7 @@ def copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = Fa
     elif c == "b":
         put(key, src.atConstantBias(key))
     else:
-        raise ValueError(f"unknown variable {sym.string()}")
+        raise ValueError(f"unknown variable {gtsam.Symbol(key).string()}")
 
 
 def as_pose(T: ArrayLike, name: str) -> gtsam.Pose3:

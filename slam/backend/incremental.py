@@ -51,6 +51,8 @@ class WindowSolver:
         self.blocks = blocks
         self.batch = batch
         self.config = config
+        # plane id -> (the summary's matrix, its factor): kept while the summary is unchanged
+        self._summaries: dict[int, tuple[FloatArray, gtsam.NonlinearFactor]] = {}
 
     def step(self) -> StepReport:
         n = len(self.graph.times)
@@ -87,17 +89,19 @@ class WindowSolver:
         used: set[int] = set()
         planes: set[int] = set()
         groups: dict[int, list[int]] = {}
+        cols = blocks.cols
+        live, two, bknot, bplane = cols.live, cols.two, cols.knot, cols.plane  # read by block id
+        n_ids = live.shape[0]
         for k in range(first, n):
             for fid in fg.by_knot.get(k, ()):
                 rec = fg.records.get(fid)
                 if rec is None:
                     continue
                 used.update(rec.keys)
-                blk = blocks.blocks.get(fid)
-                if blk is not None:
-                    planes.add(blk.plane_id)
-                    if blk.alphas is not None:
-                        groups.setdefault(blk.knot, []).append(fid)
+                if fid < n_ids and live[fid]:  # an observation block
+                    planes.add(int(bplane[fid]))
+                    if two[fid]:
+                        groups.setdefault(int(bknot[fid]), []).append(fid)
                         continue
                 graph.add(blocks.factor(fid))
         for knot, bids in groups.items():
@@ -111,7 +115,11 @@ class WindowSolver:
         for j in sorted(planes):
             M = blocks.summary.get(j)
             if M is not None:
-                graph.add(plane_summary_factor(int(P(j)), M))
+                hit = self._summaries.get(j)
+                if hit is None or not np.array_equal(hit[0], M):  # built again only when it changed
+                    hit = (M.copy(), plane_summary_factor(int(P(j)), M))
+                    self._summaries[j] = hit
+                graph.add(hit[1])
         fg.knotless = [fid for fid in fg.knotless if fid in fg.records]
         values = gtsam.Values()
         for k in used:

@@ -51,8 +51,18 @@ def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float
     out = gtsam.GaussianFactorGraph()
     for k, d in dims:
         w = HOLD if k in hold else damping
-        out.add(gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
+        f = _DAMPING_FACTORS.get((k, d, w))
+        if f is None:  # (elimination leaves its input factors as they are: one object serves every solve)
+            f = gtsam.JacobianFactor(k, w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
+            if len(_DAMPING_FACTORS) >= _DAMPING_CACHE:
+                _DAMPING_FACTORS.clear()
+            _DAMPING_FACTORS[(k, d, w)] = f
+        out.add(f)
     return out
+
+
+_DAMPING_CACHE = 200_000  # damping factors kept (key, dimension, weight), cleared when full
+_DAMPING_FACTORS: dict[tuple[int, int, float], gtsam.JacobianFactor] = {}
 
 
 class _Evaluator:

@@ -184,12 +184,15 @@ def vertical_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatAr
 
 def perpendicular_error(this: gtsam.CustomFactor, v: gtsam.Values, H: Any) -> FloatArray:
     """Perpendicularity of two planes: the dot product of their unit normals (world frame)."""
-    ua = v.atOrientedPlane3(this.keys()[0]).normal()
-    ub = v.atOrientedPlane3(this.keys()[1]).normal()
+    ka, kb = this.keys()
+    ua = v.atOrientedPlane3(ka).normal()
+    ub = v.atOrientedPlane3(kb).normal()
     na, nb = ua.point3(), ub.point3()
     if H is not None:
-        H[0] = np.array([[*(nb @ ua.basis()), 0.0]])
-        H[1] = np.array([[*(na @ ub.basis()), 0.0]])
+        Ha, Hb = np.zeros((1, 3)), np.zeros((1, 3))
+        Ha[0, :2] = nb @ ua.basis()
+        Hb[0, :2] = na @ ub.basis()
+        H[0], H[1] = Ha, Hb
     return np.array([float(na @ nb)])
 
 
