@@ -24,12 +24,12 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import edge_kernels as ek
 from slam.frontend.edges import (
     Break,
     EdgeParams,
     along_wall,
     bracket_point,
-    break_pairs,
     break_sigma,
     is_flat,
     segment_end,
@@ -43,6 +43,7 @@ from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import KIND_WALL, PlaneMap
 
 FloatArray = NDArray[np.float64]
+_ENDS_KEPT = 64  # scans whose recess ends are kept (a scan is asked while tracked and when associated)
 
 
 def wall_test(pmap: PlaneMap, hosts: dict[int, int]) -> Callable[[int], bool]:
@@ -62,6 +63,9 @@ class BreakFinder:
         self._knots = knots
         self._T_body_scanner = T_body_scanner
         self._range_sigma = range_sigma
+        self._min_sin = float(np.sin(np.radians(params.min_incidence_deg)))
+        # the recess ends of the scans asked last (:meth:`_recess_end`), by id, with the scan held
+        self._ends: dict[int, tuple[PendingScan, dict[tuple[int, int], tuple[FloatArray, float, float] | None]]] = {}
 
     def breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """The breaks of scan ``p`` with plane ids ``ids`` per segment and the doors' and boards'
@@ -86,15 +90,22 @@ class BreakFinder:
     def _find(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         segs = p.segs
         is_wall = wall_test(self._pmap, hosts)
-        pairs = break_pairs(segs.first_beam, segs.n_points, ids, is_wall, self.params.max_skipped_points)
-        walls = [j for j, pid in enumerate(ids.tolist()) if pid >= 0 and is_wall(pid)]
-        if not pairs and not walls:
+        pids = ids.tolist()
+        wall_pid = {pid: is_wall(pid) for pid in set(pids) if pid >= 0}
+        wall = np.array([pid >= 0 and wall_pid[pid] for pid in pids], dtype=np.bool_).reshape(-1)
+        order = np.argsort(segs.first_beam, kind="stable")
+        pairs = ek.break_pairs(order, np.ascontiguousarray(segs.n_points, dtype=np.int64), wall,
+                               self.params.max_skipped_points)
+        walls = np.flatnonzero(wall).tolist()
+        if not pairs.shape[0] and not walls:
             return []
         origin = (self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
         out = self._recess_breaks(p, ids, walls, origin)
         if self.params.inline:
             out += self._inline_breaks(p, ids, walls, origin)
-        return out + self._pair_breaks(p, ids, pairs, origin)
+        if self.params.point == "bracket":
+            return out + self._pair_breaks(p, ids, [(int(a), int(b)) for a, b in pairs.tolist()], origin)
+        return out + self._pair_breaks_batch(p, ids, pairs, origin)
 
     def _break(self, p: PendingScan, wall: int, origin: FloatArray, x_world: FloatArray, point_body: FloatArray,
                time: float, spacing: float, step_point: FloatArray, step_height: float,
@@ -187,42 +198,107 @@ class BreakFinder:
                 out.append(brk)
         return out
 
+    def _pair_breaks_batch(self, p: PendingScan, ids: NDArray[np.int64], pairs: NDArray[np.int64],
+                           origin: FloatArray) -> list[Break]:
+        """:meth:`_pair_breaks` with ``point`` "midpoint" or "higher" for the pairs ``pairs``
+        (P, 2: wall segment, other segment): the per-pair checks in one compiled pass
+        (``edge_kernels.pair_breaks``)."""
+        ep = self.params
+        segs = p.segs
+        if not pairs.shape[0]:
+            return []
+        jw, jo = pairs[:, 0], pairs[:, 1]
+        lo = np.where(segs.first_beam[jw] < segs.first_beam[jo], jw, jo)
+        hi = np.where(lo == jw, jo, jw)
+        ia, ib = segs.offsets[lo + 1] - 1, segs.offsets[hi]
+        ok = (segs.n_points[jo] >= ep.min_segment_points) & ~(
+            np.linalg.norm(segs.points_body[ia] - segs.points_body[ib], axis=1) > ep.max_gap)
+        if not ok.any():
+            return []
+        jw, jo, lo, ia, ib = jw[ok], jo[ok], lo[ok], ia[ok], ib[ok]
+        ends, js = np.column_stack((ia, ib)), np.column_stack((jo, jw))
+        placed = self._knots.place(
+            np.concatenate((segs.points_body[ends], segs.virtual_body[js].reshape(-1, 4, 3)), axis=1).reshape(-1, 3),
+            np.concatenate((segs.times[ends], segs.virtual_times[js].reshape(-1, 4)), axis=1).ravel(),
+        ).reshape(-1, 6, 3)
+        wall_ids = ids[jw]
+        n_wall, d_wall, n_e = self._wall_rows(wall_ids.tolist())
+        # one (6, 3) @ (3,) product per pair, as numpy computes it for one pair
+        h = np.matmul(placed, n_wall[:, :, None])[:, :, 0]
+        keep, side, step, u, flat, x_world, pt_body, t, spacing = ek.pair_breaks(
+            h, placed, ids[jo] == wall_ids, d_wall, n_wall, n_e, jw == lo, ia, ib, segs.points_body, segs.times,
+            origin, ep.step_tolerance, ep.min_step, ep.max_step, self._min_sin, ep.flat_slope, ep.point == "midpoint")
+        return [Break(int(wall_ids[c]), int(step[c]), int(side[c]), float(u[c]), pt_body[c], x_world[c],
+                      float(t[c]), break_sigma(float(spacing[c]), ep.sigma), p.serial, flat=bool(flat[c]))
+                for c in np.flatnonzero(keep).tolist()]
+
+    def _wall_rows(self, walls: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The walls' normals (n, 3), offsets (n,) and along-wall directions (n, 3), world frame."""
+        planes = self._pmap.planes
+        along = {pid: along_wall(planes[pid].normal) for pid in set(walls)}
+        return (np.array([planes[pid].normal for pid in walls], dtype=np.float64).reshape(-1, 3),
+                np.array([planes[pid].d for pid in walls], dtype=np.float64),
+                np.array([along[pid] for pid in walls]).reshape(-1, 3))
+
     def _recess_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:
         """Breaks where a wall segment ends into a door's recess behind it; the wall is the nearer
-        surface, so its end is bracketed as for a segmented pair."""
+        surface, so its end is bracketed as for a segmented pair (:meth:`_recess_end`), placed
+        for all the ends in one call and checked in one compiled pass."""
+        ends = [(j, got) for j in walls for direction in (1, -1)
+                if (got := self._recess_end(p, j, direction)) is not None]
+        if not ends:
+            return []
+        segs = p.segs
+        js = [j for j, _ in ends]
+        # per end: its edge point and the first return inside the recess (body frame), the
+        # wall's two virtual points; one place call for all (per point the numbers of one call per end)
+        pts = np.concatenate((np.array([got[0] for _, got in ends]), segs.virtual_body[js]), axis=1)
+        t = np.array([got[2] for _, got in ends])
+        w = self._knots.place(pts.reshape(-1, 3), np.repeat(t, 4)).reshape(-1, 4, 3)
+        wall_ids = ids[js]
+        n_wall, _, n_e = self._wall_rows(wall_ids.tolist())
+        keep, side, step, u, flat = ek.recess_breaks(w, n_wall, n_e, origin, self._min_sin, self.params.flat_slope)
+        return [Break(int(wall_ids[c]), int(step[c]), int(side[c]), float(u[c]), ends[c][1][0][0], w[c, 0],
+                      float(t[c]), break_sigma(ends[c][1][1], self.params.sigma), p.serial, flat=bool(flat[c]))
+                for c in np.flatnonzero(keep).tolist()]
+
+    def _recess_end(self, p: PendingScan, j: int, direction: int) -> tuple[FloatArray, float, float] | None:
+        """Segment ``j``'s end in ``direction`` where it ends into a door's recess: its edge point
+        and the first return inside the recess (2, 3) body frame, the beam spacing there (m) and
+        the end point's time (s); None where the recess test failed or the end cannot be
+        bracketed. It depends on the scan alone: computed once per scan and end."""
+        memo = self._ends.get(id(p))
+        if memo is None:
+            memo = (p, {})
+            self._ends[id(p)] = memo
+            if len(self._ends) > _ENDS_KEPT:
+                del self._ends[next(iter(self._ends))]
+        key = (j, direction)
+        if key not in memo[1]:
+            memo[1][key] = self._find_recess_end(p, j, direction)
+        return memo[1][key]
+
+    def _find_recess_end(self, p: PendingScan, j: int, direction: int) -> tuple[FloatArray, float, float] | None:
+        # asked of every long enough segment end that no other segment follows within three
+        # beams (there the pairs handle the end); a missing test is a failed one
+        found = p.edge_tests.get((j, direction))
+        if found is None:
+            return None
         segs = p.segs
         T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        out = []
-        for j in walls:
-            wall = int(ids[j])
-            for direction in (1, -1):
-                # asked of every long enough segment end that no other segment follows within
-                # three beams (there the pairs handle the end); a missing test is a failed one
-                found = p.edge_tests.get((j, direction))
-                if found is None:
-                    continue
-                _, k_in, depth = found
-                k_end = segment_end(segs, j, direction)
-                got = _bracket_end(segs, j, k_end, direction, min(3.0 * sigma, 0.5 * depth))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
-                pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
-                                        [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
-                i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
-                t = float(segs.times[i_end])
-                pts_body = self._knots.deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
-                w = self._knots.place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
-                x_world = w[0]
-                n_wall = self._pmap.planes[wall].normal
-                brk = self._break(p, wall, origin, x_world, pts_body[0], t, spacing, w[1],
-                                  float(n_wall @ (w[1] - x_world)), w[3] - w[2])
-                if brk is not None:
-                    out.append(brk)
-        return out
+        _, k_in, depth = found
+        k_end = segment_end(segs, j, direction)
+        got = _bracket_end(segs, j, k_end, direction, min(3.0 * self._range_sigma[segs.scanner], 0.5 * depth))
+        if got is None:
+            return None
+        edge_scanner, spacing = got
+        r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
+        pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
+                                [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
+        i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
+        t = float(segs.times[i_end])
+        return self._knots.deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t)), spacing, t
 
     def _inline_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:
