@@ -68,18 +68,59 @@ def _break_geometry(origin: FloatArray, x: FloatArray, n_wall: FloatArray, n_e: 
 
 
 @nb.njit(cache=True)
-def pair_breaks(h: FloatArray, w: FloatArray, same_plane: BoolArray, d_wall: FloatArray, n_wall: FloatArray,
-                n_e: FloatArray, wall_is_lo: BoolArray, ia: IntArray, ib: IntArray, points_body: FloatArray,
-                times: FloatArray, origin: FloatArray, step_tolerance: float, min_step: float, max_step: float,
-                min_sin: float, flat_slope: float, midpoint: bool,
+def pair_candidates(order: IntArray, n_points: IntArray, wall: BoolArray, max_skipped_points: int,
+                    first_beam: IntArray, offsets: IntArray, points_body: FloatArray, times: FloatArray,
+                    virtual_body: FloatArray, virtual_times: FloatArray, min_segment_points: int, max_gap: float,
+                    ) -> tuple[IntArray, IntArray, IntArray, IntArray, IntArray, FloatArray, FloatArray]:
+    """The segment pairs of :func:`break_pairs` whose other segment has ``min_segment_points`` and
+    whose boundary points (``ia``: the end of the earlier segment in beam order ``lo``, ``ib``: the
+    start of the later one) lie within ``max_gap``: (j_wall, j_other, lo, ia, ib) (N,) each, and
+    per pair six body points with their times to place, (6 N, 3) and (6 N,): the two boundary
+    points, the other's and the wall's two virtual points."""
+    pairs = break_pairs(order, n_points, wall, max_skipped_points)
+    n = pairs.shape[0]
+    jw = np.empty(n, dtype=np.int64)
+    jo = np.empty(n, dtype=np.int64)
+    lo = np.empty(n, dtype=np.int64)
+    ia = np.empty(n, dtype=np.int64)
+    ib = np.empty(n, dtype=np.int64)
+    m = 0
+    for c in range(n):
+        a, b = pairs[c, 0], pairs[c, 1]
+        first, second = (a, b) if first_beam[a] < first_beam[b] else (b, a)
+        i_a, i_b = offsets[first + 1] - 1, offsets[second]
+        d0 = points_body[i_a, 0] - points_body[i_b, 0]
+        d1 = points_body[i_a, 1] - points_body[i_b, 1]
+        d2 = points_body[i_a, 2] - points_body[i_b, 2]
+        if n_points[b] >= min_segment_points and not math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > max_gap:
+            jw[m], jo[m], lo[m], ia[m], ib[m] = a, b, first, i_a, i_b
+            m += 1
+    pts = np.empty((6 * m, 3))
+    t = np.empty(6 * m)
+    for c in range(m):
+        r = 6 * c
+        pts[r] = points_body[ia[c]]
+        pts[r + 1] = points_body[ib[c]]
+        t[r], t[r + 1] = times[ia[c]], times[ib[c]]
+        for k in range(2):
+            pts[r + 2 + k] = virtual_body[jo[c], k]
+            pts[r + 4 + k] = virtual_body[jw[c], k]
+            t[r + 2 + k] = virtual_times[jo[c], k]
+            t[r + 4 + k] = virtual_times[jw[c], k]
+    return jw[:m], jo[:m], lo[:m], ia[:m], ib[:m], pts, t
+
+
+@nb.njit(cache=True)
+def pair_breaks(h: FloatArray, w: FloatArray, jw: IntArray, jo: IntArray, lo: IntArray, ia: IntArray, ib: IntArray,
+                ids: IntArray, seg_normal: FloatArray, seg_d: FloatArray, seg_along: FloatArray,
+                points_body: FloatArray, times: FloatArray, origin: FloatArray, step_tolerance: float,
+                min_step: float, max_step: float, min_sin: float, flat_slope: float, midpoint: bool,
                 ) -> tuple[BoolArray, IntArray, IntArray, FloatArray, BoolArray, FloatArray, FloatArray, FloatArray,
                            FloatArray]:
-    """The breaks of N segment pairs (``BreakFinder._pair_breaks`` with ``point`` "midpoint" or
-    "higher"): per pair the six placed points ``w`` (N, 6, 3) world frame (the two boundary
-    points, the other's and the wall's virtual points) and their heights ``h`` (N, 6) along the
-    wall normal, whether the other segment is on the wall's plane too (``same_plane``, offset
-    ``d_wall``), whether the wall segment comes first in beam order, the boundary points' indices
-    ``ia`` (end of the earlier) and ``ib`` (start of the later) into ``points_body``/``times``.
+    """The breaks of N segment pairs of :func:`pair_candidates` (``BreakFinder._pair_breaks`` with
+    ``point`` "midpoint" or "higher"): per pair the six placed points ``w`` (N, 6, 3) world frame
+    and their heights ``h`` (N, 6) along the wall normal; per segment its plane id ``ids``, its
+    wall's normal, offset and along-wall direction (``seg_*``, world frame).
 
     Returns keep, side, step, u, flat, the edge points (N, 3) world and body frame, their times
     and the beam spacings there (N,)."""
@@ -95,16 +136,18 @@ def pair_breaks(h: FloatArray, w: FloatArray, same_plane: BoolArray, d_wall: Flo
     t = np.zeros(n)
     spacing = np.zeros(n)
     for c in range(n):
+        j = jw[c]
+        n_wall, d_wall = seg_normal[j], seg_d[j]
         h_wall = (h[c, 4] + h[c, 5]) / 2.0
         h_other = (h[c, 2] + h[c, 3]) / 2.0
-        if same_plane[c] and abs(h_wall + d_wall[c]) > abs(h_other + d_wall[c]):
+        if ids[jo[c]] == ids[j] and abs(h_wall + d_wall) > abs(h_other + d_wall):
             continue
         s1, s2 = h[c, 2] - h_wall, h[c, 3] - h_wall
         if abs(s1 - s2) > step_tolerance or not min_step <= abs(0.5 * (s1 + s2)) <= max_step:
             continue
-        h_view = _dot3(n_wall[c], origin)
+        h_view = _dot3(n_wall, origin)
         wall_higher = abs(h_view - h_wall) < abs(h_view - h_other)
-        if wall_higher == wall_is_lo[c]:
+        if wall_higher == (j == lo[c]):
             i_end, i_next, q = ia[c], ia[c] - 1, 0
         else:
             i_end, i_next, q = ib[c], ib[c] + 1, 1
@@ -126,7 +169,7 @@ def pair_breaks(h: FloatArray, w: FloatArray, same_plane: BoolArray, d_wall: Flo
         spacing[c] = math.sqrt(_dot3(dp, dp))
         step_point = (w[c, 2] + w[c, 3]) / 2.0
         keep[c], side[c], step[c], u[c], flat[c] = _break_geometry(
-            origin, x_world[c], n_wall[c], n_e[c], step_point, s1 + s2, w[c, 3] - w[c, 2], min_sin, flat_slope)
+            origin, x_world[c], n_wall, seg_along[j], step_point, s1 + s2, w[c, 3] - w[c, 2], min_sin, flat_slope)
     return keep, side, step, u, flat, x_world, pt_body, t, spacing
 
 
@@ -149,3 +192,47 @@ def recess_breaks(w: FloatArray, n_wall: FloatArray, n_e: FloatArray, origin: Fl
             origin, x, n_wall[c], n_e[c], w[c, 1], _dot3(n_wall[c], w[c, 1] - x), w[c, 3] - w[c, 2], min_sin,
             flat_slope)
     return keep, side, step, u, flat
+
+
+@nb.njit(cache=True)
+def _ray_on_line(angle: float, cx: float, cy: float, ux: float, uy: float) -> tuple[bool, float, float]:
+    """``frontend.edges.ray_on_line``: (met, x, y)."""
+    rx, ry = np.cos(angle), np.sin(angle)
+    det = ux * ry - uy * rx
+    if abs(det) < 1e-6:
+        return False, 0.0, 0.0
+    lam = (ux * cy - uy * cx) / det
+    if lam <= 0.0:
+        return False, 0.0, 0.0
+    return True, lam * rx, lam * ry
+
+
+@nb.njit(cache=True)
+def bracket_on_line(angles: FloatArray, ranges: FloatArray, valid: BoolArray, centroid: FloatArray,
+                    direction: FloatArray, k_end: int, step: int, tolerance: float,
+                    max_beams: int = 8) -> tuple[bool, float, float, float]:
+    """``frontend.edge_finder._bracket_on_line``: the end of the surface on the 2D line
+    (``centroid``, ``direction``; scanner frame) walked from beam ``k_end`` in direction ``step``
+    over beams still on the line within ``tolerance`` (``frontend.edges.surface_end``), bracketed
+    with the next beam (``frontend.edges.bracket_point``). Returns (found, x, y, spacing)."""
+    cx, cy, ux, uy = centroid[0], centroid[1], direction[0], direction[1]
+    nx, ny = -uy, ux
+    n = angles.shape[0]
+    k = k_end
+    for _ in range(max_beams):
+        j = k + step
+        if not 0 <= j < n or not valid[j]:
+            break
+        px, py = ranges[j] * np.cos(angles[j]), ranges[j] * np.sin(angles[j])
+        if abs(nx * (px - cx) + ny * (py - cy)) > tolerance:
+            break
+        k = j
+    k_next = k + step
+    if not 0 <= k_next < n:
+        return False, 0.0, 0.0, 0.0
+    ok_a, ax, ay = _ray_on_line(angles[k], cx, cy, ux, uy)
+    ok_b, bx, by = _ray_on_line(angles[k_next], cx, cy, ux, uy)
+    if not (ok_a and ok_b):
+        return False, 0.0, 0.0, 0.0
+    dx, dy = bx - ax, by - ay
+    return True, 0.5 * (ax + bx), 0.5 * (ay + by), math.sqrt(dx * dx + dy * dy)
