@@ -19,7 +19,6 @@ incidence on the wall, the step's side and sign along the wall) in :meth:`BreakF
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,8 +84,9 @@ class BreakFinder:
         if not breaks:
             return []
         w = self._knots.place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
-        return [replace(b, point_world=x, u=float(along_wall(self._pmap.planes[b.host].normal) @ x))
-                for b, x in zip(breaks, w, strict=True)]
+        u = ek.along_offsets(np.array([self._wall_row(b.host)[2] for b in breaks]), w).tolist()
+        return [Break(b.host, b.step, b.side, u[i], b.point_body, w[i], b.time, b.sigma, b.serial, b.flat)
+                for i, b in enumerate(breaks)]
 
     def _find(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         segs = p.segs

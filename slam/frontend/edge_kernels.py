@@ -236,3 +236,12 @@ def bracket_on_line(angles: FloatArray, ranges: FloatArray, valid: BoolArray, ce
         return False, 0.0, 0.0, 0.0
     dx, dy = bx - ax, by - ay
     return True, 0.5 * (ax + bx), 0.5 * (ay + by), math.sqrt(dx * dx + dy * dy)
+
+
+@nb.njit(cache=True)
+def along_offsets(n_e: FloatArray, x_world: FloatArray) -> FloatArray:
+    """``n_e[i] . x_world[i]`` (N,): the breaks' offsets along their walls (``Break.u``)."""
+    out = np.empty(x_world.shape[0])
+    for i in range(x_world.shape[0]):
+        out[i] = _dot3(n_e[i], x_world[i])
+    return out
