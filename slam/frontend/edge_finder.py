@@ -13,7 +13,9 @@ Three kinds of evidence, each giving the point where the surface nearer the scan
 The recess and inline tests depend on the scan alone and are computed once, when the scan is
 prepared (``frontend.scan_prep.scan_edge_tests``); here they are only looked up for the
 segments that turned out to be walls. Every candidate then passes the same checks (the beam's
-incidence on the wall, the step's side and sign along the wall) in :meth:`BreakFinder._break`.
+incidence on the wall, the step's side and sign along the wall) in :meth:`BreakFinder._break`;
+for the pairs (``point`` "midpoint" or "higher") and the recesses of a scan these run in compiled
+passes over all its candidates at once (``frontend.edge_kernels``, the same numbers).
 """
 
 from __future__ import annotations

@@ -333,7 +333,7 @@ def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
 
 def break_sigma(spacing: float, sigma: float) -> float:
     """Along-wall sigma of an edge point whose surface's points lie ``spacing`` apart there (m)."""
-    return float(np.sqrt(sigma**2 + spacing**2 / 12.0))
+    return math.sqrt(sigma**2 + spacing**2 / 12.0)  # correctly rounded, as np.sqrt
 
 
 def is_flat(direction_world: FloatArray, normal_wall: FloatArray, slope: float) -> bool:
