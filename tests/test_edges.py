@@ -111,8 +111,7 @@ def test_breaks_at_one_height_cluster_only_from_flat_scanlines() -> None:
     for s in range(6):
         em.pending.append(_break(5.0 + 0.002 * s, s, z=0.9))
     assert em.cluster() == []
-    for b in em.pending:
-        b.flat = True
+    em.pending = [replace(b, flat=True) for b in em.pending]
     assert len(em.cluster()) == 1
     assert is_flat(np.array([1.0, 0.0, 0.1]), WALL_N, 0.3)
     assert not is_flat(np.array([1.0, 0.0, 0.7]), WALL_N, 0.3)
@@ -160,7 +159,7 @@ def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
     assert em.match(_break(2.1, 0, z=1.85)) is e
     top = _break(2.1, 0, z=2.05)  # a break on the door's top edge, 10 cm along it
     assert em.match(top) is None
-    top.flat = True  # a flat scanline cannot cross the top edge: it is on the jamb
+    top = replace(top, flat=True)  # a flat scanline cannot cross the top edge: it is on the jamb
     assert em.match(top) is e
 
 

@@ -13,23 +13,24 @@ Three kinds of evidence, each giving the point where the surface nearer the scan
 The recess and inline tests depend on the scan alone and are computed once, when the scan is
 prepared (``frontend.scan_prep.scan_edge_tests``); here they are only looked up for the
 segments that turned out to be walls. Every candidate then passes the same checks (the beam's
-incidence on the wall, the step's side and sign along the wall) in :meth:`BreakFinder._break`.
+incidence on the wall, the step's side and sign along the wall) in :meth:`BreakFinder._break`;
+for the pairs (``point`` "midpoint" or "higher") and the recesses of a scan these run in compiled
+passes over all its candidates at once (``frontend.edge_kernels``, the same numbers).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend import edge_kernels as ek
 from slam.frontend.edges import (
     Break,
     EdgeParams,
     along_wall,
     bracket_point,
-    break_pairs,
     break_sigma,
     is_flat,
     segment_end,
@@ -43,6 +44,7 @@ from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import KIND_WALL, PlaneMap
 
 FloatArray = NDArray[np.float64]
+_ENDS_KEPT = 64  # scans whose recess ends are kept (a scan is asked while tracked and when associated)
 
 
 def wall_test(pmap: PlaneMap, hosts: dict[int, int]) -> Callable[[int], bool]:
@@ -62,6 +64,10 @@ class BreakFinder:
         self._knots = knots
         self._T_body_scanner = T_body_scanner
         self._range_sigma = range_sigma
+        self._along: dict[int, tuple[FloatArray, FloatArray]] = {}  # plane id -> (its normal, along_wall of it)
+        self._min_sin = float(np.sin(np.radians(params.min_incidence_deg)))
+        # the recess ends of the scans asked last (:meth:`_recess_end`), by id, with the scan held
+        self._ends: dict[int, tuple[PendingScan, dict[tuple[int, int], tuple[FloatArray, float, float] | None]]] = {}
 
     def breaks(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         """The breaks of scan ``p`` with plane ids ``ids`` per segment and the doors' and boards'
@@ -80,21 +86,30 @@ class BreakFinder:
         if not breaks:
             return []
         w = self._knots.place(np.array([b.point_body for b in breaks]), np.array([b.time for b in breaks]))
-        return [replace(b, point_world=x, u=float(along_wall(self._pmap.planes[b.host].normal) @ x))
-                for b, x in zip(breaks, w, strict=True)]
+        u = ek.along_offsets(np.array([self._wall_row(b.host)[2] for b in breaks]), w).tolist()
+        return [Break(b.host, b.step, b.side, u[i], b.point_body, w[i], b.time, b.sigma, b.serial, b.flat)
+                for i, b in enumerate(breaks)]
 
     def _find(self, p: PendingScan, ids: NDArray[np.int64], hosts: dict[int, int]) -> list[Break]:
         segs = p.segs
         is_wall = wall_test(self._pmap, hosts)
-        pairs = break_pairs(segs.first_beam, segs.n_points, ids, is_wall, self.params.max_skipped_points)
-        walls = [j for j, pid in enumerate(ids.tolist()) if pid >= 0 and is_wall(pid)]
-        if not pairs and not walls:
+        pids = ids.tolist()
+        wall_pid = {pid: is_wall(pid) for pid in set(pids) if pid >= 0}
+        walls = [j for j, pid in enumerate(pids) if pid >= 0 and wall_pid[pid]]
+        if not walls:  # every pair has a wall segment
             return []
         origin = (self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner][:, 3])[:3]
         out = self._recess_breaks(p, ids, walls, origin)
         if self.params.inline:
             out += self._inline_breaks(p, ids, walls, origin)
-        return out + self._pair_breaks(p, ids, pairs, origin)
+        wall = np.zeros(len(pids), dtype=np.bool_)
+        wall[walls] = True
+        if self.params.point == "bracket":
+            order = np.argsort(segs.first_beam, kind="stable")
+            pairs = ek.break_pairs(order, np.ascontiguousarray(segs.n_points, dtype=np.int64), wall,
+                                   self.params.max_skipped_points)
+            return out + self._pair_breaks(p, ids, [(int(a), int(b)) for a, b in pairs.tolist()], origin)
+        return out + self._pair_breaks_batch(p, ids, wall, walls, origin)
 
     def _break(self, p: PendingScan, wall: int, origin: FloatArray, x_world: FloatArray, point_body: FloatArray,
                time: float, spacing: float, step_point: FloatArray, step_height: float,
@@ -187,42 +202,123 @@ class BreakFinder:
                 out.append(brk)
         return out
 
+    def _pair_breaks_batch(self, p: PendingScan, ids: NDArray[np.int64], wall: NDArray[np.bool_], walls: list[int],
+                           origin: FloatArray) -> list[Break]:
+        """:meth:`_pair_breaks` with ``point`` "midpoint" or "higher", for the segments ``walls``
+        (``wall``: per segment) of the scan: the pairs found, filtered and checked in two compiled
+        passes (``edge_kernels.pair_candidates``, ``pair_breaks``) around one place call."""
+        ep = self.params
+        segs = p.segs
+        seg_normal, seg_d, seg_along = self._segment_walls(ids, walls)
+        jw, jo, lo, ia, ib, pts, times = ek.pair_candidates(
+            np.argsort(segs.first_beam, kind="stable"), segs.n_points, wall, ep.max_skipped_points, segs.first_beam,
+            segs.offsets, segs.points_body, segs.times, segs.virtual_body, segs.virtual_times,
+            ep.min_segment_points, ep.max_gap)
+        if not jw.shape[0]:
+            return []
+        placed = self._knots.place(pts, times).reshape(-1, 6, 3)
+        # one (6, 3) @ (3,) product per pair, as numpy computes it for one pair
+        h = np.matmul(placed, seg_normal[jw][:, :, None])[:, :, 0]
+        keep, side, step, u, flat, x_world, pt_body, t, spacing = ek.pair_breaks(
+            h, placed, jw, jo, lo, ia, ib, ids, seg_normal, seg_d, seg_along, segs.points_body, segs.times,
+            origin, ep.step_tolerance, ep.min_step, ep.max_step, self._min_sin, ep.flat_slope, ep.point == "midpoint")
+        kept = np.flatnonzero(keep).tolist()
+        if not kept:
+            return []
+        wall_ids, steps, sides, us, ts, spacings, flats = (
+            a.tolist() for a in (ids[jw], step, side, u, t, spacing, flat))
+        return [Break(wall_ids[c], steps[c], sides[c], us[c], pt_body[c], x_world[c], ts[c],
+                      break_sigma(spacings[c], ep.sigma), p.serial, flat=flats[c]) for c in kept]
+
+    def _segment_walls(self, ids: NDArray[np.int64], walls: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per segment of the scan (plane ids ``ids``), for the wall segments ``walls``: the wall's
+        normal (k, 3), offset (k,) and along-wall direction (k, 3), world frame (zero elsewhere)."""
+        k = ids.shape[0]
+        normal, d, along = np.zeros((k, 3)), np.zeros(k), np.zeros((k, 3))
+        for j in walls:
+            pid = int(ids[j])
+            normal[j], d[j], along[j] = self._wall_row(pid)
+        return normal, d, along
+
+    def _wall_row(self, pid: int) -> tuple[FloatArray, float, FloatArray]:
+        """Plane ``pid``'s normal, offset and along-wall direction (``along_wall``, kept while the
+        plane keeps its normal array: estimates replace it)."""
+        plane = self._pmap.planes[pid]
+        got = self._along.get(pid)
+        if got is None or got[0] is not plane.normal:
+            got = (plane.normal, along_wall(plane.normal))
+            self._along[pid] = got
+        return plane.normal, plane.d, got[1]
+
+    def _wall_rows(self, walls: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The walls' normals (n, 3), offsets (n,) and along-wall directions (n, 3), world frame."""
+        rows = [self._wall_row(pid) for pid in walls]
+        return (np.array([r[0] for r in rows], dtype=np.float64).reshape(-1, 3),
+                np.array([r[1] for r in rows], dtype=np.float64),
+                np.array([r[2] for r in rows]).reshape(-1, 3))
+
     def _recess_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:
         """Breaks where a wall segment ends into a door's recess behind it; the wall is the nearer
-        surface, so its end is bracketed as for a segmented pair."""
+        surface, so its end is bracketed as for a segmented pair (:meth:`_recess_end`), placed
+        for all the ends in one call and checked in one compiled pass."""
+        # asked of every long enough segment end that no other segment follows within three
+        # beams (there the pairs handle the end); a missing test is a failed one
+        tests = p.edge_tests
+        keys = [(j, direction) for j in walls for direction in (1, -1) if tests.get((j, direction)) is not None]
+        if not keys:
+            return []
+        held = self._ends.get(id(p))
+        if held is None:
+            held = self._ends[id(p)] = (p, {})
+            if len(self._ends) > _ENDS_KEPT:
+                del self._ends[next(iter(self._ends))]
+        memo = held[1]
+        ends = []
+        for key in keys:
+            if key not in memo:
+                memo[key] = self._recess_end(p, *key)
+            got = memo[key]
+            if got is not None:
+                ends.append((key[0], got))
+        if not ends:
+            return []
         segs = p.segs
+        js = [j for j, _ in ends]
+        # per end: its edge point and the first return inside the recess (body frame), the
+        # wall's two virtual points; one place call for all (per point the numbers of one call per end)
+        pts = np.concatenate((np.array([got[0] for _, got in ends]), segs.virtual_body[js]), axis=1)
+        t = np.array([got[2] for _, got in ends])
+        w = self._knots.place(pts.reshape(-1, 3), np.repeat(t, 4)).reshape(-1, 4, 3)
+        wall_ids = ids[js].tolist()
+        n_wall, _, n_e = self._wall_rows(wall_ids)
+        keep, side, step, u, flat = ek.recess_breaks(w, n_wall, n_e, origin, self._min_sin, self.params.flat_slope)
+        kept = np.flatnonzero(keep).tolist()
+        if not kept:
+            return []
+        steps, sides, us, ts, flats = (a.tolist() for a in (step, side, u, t, flat))
+        return [Break(wall_ids[c], steps[c], sides[c], us[c], ends[c][1][0][0], w[c, 0], ts[c],
+                      break_sigma(ends[c][1][1], self.params.sigma), p.serial, flat=flats[c]) for c in kept]
+
+    def _recess_end(self, p: PendingScan, j: int, direction: int) -> tuple[FloatArray, float, float] | None:
+        """Segment ``j``'s end in ``direction``, where the scan's recess test passed there: its edge
+        point and the first return inside the recess (2, 3) body frame, the beam spacing there (m)
+        and the end point's time (s); None where the end cannot be bracketed. It depends on the
+        scan alone (:meth:`_recess_breaks` keeps it for the scan)."""
+        segs = p.segs
+        _, k_in, depth = p.edge_tests[(j, direction)]
+        tolerance = min(3.0 * self._range_sigma[segs.scanner], 0.5 * depth)
+        found, ex, ey, spacing = ek.bracket_on_line(segs.beam_angles, segs.beam_ranges, segs.beam_valid,
+                                                    segs.line_centroid[j], segs.line_direction[j],
+                                                    segment_end(segs, j, direction), direction, tolerance)
+        if not found:
+            return None
         T_bs = self._T_body_scanner[segs.scanner]
-        sigma = self._range_sigma[segs.scanner]
-        out = []
-        for j in walls:
-            wall = int(ids[j])
-            for direction in (1, -1):
-                # asked of every long enough segment end that no other segment follows within
-                # three beams (there the pairs handle the end); a missing test is a failed one
-                found = p.edge_tests.get((j, direction))
-                if found is None:
-                    continue
-                _, k_in, depth = found
-                k_end = segment_end(segs, j, direction)
-                got = _bracket_end(segs, j, k_end, direction, min(3.0 * sigma, 0.5 * depth))
-                if got is None:
-                    continue
-                edge_scanner, spacing = got
-                r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
-                pts_scanner = np.array([[edge_scanner[0], edge_scanner[1], 0.0],
-                                        [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
-                i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
-                t = float(segs.times[i_end])
-                pts_body = self._knots.deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t))
-                w = self._knots.place(np.vstack((pts_body, segs.virtual_body[j])), np.full(4, t))
-                x_world = w[0]
-                n_wall = self._pmap.planes[wall].normal
-                brk = self._break(p, wall, origin, x_world, pts_body[0], t, spacing, w[1],
-                                  float(n_wall @ (w[1] - x_world)), w[3] - w[2])
-                if brk is not None:
-                    out.append(brk)
-        return out
+        r_in, a_in = float(segs.beam_ranges[k_in]), float(segs.beam_angles[k_in])
+        pts_scanner = np.array([[ex, ey, 0.0], [r_in * np.cos(a_in), r_in * np.sin(a_in), 0.0]])
+        i_end = int(segs.offsets[j + 1]) - 1 if direction == 1 else int(segs.offsets[j])
+        t = float(segs.times[i_end])
+        return self._knots.deskewed(pts_scanner @ T_bs[:3, :3].T + T_bs[:3, 3], np.full(2, t)), spacing, t
 
     def _inline_breaks(self, p: PendingScan, ids: NDArray[np.int64], walls: list[int],
                        origin: FloatArray) -> list[Break]:

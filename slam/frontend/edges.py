@@ -83,12 +83,13 @@ class EdgeParams:
     min_segment_points: int  # a wall segment shorter than this yields no break (the front end's limit)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Break:
     """One break point: ``point_body`` (3,) in the body frame at ``time``, its offset ``u`` along the
     wall (world, ``n_e . x``), sigma along the wall, the (raw) wall id, the step's sign (+1: in
     front of the wall along its normal) and side (+1: the step lies along ``+n_e``). ``flat``: the
-    scanline runs nearly horizontally across the wall there, so it can only cross a vertical edge."""
+    scanline runs nearly horizontally across the wall there, so it can only cross a vertical edge.
+    A record, never changed (:meth:`EdgeMap.cluster` remembers breaks that made no edge)."""
 
     host: int
     step: int
@@ -332,7 +333,7 @@ def bracket_point(angle_end: float, angle_next: float, centroid: FloatArray,
 
 def break_sigma(spacing: float, sigma: float) -> float:
     """Along-wall sigma of an edge point whose surface's points lie ``spacing`` apart there (m)."""
-    return float(np.sqrt(sigma**2 + spacing**2 / 12.0))
+    return math.sqrt(sigma**2 + spacing**2 / 12.0)  # correctly rounded, as np.sqrt
 
 
 def is_flat(direction_world: FloatArray, normal_wall: FloatArray, slope: float) -> bool:
@@ -363,6 +364,8 @@ class EdgeMap:
     # it, :meth:`match` keeps an index of the edges by key instead of testing every edge
     generation: Callable[[], int] | None = None
     _index: tuple[tuple[int, int], dict[tuple[int, int, int], list[Edge]]] | None = None
+    # per key, the pending breaks (in order) that made no edge at the last :meth:`cluster`
+    _failed: dict[tuple[int, int, int], list[Break]] = field(default_factory=dict)
 
     def key(self, host: int, step: int, side: int) -> tuple[int, int, int]:
         return self.resolve(host), step, side
@@ -385,8 +388,10 @@ class EdgeMap:
         key = self.key(b.host, b.step, b.side)
         z, margin = float(b.point_world[2]), self.params.height_margin
         best: tuple[float, Edge] | None = None
+        # the index holds the edges by their current keys; without it every edge is a candidate
+        indexed = self.generation is not None
         for e in self._candidates(key):
-            if e.merged_into is not None or self.key(e.host, e.step, e.side) != key:
+            if e.merged_into is not None or (not indexed and self.key(e.host, e.step, e.side) != key):
                 continue
             # beyond the heights its breaks were seen at, a break may lie on the door's top edge,
             # anywhere along it; a flat scanline can only cross a vertical edge
@@ -418,13 +423,24 @@ class EdgeMap:
         removes the members from the pending list."""
         p = self.params
         groups: dict[tuple[int, int, int], list[Break]] = {}
+        resolved: dict[int, int] = {}
         for b in self.pending:
-            groups.setdefault(self.key(b.host, b.step, b.side), []).append(b)
+            host = resolved.get(b.host)
+            if host is None:
+                host = resolved[b.host] = self.resolve(b.host)
+            groups.setdefault((host, b.step, b.side), []).append(b)
         found: list[tuple[list[Break], float]] = []
         taken: set[int] = set()
-        for members in groups.values():
+        failed: dict[tuple[int, int, int], list[Break]] = {}
+        for key, members in groups.items():
             if len(members) < p.min_points:
                 continue
+            # a group of the very breaks that made no edge last time makes none now
+            last = self._failed.get(key)
+            if last is not None and len(last) == len(members) and all(a is b for a, b in zip(last, members, strict=True)):
+                failed[key] = members
+                continue
+            failed[key] = members
             u = np.array([b.u for b in members])
             order = np.argsort(u)
             us = u[order]
@@ -441,6 +457,8 @@ class EdgeMap:
                 continue
             found.append((group, float(np.median([b.u for b in group]))))
             taken.update(id(b) for b in group)
+            del failed[key]
+        self._failed = failed
         if taken:
             self.pending = [b for b in self.pending if id(b) not in taken]
         return found
