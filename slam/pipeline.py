@@ -37,7 +37,8 @@ from numpy.typing import NDArray
 from common.rig import Rig
 from segmentation import Scanline
 from slam import params
-from slam.backend import Backend, RobustKernel
+from slam.backend import RobustKernel, StepReport
+from slam.backend_process import BackendProcess, make_backend
 from slam.config import SlamConfig
 from slam.frontend.association import ScanAssociator
 from slam.frontend.blocks import ObservationBlocks
@@ -80,10 +81,12 @@ class SlamRunner:
         self.params = params.components(cfg, with_imu)
         self.gates = self.params.gates
         self.dt = 1.0 / cfg.trajectory.knot_rate
-        self.backend = Backend(self.params.backend)
+        self.knots = KnotMirror(self.dt)
+        # in its own process (one update behind) with ``backend.pipelined``
+        self.backend = make_backend(self.params.backend, cfg.backend.pipelined, self.knots,
+                                    4 * cfg.backend.update_every)
         self.stats = RunStats(imu_used=int(with_imu))
         self._timer = StageTimer()
-        self.knots = KnotMirror(self.dt)
         self.queues = ScanQueues()
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell,
                              samples_until=cfg.frontend.transient_probation if cfg.frontend.transient_check else 0)
@@ -162,6 +165,8 @@ class SlamRunner:
             while self.knots.time(self.knots.n - 1) < last:
                 self._process_knot()
         self._update()
+        if isinstance(self.backend, BackendProcess):  # the last step's result, one update behind
+            self._apply(self.backend.collect())
 
     def _begin(self) -> None:
         """The first knot, once the first scans tell how the walk starts (at rest, or moving:
@@ -229,7 +234,10 @@ class SlamRunner:
 
     def _update(self) -> None:
         self._since_update = 0
-        report = self.backend.step()
+        self._apply(self.backend.step())
+
+    def _apply(self, report: StepReport) -> None:
+        """A back-end step's outcome into the statistics and, if it solved, the front end."""
         if not report.solved:
             return
         self.stats.isam2_rebuilds += report.rebuilds
