@@ -20,7 +20,8 @@ before ``t_{k+1}`` has arrived (``frontend.pending``):
    after the walk returns, segments associate with the old planes again through gates that grow
    with the distance walked since a plane was last seen, and duplicates merge);
 5. every ``update_every`` knots the back end takes a step (a window solve or iSAM2) and the front
-   end copies the new estimates in.
+   end copies the new estimates in (with ``backend.pipelined`` the back end runs in its own
+   process and the front end copies in the step before's, ``slam.backend_process``).
 
 At the end a batch solve over everything gives the final trajectory and planes
 (``slam.result.SlamResult``). Every component's parameters come from ``slam.params``.
