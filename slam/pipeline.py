@@ -316,6 +316,12 @@ class SlamRunner:
             deskew=self.knots.deskew,
         )
 
+    def close(self) -> None:
+        """Stop the back-end process, if the back end runs in one (``backend.pipelined``): its
+        estimates are no longer needed."""
+        if isinstance(self.backend, BackendProcess):
+            self.backend.close()
+
     def _resolve(self, pid: int) -> int:
         """A segment's plane id at the end: followed through the merges, ``TRANSIENT`` for a
         plane taken out as a thing that moved."""
