@@ -176,6 +176,8 @@ def _frozen(x: Any) -> Any:
         return x.copy()
     if isinstance(x, (list, tuple)):
         return type(x)(_frozen(v) for v in x)
+    if isinstance(x, dict):
+        return {k: _frozen(v) for k, v in x.items()}
     return x
 
 
