@@ -191,7 +191,9 @@ def run_slam(scans: Iterable[Scanline], rig: Rig, slam_cfg: SlamConfig,
         log.add(scan)
         runner.add_prepared(scan)
     runner.finish()
-    return runner.result(batch=False, covariances=False), log
+    res = runner.result(batch=False, covariances=False)
+    runner.close()  # the back-end process, if any, at once (not when the runner is collected)
+    return res, log
 
 
 def calibrate_round(scans: ScanSource, rig: Rig, initial: Rig, slam_cfg: SlamConfig,

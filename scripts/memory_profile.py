@@ -221,7 +221,9 @@ def profile_run(bag: str, out: str, points: int) -> dict[str, Any]:
     prof.take("start", 0.0)
     undo = prof.hook(SlamRunner)
     try:
-        summary = run_slam(bag, resolve_rig("itc_backpack"), SlamConfig(), out, progress=False)
+        # the back end in this process, where its holders can be measured
+        cfg = SlamConfig.model_validate({"backend": {"pipelined": False}})
+        summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=False)
     finally:
         undo()
     prof.take("export (after run_slam)", t1 - t0)

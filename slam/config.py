@@ -310,6 +310,11 @@ class BackEndConfig(StrictModel):
     robust_schedule: tuple[float, ...] = Field(
         (30.0, 10.0, 3.0), description="kernel-width multipliers of the graduated stages before the nominal one")
     update_every: int = Field(20, ge=1, description="knots between back-end updates (window solves or iSAM2 steps)")
+    pipelined: bool | None = Field(
+        None, description="run the back end in its own forked process, in parallel with the front end, which then "
+        "works one update behind it (its estimates arrive one update later; deterministic: the same input gives the "
+        "same output). None: on where a process can be forked (not inside a daemon pool worker), off otherwise; "
+        "false: the back end in the front end's process")
     relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
     relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
     isam2_iterations: int = Field(1, ge=1, description="iSAM2 steps per update (more: nearer the optimum, slower)")

@@ -20,7 +20,8 @@ before ``t_{k+1}`` has arrived (``frontend.pending``):
    after the walk returns, segments associate with the old planes again through gates that grow
    with the distance walked since a plane was last seen, and duplicates merge);
 5. every ``update_every`` knots the back end takes a step (a window solve or iSAM2) and the front
-   end copies the new estimates in.
+   end copies the new estimates in (with ``backend.pipelined`` the back end runs in its own
+   process and the front end copies in the step before's, ``slam.backend_process``).
 
 At the end a batch solve over everything gives the final trajectory and planes
 (``slam.result.SlamResult``). Every component's parameters come from ``slam.params``.
@@ -37,7 +38,8 @@ from numpy.typing import NDArray
 from common.rig import Rig
 from segmentation import Scanline
 from slam import params
-from slam.backend import Backend, RobustKernel
+from slam.backend import RobustKernel, StepReport
+from slam.backend_process import BackendProcess, make_backend
 from slam.config import SlamConfig
 from slam.frontend.association import ScanAssociator
 from slam.frontend.blocks import ObservationBlocks
@@ -80,10 +82,12 @@ class SlamRunner:
         self.params = params.components(cfg, with_imu)
         self.gates = self.params.gates
         self.dt = 1.0 / cfg.trajectory.knot_rate
-        self.backend = Backend(self.params.backend)
+        self.knots = KnotMirror(self.dt)
+        # in its own process (one update behind) with ``backend.pipelined``
+        self.backend = make_backend(self.params.backend, cfg.backend.pipelined, self.knots,
+                                    4 * cfg.backend.update_every)
         self.stats = RunStats(imu_used=int(with_imu))
         self._timer = StageTimer()
-        self.knots = KnotMirror(self.dt)
         self.queues = ScanQueues()
         self.pmap = PlaneMap(cell_size=cfg.frontend.extent_cell,
                              samples_until=cfg.frontend.transient_probation if cfg.frontend.transient_check else 0)
@@ -162,6 +166,8 @@ class SlamRunner:
             while self.knots.time(self.knots.n - 1) < last:
                 self._process_knot()
         self._update()
+        if isinstance(self.backend, BackendProcess):  # the last step's result, one update behind
+            self._apply(self.backend.collect())
 
     def _begin(self) -> None:
         """The first knot, once the first scans tell how the walk starts (at rest, or moving:
@@ -229,7 +235,10 @@ class SlamRunner:
 
     def _update(self) -> None:
         self._since_update = 0
-        report = self.backend.step()
+        self._apply(self.backend.step())
+
+    def _apply(self, report: StepReport) -> None:
+        """A back-end step's outcome into the statistics and, if it solved, the front end."""
         if not report.solved:
             return
         self.stats.isam2_rebuilds += report.rebuilds
@@ -306,6 +315,12 @@ class SlamRunner:
             timings=dict(self._timer.t),
             deskew=self.knots.deskew,
         )
+
+    def close(self) -> None:
+        """Stop the back-end process, if the back end runs in one (``backend.pipelined``): its
+        estimates are no longer needed."""
+        if isinstance(self.backend, BackendProcess):
+            self.backend.close()
 
     def _resolve(self, pid: int) -> int:
         """A segment's plane id at the end: followed through the merges, ``TRANSIENT`` for a

@@ -192,6 +192,7 @@ def run_slam(
             raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "
                               + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
         res = runner.result(batch=cfg.backend.final_batch)
+        runner.close()
         health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches],
                             None if share is None else (cfg.input.echo, share))
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}

@@ -1,0 +1,261 @@
+"""The back end in its own process (slam.backend_process): the same ids and estimates as in
+process, errors raised in the parent, and a pipelined run that is deterministic and close to the
+synchronous one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from backend_defaults import backend_defaults
+from box_scene import Scene, make_scene, perturb_pose
+
+from simulation.run import SimulationResult, simulate
+from slam.backend import Backend, BackendConfig
+from slam.backend_process import BackendProcess, FactorIds, make_backend
+from slam.config import SlamConfig
+from slam.frontend.knots import KnotMirror
+from slam.pipeline import SlamRunner
+from slam.prefetch import can_fork_reader
+from slam.result import SlamResult
+
+pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="no fork here")
+
+DEG = np.pi / 180.0
+
+
+def _pair(config: BackendConfig, dt: float = 1.0 / 40.0) -> tuple[Backend, BackendProcess, KnotMirror]:
+    knots = KnotMirror(dt)
+    return Backend(config), BackendProcess(config, knots, recent_knots=20), knots
+
+
+def _both(be: Backend, proxy: BackendProcess, name: str, *args: Any, **kwargs: Any) -> Any:
+    """The same call on both; their answers must agree."""
+    a = getattr(be, name)(*args, **kwargs)
+    b = getattr(proxy, name)(*args, **kwargs)
+    assert a == b, f"{name}: {a} in process, {b} from the proxy"
+    return a
+
+
+def _planes(scene: Scene, rng: np.random.Generator) -> list[tuple[int, np.ndarray, float, bool, bool]]:
+    """The scene's planes, perturbed: (id, normal, offset, horizontal, vertical)."""
+    out = []
+    for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+        horizontal = abs(float(n0[2])) > 0.9
+        out.append((j, n0 + rng.normal(0.0, 0.01, 3), float(d0 + rng.normal(0.0, 0.02)), horizontal,
+                    not horizontal and j % 2 == 0))
+    return out
+
+
+def test_the_proxy_gives_the_back_ends_ids_and_replays_to_the_same_estimates() -> None:
+    """Knots, blocks, ties and links get the in-process ids; steps applied at the same points give
+    the same estimates, bit for bit, and so does the final batch."""
+    scene = make_scene(duration=1.0, beams=61, sigma_range=0.003, seed=3)
+    rng = np.random.default_rng(4)
+    be, proxy, knots = _pair(backend_defaults())
+    try:
+        for j, n, d, hor, ver in _planes(scene, rng):
+            _both(be, proxy, "add_plane", j, n, d, horizontal=hor, vertical=ver, anchor=scene.planes[j, :3] * 0.5)
+        wall = next(j for j in range(6) if abs(scene.planes[j, 2]) < 0.1)
+        n_w, d_w = scene.planes[wall, :3], float(scene.planes[wall, 3])
+        by_knot: dict[int, list[dict]] = {}
+        for b in scene.blocks:
+            by_knot.setdefault(b["knot"], []).append(b)
+        steps = 0
+        for i, t in enumerate(scene.knot_times):
+            T = scene.knot_poses[0] if i == 0 else perturb_pose(scene.knot_poses[i], rng, 0.01, 0.3 * DEG)
+            knots.append(T)
+            assert _both(be, proxy, "add_pose", t, T) == i
+            for b in by_knot.get(i - 1, []):
+                _both(be, proxy, "add_observations", b["knot"], b["plane"], b["points_body"], b["alphas"],
+                      b["sigmas"])
+            if i == 10:  # a duplicate of the wall (linked), a door in it (parallel), one across it, removed
+                _both(be, proxy, "add_plane", 10, n_w, d_w + 0.001, vertical=True)
+                _both(be, proxy, "add_plane", 11, n_w, d_w + 0.02)
+                _both(be, proxy, "add_plane", 12, np.cross(n_w, [0.0, 0.0, 1.0]), 0.3, vertical=True)
+                for b in by_knot.get(i - 2, []):
+                    if b["plane"] == wall:
+                        _both(be, proxy, "add_observations", b["knot"], 10, b["points_body"], b["alphas"],
+                              b["sigmas"])
+                _both(be, proxy, "link_planes", wall, 10, 1e-3, 1e-3)
+                _both(be, proxy, "add_parallel", wall, 11, 0.01)
+                _both(be, proxy, "add_perpendicular", wall, 12, 0.01)
+                be.remove_plane(12)
+                proxy.remove_plane(12)
+                be.remove_plane(11)
+                proxy.remove_plane(11)
+            if i >= 8 and i % 4 == 0:
+                report = be.step()
+                assert not proxy.step().solved  # nothing outstanding: each step is collected at once here
+                assert proxy.collect() == report
+                steps += 1
+                for k in range(max(0, i + 1 - 20), i + 1):
+                    np.testing.assert_array_equal(proxy.pose(k), be.pose(k))
+                for j in be.plane_ids():
+                    n_be, d_be = be.plane(j)
+                    n_px, d_px = proxy.plane(j)
+                    np.testing.assert_array_equal(n_px, n_be)
+                    assert d_px == d_be
+        assert steps >= 3
+        assert proxy.num_knots == be.num_knots
+        assert _both(be, proxy, "fold_links") == {10: wall}
+        s_be, s_px = be.batch_optimize(5), proxy.batch_optimize(5)
+        assert (s_px.initial_error, s_px.final_error, s_px.iterations) == (s_be.initial_error, s_be.final_error,
+                                                                           s_be.iterations)
+        np.testing.assert_array_equal(proxy.poses(), be.poses())
+        for a, b in zip(proxy.planes(), be.planes(), strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(proxy.plane_covariance(wall), be.plane_covariance(wall))
+        assert proxy.residual_statistics() == be.residual_statistics()
+        # after a change the counters do not follow, ids come from the worker
+        b = scene.blocks[0]
+        _both(be, proxy, "add_observations", b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    finally:
+        proxy.close()
+
+
+def test_imu_factors_count_as_in_the_back_end() -> None:
+    """With an IMU: velocity and bias states, IMU intervals and velocity priors advance the
+    counter as in process."""
+    be, proxy, knots = _pair(backend_defaults(imu=True), dt=0.05)
+    try:
+        _both(be, proxy, "add_plane", 0, np.array([0.0, 0.0, 1.0]), 0.0, horizontal=True)
+        accel = np.tile([0.0, 0.0, 9.81], (10, 1))
+        for i in range(4):
+            T = np.eye(4)
+            T[0, 3] = 0.05 * i
+            knots.append(T, np.array([1.0, 0.0, 0.0]))
+            v = knots.V[i]  # a view, as the runner passes it: the proxy must send its value at the call
+            assert be.add_pose(0.05 * i, T, velocity_world=v.copy()) == proxy.add_pose(0.05 * i, T, velocity_world=v)
+            knots.V[i] = -7.0
+            if i:
+                _both(be, proxy, "add_imu", i - 1, accel, np.zeros((10, 3)), np.full(10, 0.005))
+            if i == 2:
+                _both(be, proxy, "add_velocity_prior", i, np.zeros(3), 0.01)
+        pts = np.array([[1.0, 0.0, -1.0], [0.0, 1.0, -1.0]])
+        assert _both(be, proxy, "add_observations", 1, 0, pts, None, np.full(2, 0.01)) > 8
+        report = be.step()
+        proxy.step()
+        assert proxy.collect() == report
+        np.testing.assert_array_equal(proxy.velocity(3), be.velocity(3))
+        np.testing.assert_array_equal(proxy.bias(3), be.bias(3))
+    finally:
+        proxy.close()
+
+
+def test_a_failing_worker_raises_in_the_parent() -> None:
+    """A call the back end refuses, an id the counters got wrong and a killed worker each end in a
+    one-line RuntimeError in the parent, not a hang."""
+    config = backend_defaults()
+    proxy = BackendProcess(config, KnotMirror(0.05), recent_knots=20)
+    t = time.perf_counter()
+    proxy.add_pose(0.0, np.eye(4))
+    proxy.add_observations(0, 99, np.zeros((2, 3)), None, np.full(2, 0.01))  # no plane 99
+    proxy.step()
+    with pytest.raises(RuntimeError, match=r"the back-end process failed: ValueError: plane_id: no plane 99$"):
+        proxy.collect()
+    proxy.close()
+
+    proxy = BackendProcess(config, KnotMirror(0.05), recent_knots=20)
+    proxy.add_plane(0, np.array([0.0, 0.0, 1.0]), 0.0, horizontal=True)
+    proxy.add_pose(0.0, np.eye(4))
+    assert proxy._ids is not None
+    proxy._ids.next_factor += 1  # a counter that drifted from the back end's
+    proxy.add_observations(0, 0, np.zeros((2, 3)), None, np.full(2, 0.01))
+    with pytest.raises(RuntimeError, match="FactorIds no longer counts as the back end does"):
+        proxy.residual_statistics()
+    proxy.close()
+
+    proxy = BackendProcess(config, KnotMirror(0.05), recent_knots=20)
+    os.kill(proxy._proc.pid, signal.SIGKILL)
+    proxy.step()
+    with pytest.raises(RuntimeError, match=r"the back-end process: stopped without a result \(exit code -9\)"):
+        proxy.collect()
+    proxy.close()
+    assert time.perf_counter() - t < 30.0
+
+
+def test_a_synchronous_query_error_is_the_callers() -> None:
+    """An error of a synchronous query (a plane that does not exist) is raised as in process, and
+    the worker goes on."""
+    proxy = BackendProcess(backend_defaults(), KnotMirror(0.05), recent_knots=20)
+    try:
+        with pytest.raises(ValueError, match="plane_id: no plane 5"):
+            proxy.plane_covariance(5)
+        assert proxy.residual_statistics()["blocks"] == 0.0
+    finally:
+        proxy.close()
+
+
+def test_the_switch_chooses_the_back_end() -> None:
+    knots = KnotMirror(0.05)
+    assert isinstance(make_backend(backend_defaults(), False, knots, 80), Backend)
+    proxy = make_backend(backend_defaults(), None, knots, 80)
+    assert isinstance(proxy, BackendProcess)
+    proxy.close()
+    assert not proxy._proc.is_alive()
+    assert SlamConfig().backend.pipelined is None  # auto: on where a process can be forked
+    with pytest.raises(ValueError, match="pipelined"):
+        SlamConfig.model_validate({"backend": {"pipelined": "often"}})
+
+
+def test_factor_ids_follow_the_configuration() -> None:
+    ids = FactorIds(backend_defaults())
+    assert [ids.add_pose() for _ in range(3)] == [0, 1, 2]
+    assert ids.one() == 3  # datum, first interval, one constant-velocity factor before it
+
+
+# ---------------------------------------------------------------------------- a short walk
+
+BOX_WORLD = """
+name: box
+floor_z: 0.0
+ceiling_z: 2.8
+spaces:
+  - {name: room, rect: [0.0, 0.0, 8.0, 6.0]}
+walk:
+  speed: 1.2
+  waypoints:
+    - [1.5, 1.5]
+    - [6.0, 2.0]
+    - [6.0, 4.5]
+"""
+
+
+@pytest.fixture(scope="module")
+def box_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    folder = tmp_path_factory.mktemp("box_walk")
+    world = folder / "box.yaml"
+    world.write_text(BOX_WORLD)
+    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", progress=False)
+
+
+def _run(bag: Path, pipelined: bool) -> SlamResult:
+    from common.rig import resolve_rig
+    from slam.io.bag import read_scans
+
+    rig = resolve_rig("itc_backpack")
+    cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined}})
+    runner = SlamRunner(rig, cfg)
+    assert isinstance(runner.backend, BackendProcess) == pipelined
+    for line in read_scans(bag, rig=rig):
+        runner.add_scan(line)
+    runner.finish()
+    return runner.result()
+
+
+def test_a_pipelined_walk_is_deterministic_and_close_to_the_synchronous_one(box_walk: SimulationResult) -> None:
+    a, b, sync = _run(box_walk.bag, True), _run(box_walk.bag, True), _run(box_walk.bag, False)
+    np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
+    np.testing.assert_array_equal(a.plane_ids, b.plane_ids)
+    np.testing.assert_array_equal(a.plane_offsets, b.plane_offsets)
+    assert a.stats["updates"] == sync.stats["updates"]  # every step's result applied, one update late
+    assert a.T_world_body.shape == sync.T_world_body.shape
+    gap = np.linalg.norm(a.T_world_body[:, :3, 3] - sync.T_world_body[:, :3, 3], axis=1)
+    assert gap.max() < 0.005, f"{1000 * gap.max():.2f} mm from the synchronous run"
+    assert len(a.plane_ids) == len(sync.plane_ids)
