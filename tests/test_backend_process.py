@@ -199,7 +199,7 @@ def test_the_switch_chooses_the_back_end() -> None:
     assert isinstance(proxy, BackendProcess)
     proxy.close()
     assert not proxy._proc.is_alive()
-    assert SlamConfig().backend.pipelined is None  # auto: on where a process can be forked
+    assert SlamConfig().backend.pipelined is False  # experimental: off unless asked for (None: where forking works)
     with pytest.raises(ValueError, match="pipelined"):
         SlamConfig.model_validate({"backend": {"pipelined": "often"}})
 
