@@ -19,6 +19,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend.kernels import pair_gate
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
@@ -58,13 +60,9 @@ def gate_pairs(
             sd = sigma_drift[j]
             dc = nx * c[0] + ny * c[1] + nz * c[2] + d
             sa = abs(nx * direction[k, 0] + ny * direction[k, 1] + nz * direction[k, 2])
-            lever = (sigma_lever * seg_range[k]) ** 2
-            s2 = sigma_centroid[k] ** 2 + sigma_plane[j] ** 2 + sigma_pose**2 + lever + sd**2
-            a2 = sigma_direction[k] ** 2 + sigma_rotation**2 + (sd / 5.0) ** 2
-            mk = dc**2 / s2 + sa**2 / a2
-            e0 = abs(nx * endpoints[k, 0, 0] + ny * endpoints[k, 0, 1] + nz * endpoints[k, 0, 2] + d)
-            e1 = abs(nx * endpoints[k, 1, 0] + ny * endpoints[k, 1, 1] + nz * endpoints[k, 1, 2] + d)
-            cap = max_endpoint_distance + 3.0 * sd + 3.0 * sigma_lever * seg_range[k]
+            s2, mk, e0, e1, cap = pair_gate(dc, sa, endpoints[k], nx, ny, nz, d, sigma_centroid[k], sigma_direction[k],
+                                            seg_range[k], sigma_plane[j], sd, sigma_pose, sigma_rotation, sigma_lever,
+                                            max_endpoint_distance)
             m2[j], dist[k, j], sig_d2[k, j] = mk, dc, s2
             if (mk < chi2) and (e0 < cap) and (e1 < cap) and facing[j]:
                 # insertion by increasing m2 (few candidates), after the equal ones

@@ -273,6 +273,26 @@ def refine_window(
     return T
 
 
+@nb.njit(inline="always")
+def pair_gate(
+    dc: float, sa: float, ends: FloatArray, nx: float, ny: float, nz: float, d: float, sigma_centroid: float,
+    sigma_direction: float, seg_range: float, sigma_plane: float, sigma_drift: float, sigma_pose: float,
+    sigma_rotation: float, sigma_lever: float, max_endpoint_distance: float,
+) -> tuple[float, float, float, float, float]:
+    """One (segment, plane) pair's gate terms (world frame): from the centroid's signed distance
+    ``dc`` and the direction's sine ``sa`` against the plane (normal ``nx, ny, nz``, offset ``d``),
+    the centroid's variance ``s2`` (m^2), the squared Mahalanobis distance ``m2``, the end points'
+    (``ends`` (2, 3)) distances ``e0``, ``e1`` and their cap (m)."""
+    lever = (sigma_lever * seg_range) ** 2
+    s2 = sigma_centroid**2 + sigma_plane**2 + sigma_pose**2 + lever + sigma_drift**2
+    a2 = sigma_direction**2 + sigma_rotation**2 + (sigma_drift / 5.0) ** 2
+    m2 = dc**2 / s2 + sa**2 / a2
+    e0 = abs(nx * ends[0, 0] + ny * ends[0, 1] + nz * ends[0, 2] + d)
+    e1 = abs(nx * ends[1, 0] + ny * ends[1, 1] + nz * ends[1, 2] + d)
+    cap = max_endpoint_distance + 3.0 * sigma_drift + 3.0 * sigma_lever * seg_range
+    return s2, m2, e0, e1, cap
+
+
 @nb.njit(cache=True)
 def association_gates(
     centroid: FloatArray, direction: FloatArray, endpoints: FloatArray, sigma_centroid: FloatArray,
@@ -309,13 +329,9 @@ def association_gates(
             c = centroid[k]
             dc = nx * c[0] + ny * c[1] + nz * c[2] + d
             sa = abs(nx * direction[k, 0] + ny * direction[k, 1] + nz * direction[k, 2])
-            lever = (sigma_lever * seg_range[k]) ** 2
-            s2 = sigma_centroid[k] ** 2 + sigma_plane[j] ** 2 + sigma_pose**2 + lever + sd**2
-            a2 = sigma_direction[k] ** 2 + sigma_rotation**2 + (sd / 5.0) ** 2
-            mk = dc**2 / s2 + sa**2 / a2
-            e0 = abs(nx * endpoints[k, 0, 0] + ny * endpoints[k, 0, 1] + nz * endpoints[k, 0, 2] + d)
-            e1 = abs(nx * endpoints[k, 1, 0] + ny * endpoints[k, 1, 1] + nz * endpoints[k, 1, 2] + d)
-            cap = max_endpoint_distance + 3.0 * sd + 3.0 * sigma_lever * seg_range[k]
+            s2, mk, e0, e1, cap = pair_gate(dc, sa, endpoints[k], nx, ny, nz, d, sigma_centroid[k], sigma_direction[k],
+                                            seg_range[k], sigma_plane[j], sd, sigma_pose, sigma_rotation, sigma_lever,
+                                            max_endpoint_distance)
             ok[k, j] = (mk < chi2) and (e0 < cap) and (e1 < cap) and facing
             m2[k, j], dist[k, j], sig_d2[k, j] = mk, dc, s2
             pts[0], pts[1], pts[2] = endpoints[k, 0], endpoints[k, 1], c
