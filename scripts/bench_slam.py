@@ -252,6 +252,7 @@ class PssSampler:
         import threading
 
         self.pid, self.period, self.peak = pid, period, 0.0
+        self.series: list[tuple[float, float, float]] = []  # (s since start, PSS of all, PSS of the root process)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -269,19 +270,61 @@ class PssSampler:
             root = psutil.Process(self.pid)
         except psutil.Error:
             return
+        t0 = time.perf_counter()
         while not self._stop.is_set():
-            total = 0.0
+            total = own = 0.0
             try:
                 procs = [root, *root.children(recursive=True)]
             except psutil.Error:
                 break
             for p in procs:
                 try:
-                    total += p.memory_full_info().pss
+                    pss = p.memory_full_info().pss
                 except psutil.Error:
-                    pass
+                    continue
+                total += pss
+                if p.pid == root.pid:
+                    own = pss
             self.peak = max(self.peak, total)
+            self.series.append((time.perf_counter() - t0, total, own))
             self._stop.wait(self.period)
+
+    def write(self, run_dir: Path, timings: dict[str, float]) -> None:
+        """``memory_series.tsv`` (time, PSS of all processes and of the estimator) and
+        ``memory_over_time.png`` in ``run_dir``, the final batch and the export shaded (their
+        starts from the run's stage times, counted back from its end)."""
+        if not self.series or not run_dir.is_dir():
+            return
+        import numpy as np
+
+        arr = np.array(self.series)
+        tmp = run_dir / "memory_series.tsv.part"
+        np.savetxt(tmp, arr * [1.0, 1e-9, 1e-9], fmt="%.3f", delimiter="\t",
+                   header="seconds\tpss_all_gb\tpss_estimator_gb")
+        tmp.replace(run_dir / "memory_series.tsv")
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(8, 3.8))
+        ax.plot(arr[:, 0], arr[:, 1] * 1e-9, label="all processes (PSS)")
+        ax.plot(arr[:, 0], arr[:, 2] * 1e-9, label="estimator process (PSS)")
+        wall = float(timings.get("wall", arr[-1, 0]))
+        t_export = wall - float(timings.get("export", 0.0))
+        t_batch = t_export - float(timings.get("batch", 0.0))
+        ax.axvspan(t_batch, t_export, color="tab:orange", alpha=0.15, label="final batch and trim")
+        ax.axvspan(t_export, wall, color="tab:green", alpha=0.15, label="export (cloud, recording)")
+        ax.set_xlabel("wall time of the run (s; evaluation after the last shaded span)")
+        ax.set_ylabel("memory (GB)")
+        ax.set_ylim(0, None)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left")
+        ax.set_title(f"peak {arr[:, 1].max() * 1e-9:.2f} GB")
+        fig.tight_layout()
+        fig.savefig(run_dir / "memory_over_time.png.part.png", dpi=110)
+        plt.close(fig)
+        (run_dir / "memory_over_time.png.part.png").replace(run_dir / "memory_over_time.png")
 
 
 def main() -> int:
@@ -330,6 +373,12 @@ def main() -> int:
             print(f"  {m}: failed (exit {proc.returncode})", file=sys.stderr)
             continue
         rows.append(json.loads(line[len("BENCH_ROW "):]) | {"peak_pss_bytes": sampler.peak})
+        try:
+            timings = json.loads((out / m / "summary.json").read_text()).get("timings", {})
+        except (OSError, ValueError):
+            timings = {}
+        sampler.write(out / m, timings)
+        print(f"  memory over time: {out / m / 'memory_over_time.png'}", flush=True)
         print(f"  done in {time.perf_counter() - t0:.0f} s (incl. evaluation)", flush=True)
     if not rows:
         return 1
