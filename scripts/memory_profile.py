@@ -105,15 +105,16 @@ def gtsam_counts(runner: Any) -> dict[str, int]:
     n_points = getattr(store, "n_points", None)
     if n_points is None:
         n_points = sum(b.points.shape[0] for b in blocks.values())
+    block_factors = getattr(store, "_factors", {})  # since the blocks lost their records: built block factors
     return {
         "factor_records": len(recs),
-        "factors_built": sum(1 for r in recs.values() if r.factor is not None),
+        "factors_built": sum(1 for r in recs.values() if r.factor is not None) + len(block_factors),
         "group_factors": len(getattr(store, "_groups", {})),
         "values": int(be.graph.values.size()),
         "blocks": len(blocks),
         "block_points": int(n_points),
         "knots": len(be.graph.times),
-        "planes": len(store.plane_blocks),
+        "planes": len(getattr(store, "by_plane", None) or getattr(store, "plane_blocks", {})),
     }
 
 

@@ -51,7 +51,7 @@ def _old_whole_graph(store: BlockStore) -> list[tuple[int, ...]]:
     groups: dict[int, list[int]] = {}
     out: list[tuple[int, ...]] = []
     cols = store.cols
-    for fid in sorted(store.graph.records):
+    for fid in store.factor_ids().tolist():
         if cols.has(fid) and cols.two[fid]:
             groups.setdefault(int(cols.knot[fid]), []).append(fid)
         else:
@@ -81,7 +81,7 @@ def test_summaries_of_many_blocks_are_the_single_ones(seed: int) -> None:
     first = 8
     a.blocks.hold_before(first)
     for k in range(b.blocks.summarized_upto, first):  # the former loop
-        for fid in b.graph.by_knot.get(k, ()):
+        for fid in b.blocks.by_knot.get(k).tolist():
             if b.blocks.cols.has(fid) and not b.blocks.cols.held[fid]:
                 b.blocks._summarize(fid)
     assert np.array_equal(a.blocks.cols.held, b.blocks.cols.held)

@@ -108,10 +108,11 @@ def test_window_with_summaries_equals_the_window_over_every_old_block() -> None:
     active = {int(X(k)) for k in range(first, be.num_knots)} | {int(P(j)) for j in be.plane_ids()}
     graph = gtsam.NonlinearFactorGraph()
     used: set[int] = set()
-    for fid, rec in be.graph.records.items():
-        if any(k in active for k in rec.keys):
+    for fid in be.blocks.factor_ids().tolist():
+        keys = be.blocks.factor_keys(fid)
+        if any(k in active for k in keys):
             graph.add(be.blocks.factor(fid))
-            used.update(rec.keys)
+            used.update(keys)
     values = gtsam.Values()
     for k in used:
         if chr(gtsam.Symbol(k).chr()) == "x":

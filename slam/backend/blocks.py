@@ -29,11 +29,13 @@ from slam.backend.factors import (
     point_planes_factor,
     robust_weights,
 )
-from slam.backend.graph import FactorGraph, Record
+from slam.backend.graph import FactorGraph
+from slam.backend.id_lists import IdLists
 from slam.backend.plane_summary import scatter, shift_anchor
 from slam.trajectory.placement import interval_poses
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
 @dataclass(frozen=True)
@@ -50,8 +52,8 @@ class ObservationBlock:
 
 class BlockColumns:
     """The observation blocks' data as columns: per block id (the graph's factor id, so ids of
-    other factors are unused slots) its knot, plane, whether it spans two knots, its rows and
-    whether it is live; per row its point (3,), fraction and sigma. Rows of a block are
+    other factors are unused slots) its knot, plane, whether it spans two knots, its rows, whether
+    it is live and its index in iSAM2 (-1: none); per row its point (3,), fraction and sigma. Rows of a block are
     contiguous; a removed block's rows are garbage until :meth:`compact` rewrites the live ones
     (in block order). Arrays grow by doubling, so an hour's million blocks are a few numpy
     arrays, not a million Python objects."""
@@ -65,6 +67,7 @@ class BlockColumns:
         self.size = np.zeros(0, dtype=np.int64)
         self.held = np.zeros(0, dtype=bool)  # summarised (its scatter below is its plane's share)
         self.scatter = np.zeros((0, 4, 4))  # a held block's scatter (its plane's anchor)
+        self.isam = np.zeros(0, dtype=np.int64)  # the block's factor's index in iSAM2 (-1: none)
         self.points = np.zeros((0, 3))
         self.alphas = np.zeros(0)
         self.sigmas = np.zeros(0)
@@ -77,9 +80,9 @@ class BlockColumns:
         n = max(1024, 2 * self.knot.shape[0])
         while n <= bid:
             n *= 2
-        for name in ("knot", "plane", "two", "live", "start", "size", "held", "scatter"):
+        for name in ("knot", "plane", "two", "live", "start", "size", "held", "scatter", "isam"):
             old = getattr(self, name)
-            new = np.zeros((n, *old.shape[1:]), dtype=old.dtype)
+            new = np.full((n, *old.shape[1:]), -1 if name == "isam" else 0, dtype=old.dtype)
             new[: old.shape[0]] = old
             setattr(self, name, new)
 
@@ -107,7 +110,7 @@ class BlockColumns:
             self.alphas[s:s + n] = blk.alphas
         self.rows += n
         self.knot[bid], self.plane[bid], self.two[bid] = blk.knot, blk.plane_id, blk.alphas is not None
-        self.start[bid], self.size[bid], self.live[bid] = s, n, True
+        self.start[bid], self.size[bid], self.live[bid], self.isam[bid] = s, n, True, -1
         self.count += 1
         self.n_points += n
 
@@ -161,7 +164,7 @@ class BlockColumns:
 
     def nbytes(self) -> int:
         return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "held",
-                                                      "scatter", "points", "alphas", "sigmas"))
+                                                      "scatter", "isam", "points", "alphas", "sigmas"))
 
 
 class BlockView(Mapping[int, ObservationBlock]):
@@ -186,9 +189,11 @@ class BlockView(Mapping[int, ObservationBlock]):
 
 
 class BlockStore:
-    """The observation blocks of a :class:`FactorGraph` (block id = its factor id), by plane,
-    with their interval groups and the summaries of the held ones. The blocks' data are
-    :class:`BlockColumns`; ``blocks`` is their read-only view by id."""
+    """The observation blocks of a :class:`FactorGraph` (block id = its factor id), by plane and
+    by knot, with their interval groups and the summaries of the held ones. The blocks' data are
+    :class:`BlockColumns`; ``blocks`` is their read-only view by id. A block has no factor record:
+    the graph's factors are its records and the live blocks (:meth:`factor_ids`,
+    :meth:`factors_of_knots`, :meth:`factor_keys`, :meth:`factor`)."""
 
     def __init__(self, graph: FactorGraph, kernel: RobustKernel, coalesce: bool) -> None:
         self.graph = graph
@@ -196,12 +201,18 @@ class BlockStore:
         self.coalesce = coalesce
         self.cols = BlockColumns()
         self.blocks = BlockView(self.cols)
-        self.plane_blocks: dict[int, set[int]] = {}  # plane id -> its block ids (every plane)
+        alive = self._alive
+        self.by_plane = IdLists(alive)  # plane id -> its block ids (every plane has a list)
+        self.by_knot = IdLists(alive)  # the highest knot a block touches -> its block ids
+        self._factors: dict[int, gtsam.NonlinearFactor] = {}  # block id -> its built factor
         self._open: dict[tuple[int, int, bool], int] = {}  # coalescing: (knot, plane, two poses)
         self._groups: dict[int, tuple[tuple[int, ...], gtsam.NonlinearFactor]] = {}  # knot -> group
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
         self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
+
+    def _alive(self, ids: IntArray) -> NDArray[np.bool_]:
+        return self.cols.live[ids]
 
     @property
     def summarized(self) -> dict[int, FloatArray]:
@@ -216,32 +227,42 @@ class BlockStore:
 
     # ----------------------------------------------------------------- planes
     def add_plane(self, plane_id: int) -> None:
-        self.plane_blocks[plane_id] = set()
+        self.by_plane.add_key(plane_id)
 
     def check_plane(self, plane_id: int) -> int:
         """``plane_id`` as the id of an existing plane."""
         j = int(plane_id)
-        if j not in self.plane_blocks:
+        if j not in self.by_plane:
             raise ValueError(f"plane_id: no plane {j}")
         return j
 
+    def plane_ids(self) -> list[int]:
+        """The ids of the planes, increasing."""
+        return sorted(self.by_plane)
+
     def of_plane(self, plane_id: int) -> list[int]:
-        """Ids of the blocks on a plane."""
-        return sorted(self.plane_blocks[self.check_plane(plane_id)])
+        """Ids of the blocks on a plane, increasing."""
+        return self.of_planes([self.check_plane(plane_id)]).tolist()
+
+    def of_planes(self, plane_ids: list[int]) -> IntArray:
+        """Ids of the blocks on the planes ``plane_ids`` (existing ones), increasing."""
+        parts = [self.by_plane.live(j) for j in plane_ids]
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
 
     def move_plane(self, drop: int, keep: int) -> int:
         """Re-key the blocks of plane ``drop`` onto ``keep`` (same block ids, summaries shifted to
         ``keep``'s anchor) and forget ``drop``; returns the number of moved blocks."""
         anchors = self.graph.anchors
-        moved = sorted(self.plane_blocks[drop])
+        moved = self.of_plane(drop)
         cols = self.cols
         for bid in moved:
             knot, two = int(cols.knot[bid]), bool(cols.two[bid])
             self._open.pop((knot, drop, two), None)
             self._groups.pop(knot, None)
             cols.plane[bid] = keep
-            self.graph.records[bid] = Record(None, keys_of(knot, two, keep), None)
-            self.plane_blocks[keep].add(bid)
+            cols.isam[bid] = -1
+            self._factors.pop(bid, None)
+            self.by_plane.append(keep, bid)
             if cols.held[bid]:
                 C = shift_anchor(cols.scatter[bid].copy(), anchors[drop], anchors[keep])
                 cols.scatter[bid] = C
@@ -251,7 +272,7 @@ class BlockStore:
 
     def drop_plane(self, plane_id: int) -> None:
         """Forget a plane whose blocks were removed or moved."""
-        del self.plane_blocks[plane_id]
+        self.by_plane.pop(plane_id)
         self.summary.pop(plane_id, None)
 
     # ----------------------------------------------------------------- blocks
@@ -286,9 +307,12 @@ class BlockStore:
         cols = self.cols
         knot, j, two = int(cols.knot[block_id]), int(cols.plane[block_id]), bool(cols.two[block_id])
         C = cols.scatter[block_id].copy() if cols.held[block_id] else None
-        self.graph.remove_factor(block_id)
+        isam = int(cols.isam[block_id])
+        self.graph.removed(None if isam < 0 else isam)
         cols.drop(block_id)
-        self.plane_blocks[j].discard(block_id)
+        self._factors.pop(block_id, None)
+        self.by_plane.note_dead(j)
+        self.by_knot.note_dead(knot + (1 if two else 0))
         key = (knot, j, two)
         if self._open.get(key) == block_id:
             del self._open[key]
@@ -301,10 +325,11 @@ class BlockStore:
         return self.cols.block(block_id)
 
     def _insert(self, block: ObservationBlock) -> int:
-        bid = self.graph.add_record(None, block_keys(block))
+        bid = self.graph.new_id()
         self.cols.put(bid, block)
-        self.plane_blocks[block.plane_id].add(bid)
+        self.by_plane.append(block.plane_id, bid)
         top = block.knot + (1 if block.alphas is not None else 0)  # the highest knot it touches
+        self.by_knot.append(top, bid)
         if top < self.summarized_upto:  # its poses are held by the window already
             self._summarize(bid)
         return bid
@@ -365,11 +390,61 @@ class BlockStore:
 
     # ----------------------------------------------------------------- factors
     def factor(self, fid: int) -> gtsam.NonlinearFactor:
-        """The factor of record ``fid`` (an observation block's built on first use)."""
-        rec = self.graph.records[fid]
-        if rec.factor is None:
-            rec.factor = self.block_factor(self.cols.block(fid))
-        return rec.factor
+        """The factor ``fid`` (a record's, or an observation block's: built on first use and kept
+        until the block leaves the window or changes)."""
+        if not self.cols.has(fid):
+            return self.graph.records[fid].factor
+        f = self._factors.get(fid)
+        if f is None:
+            f = self._factors[fid] = self.block_factor(self.cols.block(fid))
+        return f
+
+    def has_factor(self, fid: int) -> bool:
+        """Whether ``fid`` is a live factor (a record or a live block)."""
+        return self.cols.has(fid) or fid in self.graph.records
+
+    def factor_keys(self, fid: int) -> tuple[int, ...]:
+        """The keys of live factor ``fid``."""
+        cols = self.cols
+        if cols.has(fid):
+            return keys_of(int(cols.knot[fid]), bool(cols.two[fid]), int(cols.plane[fid]))
+        return self.graph.records[fid].keys
+
+    def factor_ids(self) -> IntArray:
+        """The ids of every live factor (records and blocks), increasing."""
+        recs = np.fromiter(self.graph.records, dtype=np.int64, count=len(self.graph.records))
+        return np.sort(np.concatenate((recs, self.cols.ids())))
+
+    def factors_of_knots(self, a: int, b: int) -> tuple[IntArray, NDArray[np.bool_]]:
+        """The live factors whose highest knot is in ``[a, b]`` (so every factor touching a knot
+        of ``[a, n)`` for ``b = n - 1``): their ids, ordered by highest knot then id, and which of
+        them are observation blocks (their knot, plane and span in :attr:`cols`)."""
+        records, by_knot = self.graph.records, self.graph.by_knot
+        ids: list[IntArray] = []
+        is_block: list[NDArray[np.bool_]] = []
+        for k in range(a, b + 1):
+            recs = np.array([f for f in by_knot.get(k, ()) if f in records], dtype=np.int64)
+            blks = self.by_knot.live(k)
+            both = np.concatenate((recs, blks))
+            order = np.argsort(both, kind="stable")
+            ids.append(both[order])
+            is_block.append((np.arange(both.shape[0]) >= recs.shape[0])[order])
+        if not ids:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
+        return np.concatenate(ids), np.concatenate(is_block)
+
+    def set_isam_index(self, fid: int, index: int | None) -> None:
+        """Record factor ``fid``'s index in iSAM2 (None: not in it)."""
+        if self.cols.has(fid):
+            self.cols.isam[fid] = -1 if index is None else index
+        else:
+            self.graph.records[fid].isam_index = index
+
+    def clear_isam_indices(self) -> None:
+        """No factor is in iSAM2 (it is rebuilt)."""
+        for rec in self.graph.records.values():
+            rec.isam_index = None
+        self.cols.isam[:] = -1
 
     def block_factor(self, blk: ObservationBlock, kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
         """A block's own factor, with ``kernel`` (None: the configured one)."""
@@ -409,7 +484,7 @@ class BlockStore:
         with ``kernel`` if given."""
         graph = gtsam.NonlinearFactorGraph()
         cols = self.cols
-        fids = np.array(sorted(self.graph.records), dtype=np.int64)
+        fids = self.factor_ids()
         block = np.zeros(fids.shape[0], dtype=bool)
         inside = fids < cols.live.shape[0]
         block[inside] = cols.live[fids[inside]]
@@ -435,14 +510,13 @@ class BlockStore:
     def hold_before(self, first: int) -> None:
         """Summarise every block of the knots below ``first`` (their poses are held from now on)
         and let go of their factors (built again, the same, if the final batch needs them)."""
-        records = self.graph.records
         todo: list[int] = []
+        held = self.cols.held
         for k in range(self.summarized_upto, first):
-            for fid in self.graph.by_knot.get(k, ()):
-                if self.cols.has(fid):
-                    records[fid].factor = None
-                    if not self.cols.held[fid]:
-                        todo.append(fid)
+            for fid in self.by_knot.live(k).tolist():
+                self._factors.pop(fid, None)
+                if not held[fid]:
+                    todo.append(fid)
         self._summarize_many(todo)
         for knot in [k for k in self._groups if k + 1 < first]:
             del self._groups[knot]

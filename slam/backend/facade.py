@@ -212,7 +212,7 @@ class Backend:
         return self.knots.bias(knot)
 
     def plane_ids(self) -> list[int]:
-        return sorted(self.blocks.plane_blocks)
+        return self.blocks.plane_ids()
 
     def planes(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
         """Plane ids (P,), unit normals (P, 3) and offsets (P,) in the world frame (n.x + d = 0)."""

@@ -3,8 +3,10 @@ and factor records, with the bookkeeping every solver reads.
 
 Variables (gtsam keys): ``X(i)`` body pose ``T_world_body`` at knot i, ``P(j)`` plane j
 (``OrientedPlane3`` about its anchor, world frame), ``V(i)``/``B(i)`` world velocity and IMU bias
-per knot (only with an IMU). A factor record holds its factor (None for an observation block's,
-built when first needed, see :mod:`slam.backend.blocks`), its keys and its index in iSAM2.
+per knot (only with an IMU). A factor record holds its factor, its keys and its index in iSAM2.
+Observation blocks have no record: their ids come from the same counter (:meth:`FactorGraph.new_id`)
+and their keys, knots and iSAM2 indices live in the block columns (:mod:`slam.backend.blocks`),
+so that an hour's million blocks are not a million Python objects.
 
 Two counters tell the solvers what changed: ``version`` on every change of the factors or of
 the estimate (a covariance computed at another version is stale), ``epoch`` when the graph
@@ -30,17 +32,18 @@ _KNOT_CHARS = frozenset(map(ord, "xvb"))
 
 @dataclass
 class Record:
-    """One factor of the graph: the factor (None: an observation block's, built on first use),
-    its keys and its index in iSAM2 (None: not in iSAM2)."""
+    """One factor of the graph other than an observation block: the factor, its keys and its index
+    in iSAM2 (None: not in iSAM2)."""
 
-    factor: gtsam.NonlinearFactor | None
+    factor: gtsam.NonlinearFactor
     keys: tuple[int, ...]
     isam_index: int | None
 
 
 class FactorGraph:
-    """Variables and factor records; factors added or removed since the last incremental
-    update are pending (``pending`` ids, ``pending_removals`` iSAM2 indices)."""
+    """Variables and the records of the factors other than observation blocks; factors (blocks
+    included) added or removed since the last incremental update are pending (``pending`` ids,
+    ``pending_removals`` iSAM2 indices)."""
 
     def __init__(self) -> None:
         self.times: list[float] = []  # knot times [s], increasing
@@ -50,35 +53,41 @@ class FactorGraph:
         self._next_id = 0
         self.pending: list[int] = []
         self.pending_removals: list[int] = []
-        # factors by the highest knot they touch, and factors on no knot (plane priors and ties)
+        # records by the highest knot they touch, and records on no knot (plane priors and ties);
+        # both keep the ids of removed records (skipped by their readers)
         self.by_knot: dict[int, list[int]] = {}
         self.knotless: list[int] = []
         self.version = 0
         self.epoch = 0
 
     def add_factor(self, factor: gtsam.NonlinearFactor) -> int:
-        """Add ``factor``; returns its id."""
-        return self.add_record(factor, tuple(int(k) for k in factor.keys()))
-
-    def add_record(self, factor: gtsam.NonlinearFactor | None, keys: tuple[int, ...]) -> int:
-        """A new factor id for ``factor`` on ``keys`` (None: an observation block's)."""
-        fid = self._next_id
-        self._next_id += 1
+        """Add ``factor`` (not an observation block's); returns its id."""
+        fid = self.new_id()
+        keys = tuple(int(k) for k in factor.keys())
         self.records[fid] = Record(factor, keys, None)
         top = top_knot(keys)
         if top is None:
             self.knotless.append(fid)
         else:
             self.by_knot.setdefault(top, []).append(fid)
+        return fid
+
+    def new_id(self) -> int:
+        """A new factor id, pending (an observation block's has no record)."""
+        fid = self._next_id
+        self._next_id += 1
         self.pending.append(fid)
         self.version += 1
         return fid
 
     def remove_factor(self, fid: int) -> None:
-        """Remove factor ``fid`` (from iSAM2 too, at its next update)."""
-        rec = self.records.pop(fid)
-        if rec.isam_index is not None:
-            self.pending_removals.append(rec.isam_index)
+        """Remove the record of factor ``fid`` (from iSAM2 too, at its next update)."""
+        self.removed(self.records.pop(fid).isam_index)
+
+    def removed(self, isam_index: int | None) -> None:
+        """A factor at ``isam_index`` in iSAM2 (None: not in it) was removed."""
+        if isam_index is not None:
+            self.pending_removals.append(isam_index)
         self.version += 1
 
     def restructure(self) -> None:

@@ -90,20 +90,21 @@ class WindowSolver:
         planes: set[int] = set()
         groups: dict[int, list[int]] = {}
         cols = blocks.cols
-        live, two, bknot, bplane = cols.live, cols.two, cols.knot, cols.plane  # read by block id
-        n_ids = live.shape[0]
-        for k in range(first, n):
-            for fid in fg.by_knot.get(k, ()):
-                rec = fg.records.get(fid)
-                if rec is None:
-                    continue
-                used.update(rec.keys)
-                if fid < n_ids and live[fid]:  # an observation block
-                    planes.add(int(bplane[fid]))
-                    if two[fid]:
-                        groups.setdefault(int(bknot[fid]), []).append(fid)
-                        continue
-                graph.add(blocks.factor(fid))
+        ids, is_block = blocks.factors_of_knots(first, n - 1)
+        block_ids = ids[is_block]
+        bknot, two = cols.knot[block_ids], cols.two[block_ids]
+        planes.update(cols.plane[block_ids].tolist())
+        used.update(int(X(k)) for k in np.unique(np.concatenate((bknot, bknot[two] + 1))).tolist())
+        used.update(int(P(j)) for j in planes)
+        knot_of = dict(zip(block_ids.tolist(), bknot.tolist(), strict=True))
+        two_of = dict(zip(block_ids.tolist(), two.tolist(), strict=True))
+        for fid, blk in zip(ids.tolist(), is_block.tolist(), strict=True):
+            if not blk:
+                used.update(fg.records[fid].keys)
+            elif two_of[fid]:
+                groups.setdefault(knot_of[fid], []).append(fid)
+                continue
+            graph.add(blocks.factor(fid))
         for knot, bids in groups.items():
             graph.add(blocks.group_factor(knot, bids))
         active.update(int(P(j)) for j in planes)
@@ -183,12 +184,11 @@ class Isam2Solver:
         new_values = gtsam.Values()
         ids: list[int] = []
         for fid in fg.pending:
-            rec = fg.records.get(fid)
-            if rec is None:
+            if not self.blocks.has_factor(fid):
                 continue
             graph.add(self.blocks.factor(fid))
             ids.append(fid)
-            for k in rec.keys:
+            for k in self.blocks.factor_keys(fid):
                 if k not in self._keys and not new_values.exists(k):
                     copy_value(new_values, fg.values, k)
         removals = list(fg.pending_removals)
@@ -201,7 +201,7 @@ class Isam2Solver:
             raise ValueError(f"iSAM2 update failed ({name_keys(str(err))}); is every new "
                              "variable constrained by its factors?") from None
         for fid, idx in zip(ids, result.getNewFactorsIndices(), strict=True):
-            fg.records[fid].isam_index = int(idx)
+            self.blocks.set_isam_index(fid, int(idx))
         self._keys.update(int(k) for k in new_values.keys())
         fg.pending, fg.pending_removals = [], []
         fg.values.update(self._isam.calculateEstimate())
@@ -223,9 +223,8 @@ class Isam2Solver:
         self._isam = gtsam.ISAM2(params)
         self._keys = set()
         self._epoch = self.graph.epoch
-        for rec in self.graph.records.values():
-            rec.isam_index = None
-        self.graph.pending = sorted(self.graph.records)
+        self.blocks.clear_isam_indices()
+        self.graph.pending = self.blocks.factor_ids().tolist()
         self.graph.pending_removals = []
 
 

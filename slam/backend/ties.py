@@ -68,7 +68,7 @@ class PlaneTies:
     def remove_plane(self, plane_id: int) -> None:
         """Remove a plane with all its observation blocks, priors and ties."""
         j = self.blocks.check_plane(plane_id)
-        for bid in sorted(self.blocks.plane_blocks[j]):
+        for bid in self.blocks.of_plane(j):
             self.blocks.remove(bid)
         if j in self.priors:
             self.graph.remove_factor(self.priors.pop(j))
