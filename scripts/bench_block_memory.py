@@ -13,7 +13,7 @@ summaries and the release of their factors happen as in a run). The figures, aft
   (their capacity), per live block; ``traced - rows`` is the per-block bookkeeping this script is for;
 - ``rss``: the process's resident set growth over the walk, per live block (gtsam's factors and
   values too; the allocator's slack makes it coarse);
-- the traced heap's five largest allocation sites.
+- the traced heap's twelve largest allocation sites.
 
 With ``--baseline REV`` the same walk also runs on git revision REV (exported with ``git archive``,
 first on ``PYTHONPATH``) in its own child process, and both are printed.
@@ -111,7 +111,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
     if rows_in_memory is not None:
         rows = int(rows_in_memory())
     top = [{"site": str(s.traceback[0]).replace(str(REPO) + "/", ""), "bytes": s.size}
-           for s in snap.statistics("lineno")[:5]]
+           for s in snap.statistics("lineno")[:12]]
     return {"knots": knots, "blocks": n_blocks, "points": int(be.blocks.n_points),
             "block_ids": int(be.graph._next_id), "traced_per_block": (traced - t0) / n_blocks,
             "rows_per_block": rows / n_blocks, "bookkeeping_per_block": (traced - t0 - rows) / n_blocks,

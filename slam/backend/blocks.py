@@ -53,10 +53,11 @@ class ObservationBlock:
 class BlockColumns:
     """The observation blocks' data as columns: per block id (the graph's factor id, so ids of
     other factors are unused slots) its knot, plane, whether it spans two knots, its rows, whether
-    it is live and its index in iSAM2 (-1: none); per row its point (3,), fraction and sigma. Rows of a block are
-    contiguous; a removed block's rows are garbage until :meth:`compact` rewrites the live ones
-    (in block order). Arrays grow by doubling, so an hour's million blocks are a few numpy
-    arrays, not a million Python objects."""
+    it is live and its index in iSAM2 (-1: none); per row its point (3,), fraction and sigma; per
+    held block its scatter (:meth:`scatter_of`, in a slot of its own array: most ids are not held
+    blocks). Rows of a block are contiguous; a removed block's rows are garbage until
+    :meth:`compact` rewrites the live ones (in block order). Arrays grow by half, so an hour's
+    million blocks are a few numpy arrays, not a million Python objects."""
 
     def __init__(self) -> None:
         self.knot = np.zeros(0, dtype=np.int64)
@@ -64,10 +65,12 @@ class BlockColumns:
         self.two = np.zeros(0, dtype=bool)
         self.live = np.zeros(0, dtype=bool)
         self.start = np.zeros(0, dtype=np.int64)
-        self.size = np.zeros(0, dtype=np.int64)
-        self.held = np.zeros(0, dtype=bool)  # summarised (its scatter below is its plane's share)
-        self.scatter = np.zeros((0, 4, 4))  # a held block's scatter (its plane's anchor)
-        self.isam = np.zeros(0, dtype=np.int64)  # the block's factor's index in iSAM2 (-1: none)
+        self.size = np.zeros(0, dtype=np.int32)
+        self.held = np.zeros(0, dtype=bool)  # summarised (its scatter is its plane's share)
+        self.slot = np.zeros(0, dtype=np.int32)  # a held block's slot in ``scatters`` (-1: none)
+        self.isam = np.zeros(0, dtype=np.int32)  # the block's factor's index in iSAM2 (-1: none)
+        self.scatters = np.zeros((0, 4, 4))  # held blocks' scatters (their planes' anchors) by slot
+        self.n_slots = 0  # slots used (removed held blocks' included)
         self.points = np.zeros((0, 3))
         self.alphas = np.zeros(0)
         self.sigmas = np.zeros(0)
@@ -77,19 +80,19 @@ class BlockColumns:
         self.n_points = 0  # rows of live blocks
 
     def _grow_ids(self, bid: int) -> None:
-        n = max(1024, 2 * self.knot.shape[0])
+        n = max(1024, self.knot.shape[0] * 3 // 2)
         while n <= bid:
-            n *= 2
-        for name in ("knot", "plane", "two", "live", "start", "size", "held", "scatter", "isam"):
+            n = n * 3 // 2
+        for name in ("knot", "plane", "two", "live", "start", "size", "held", "slot", "isam"):
             old = getattr(self, name)
-            new = np.full((n, *old.shape[1:]), -1 if name == "isam" else 0, dtype=old.dtype)
+            new = np.full(n, -1 if name in ("slot", "isam") else 0, dtype=old.dtype)
             new[: old.shape[0]] = old
             setattr(self, name, new)
 
     def _grow_rows(self, need: int) -> None:
-        n = max(4096, 2 * self.points.shape[0])
+        n = max(4096, self.points.shape[0] * 3 // 2)
         while n < need:
-            n *= 2
+            n = n * 3 // 2
         for name in ("points", "alphas", "sigmas"):
             old = getattr(self, name)
             new = np.zeros((n, *old.shape[1:]), dtype=old.dtype)
@@ -110,7 +113,7 @@ class BlockColumns:
             self.alphas[s:s + n] = blk.alphas
         self.rows += n
         self.knot[bid], self.plane[bid], self.two[bid] = blk.knot, blk.plane_id, blk.alphas is not None
-        self.start[bid], self.size[bid], self.live[bid], self.isam[bid] = s, n, True, -1
+        self.start[bid], self.size[bid], self.live[bid], self.isam[bid], self.slot[bid] = s, n, True, -1, -1
         self.count += 1
         self.n_points += n
 
@@ -118,6 +121,7 @@ class BlockColumns:
         """Forget live block ``bid`` (its rows become garbage; rewritten once they outweigh the rest)."""
         self.live[bid] = False
         self.held[bid] = False
+        self.slot[bid] = -1
         self.count -= 1
         n = int(self.size[bid])
         self.n_points -= n
@@ -138,6 +142,31 @@ class BlockColumns:
         self.start[ids] = new_start
         self.rows = int(sizes.sum())
         self.garbage = 0
+
+    def hold(self, bid: int, C: FloatArray) -> None:
+        """Block ``bid`` is held with scatter ``C`` (4, 4) (replacing its former one if held)."""
+        k = int(self.slot[bid])
+        if k < 0:
+            if self.n_slots == self.scatters.shape[0]:
+                grown = np.zeros((max(1024, self.n_slots * 3 // 2), 4, 4))
+                grown[: self.n_slots] = self.scatters[: self.n_slots]
+                self.scatters = grown
+            k = self.n_slots
+            self.n_slots += 1
+            self.slot[bid] = k
+        self.scatters[k] = C
+        self.held[bid] = True
+
+    def scatter_of(self, bid: int) -> FloatArray:
+        """The scatter (4, 4) of held block ``bid`` (a copy)."""
+        assert self.held[bid]
+        return np.array(self.scatters[int(self.slot[bid])])
+
+    def release(self) -> None:
+        """No block is held any more."""
+        self.held[:] = False
+        self.slot[:] = -1
+        self.scatters, self.n_slots = np.zeros((0, 4, 4)), 0
 
     def ids(self) -> NDArray[np.int64]:
         """The live block ids, increasing."""
@@ -164,7 +193,7 @@ class BlockColumns:
 
     def nbytes(self) -> int:
         return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "held",
-                                                      "scatter", "isam", "points", "alphas", "sigmas"))
+                                                      "slot", "isam", "scatters", "points", "alphas", "sigmas"))
 
 
 class BlockView(Mapping[int, ObservationBlock]):
@@ -218,7 +247,7 @@ class BlockStore:
     def summarized(self) -> dict[int, FloatArray]:
         """Held (summarised) block id -> its scatter about its plane's anchor (copies, to inspect)."""
         cols = self.cols
-        return {int(b): cols.scatter[b].copy() for b in np.flatnonzero(cols.held)}
+        return {int(b): cols.scatter_of(int(b)) for b in np.flatnonzero(cols.held)}
 
     @property
     def n_points(self) -> int:
@@ -264,8 +293,8 @@ class BlockStore:
             self._factors.pop(bid, None)
             self.by_plane.append(keep, bid)
             if cols.held[bid]:
-                C = shift_anchor(cols.scatter[bid].copy(), anchors[drop], anchors[keep])
-                cols.scatter[bid] = C
+                C = shift_anchor(cols.scatter_of(bid), anchors[drop], anchors[keep])
+                cols.hold(bid, C)
                 self.summary[keep] = self.summary.get(keep, np.zeros((4, 4))) + C
         self.summary.pop(drop, None)
         return len(moved)
@@ -306,7 +335,7 @@ class BlockStore:
             raise ValueError(f"block_id: no observation block {block_id}")
         cols = self.cols
         knot, j, two = int(cols.knot[block_id]), int(cols.plane[block_id]), bool(cols.two[block_id])
-        C = cols.scatter[block_id].copy() if cols.held[block_id] else None
+        C = cols.scatter_of(block_id) if cols.held[block_id] else None
         isam = int(cols.isam[block_id])
         self.graph.removed(None if isam < 0 else isam)
         cols.drop(block_id)
@@ -525,7 +554,7 @@ class BlockStore:
     def drop_summaries(self) -> None:
         """Forget the summaries (the held poses have moved)."""
         self.summary, self.summarized_upto = {}, 0
-        self.cols.held[:] = False
+        self.cols.release()
 
     def _summarize_many(self, bids: list[int]) -> None:
         """:meth:`_summarize` of blocks ``bids`` in that order, the same numbers: the two-pose
@@ -567,8 +596,7 @@ class BlockStore:
                 self._summarize(bid)
                 continue
             j, knot = int(cols.plane[bid]), int(cols.knot[bid])
-            cols.held[bid] = True
-            cols.scatter[bid] = C
+            cols.hold(bid, C)
             self.summary[j] = self.summary.get(j, np.zeros((4, 4))) + C
             key = (knot, j, True)
             if self._open.get(key) == bid:
@@ -592,8 +620,7 @@ class BlockStore:
         pl = v.atOrientedPlane3(P(j))
         e = ((x - a) @ pl.normal().point3() + pl.distance()) / blk.sigmas
         C = scatter(x, a, robust_weights(e, self.kernel) / blk.sigmas**2)
-        self.cols.held[bid] = True
-        self.cols.scatter[bid] = C
+        self.cols.hold(bid, C)
         self.summary[j] = self.summary.get(j, np.zeros((4, 4))) + C
         key = (blk.knot, j, blk.alphas is not None)
         if self._open.get(key) == bid:
