@@ -32,10 +32,12 @@ from slam.backend.factors import (
 from slam.backend.graph import FactorGraph
 from slam.backend.id_lists import IdLists
 from slam.backend.plane_summary import scatter, shift_anchor
+from slam.backend.spill import SpillTables
 from slam.trajectory.placement import interval_poses
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+SPILL_ROWS = 1 << 18  # held blocks' rows kept in memory before they go to the spill files (10 MB)
 
 
 @dataclass(frozen=True)
@@ -57,9 +59,14 @@ class BlockColumns:
     held block its scatter (:meth:`scatter_of`, in a slot of its own array: most ids are not held
     blocks). Rows of a block are contiguous; a removed block's rows are garbage until
     :meth:`compact` rewrites the live ones (in block order). Arrays grow by half, so an hour's
-    million blocks are a few numpy arrays, not a million Python objects."""
+    million blocks are a few numpy arrays, not a million Python objects.
 
-    def __init__(self) -> None:
+    Once the held blocks' rows in memory pass ``spill_rows``, :meth:`spill` moves them and their
+    scatters to files (:class:`slam.backend.spill.SpillTables`; ``spilled`` blocks' ``start`` and
+    scatter slot are then rows of those files): :meth:`block`, :meth:`gather` and
+    :meth:`scatter_of` read them back, byte for byte. None: never."""
+
+    def __init__(self, spill_rows: int | None = SPILL_ROWS) -> None:
         self.knot = np.zeros(0, dtype=np.int64)
         self.plane = np.zeros(0, dtype=np.int64)
         self.two = np.zeros(0, dtype=bool)
@@ -67,23 +74,29 @@ class BlockColumns:
         self.start = np.zeros(0, dtype=np.int64)
         self.size = np.zeros(0, dtype=np.int32)
         self.held = np.zeros(0, dtype=bool)  # summarised (its scatter is its plane's share)
-        self.slot = np.zeros(0, dtype=np.int32)  # a held block's slot in ``scatters`` (-1: none)
+        # a held block's scatter slot: >= 0 in ``scatters``, <= -2 row -2 - slot of the spilled
+        # scatters, -1 none
+        self.slot = np.zeros(0, dtype=np.int32)
         self.isam = np.zeros(0, dtype=np.int32)  # the block's factor's index in iSAM2 (-1: none)
+        self.spilled = np.zeros(0, dtype=bool)  # its rows are in the spill files
         self.scatters = np.zeros((0, 4, 4))  # held blocks' scatters (their planes' anchors) by slot
         self.n_slots = 0  # slots used (removed held blocks' included)
         self.points = np.zeros((0, 3))
         self.alphas = np.zeros(0)
         self.sigmas = np.zeros(0)
-        self.rows = 0  # rows used (live and garbage)
-        self.garbage = 0  # rows of removed blocks
+        self.rows = 0  # rows used in memory (live and garbage)
+        self.garbage = 0  # rows of removed blocks in memory
         self.count = 0  # live blocks
-        self.n_points = 0  # rows of live blocks
+        self.n_points = 0  # rows of live blocks (in memory or spilled)
+        self.held_rows = 0  # rows of held blocks in memory
+        self.spill_rows = spill_rows
+        self.disk = SpillTables({"points": (3,), "alphas": (), "sigmas": (), "scatters": (4, 4)})
 
     def _grow_ids(self, bid: int) -> None:
         n = max(1024, self.knot.shape[0] * 3 // 2)
         while n <= bid:
             n = n * 3 // 2
-        for name in ("knot", "plane", "two", "live", "start", "size", "held", "slot", "isam"):
+        for name in ("knot", "plane", "two", "live", "start", "size", "held", "slot", "isam", "spilled"):
             old = getattr(self, name)
             new = np.full(n, -1 if name in ("slot", "isam") else 0, dtype=old.dtype)
             new[: old.shape[0]] = old
@@ -114,24 +127,30 @@ class BlockColumns:
         self.rows += n
         self.knot[bid], self.plane[bid], self.two[bid] = blk.knot, blk.plane_id, blk.alphas is not None
         self.start[bid], self.size[bid], self.live[bid], self.isam[bid], self.slot[bid] = s, n, True, -1, -1
+        self.spilled[bid] = False
         self.count += 1
         self.n_points += n
 
     def drop(self, bid: int) -> None:
-        """Forget live block ``bid`` (its rows become garbage; rewritten once they outweigh the rest)."""
+        """Forget live block ``bid`` (its rows in memory become garbage; rewritten once they
+        outweigh the rest)."""
+        n = int(self.size[bid])
+        if self.held[bid] and not self.spilled[bid]:
+            self.held_rows -= n
         self.live[bid] = False
         self.held[bid] = False
         self.slot[bid] = -1
         self.count -= 1
-        n = int(self.size[bid])
         self.n_points -= n
-        self.garbage += n
-        if self.garbage > max(self.n_points, 1 << 16):
+        if not self.spilled[bid]:
+            self.garbage += n
+        self.spilled[bid] = False
+        if self.garbage > max(self.rows - self.garbage, 1 << 16):
             self.compact()
 
     def compact(self) -> None:
-        """Rewrite the live blocks' rows, in block order, without the garbage."""
-        ids = self.ids()
+        """Rewrite the rows in memory of the live blocks, in block order, without the garbage."""
+        ids = np.flatnonzero(self.live & ~self.spilled)
         starts, sizes = self.start[ids], self.size[ids]
         idx = np.repeat(starts - np.concatenate(([0], np.cumsum(sizes)[:-1])), sizes) + np.arange(int(sizes.sum()))
         self.points = self.points[idx]
@@ -145,8 +164,10 @@ class BlockColumns:
 
     def hold(self, bid: int, C: FloatArray) -> None:
         """Block ``bid`` is held with scatter ``C`` (4, 4) (replacing its former one if held)."""
+        if not self.held[bid] and not self.spilled[bid]:
+            self.held_rows += int(self.size[bid])
         k = int(self.slot[bid])
-        if k < 0:
+        if k < 0:  # none, or a spilled one (left behind)
             if self.n_slots == self.scatters.shape[0]:
                 grown = np.zeros((max(1024, self.n_slots * 3 // 2), 4, 4))
                 grown[: self.n_slots] = self.scatters[: self.n_slots]
@@ -160,13 +181,48 @@ class BlockColumns:
     def scatter_of(self, bid: int) -> FloatArray:
         """The scatter (4, 4) of held block ``bid`` (a copy)."""
         assert self.held[bid]
-        return np.array(self.scatters[int(self.slot[bid])])
+        k = int(self.slot[bid])
+        return np.array(self.scatters[k] if k >= 0 else self.disk.table("scatters")[-2 - k])
 
     def release(self) -> None:
-        """No block is held any more."""
+        """No block is held any more (spilled rows stay where they are)."""
         self.held[:] = False
         self.slot[:] = -1
         self.scatters, self.n_slots = np.zeros((0, 4, 4)), 0
+        self.held_rows = 0
+        self.disk.clear("scatters")
+
+    def spill_if_due(self) -> bool:
+        """:meth:`spill` if the held blocks' rows in memory passed ``spill_rows``; whether it did."""
+        if self.spill_rows is None or self.held_rows <= self.spill_rows:
+            return False
+        self.spill()
+        return True
+
+    def spill(self) -> None:
+        """Move the rows and scatters of every held block in memory to the spill files (in block
+        order) and rewrite the rows left in memory."""
+        ids = np.flatnonzero(self.held & ~self.spilled)
+        if ids.shape[0] == 0:
+            return
+        pts, al, sg, starts = self.gather(ids)
+        first = self.disk.append("points", pts)
+        self.disk.append("alphas", al)
+        self.disk.append("sigmas", sg)
+        with_slot = np.flatnonzero(self.slot >= 0)  # these and spilled blocks held again
+        if with_slot.shape[0]:
+            k0 = self.disk.append("scatters", self.scatters[self.slot[with_slot]])
+            self.slot[with_slot] = -2 - (k0 + np.arange(with_slot.shape[0], dtype=np.int32))
+        self.scatters, self.n_slots = np.zeros((0, 4, 4)), 0
+        self.start[ids] = first + starts[:-1]
+        self.spilled[ids] = True
+        self.garbage += int(starts[-1])
+        self.held_rows = 0
+        self.compact()
+
+    def close(self) -> None:
+        """Remove the spill files (the spilled blocks' rows with them: for the end of a run)."""
+        self.disk.close()
 
     def ids(self) -> NDArray[np.int64]:
         """The live block ids, increasing."""
@@ -178,9 +234,13 @@ class BlockColumns:
     def block(self, bid: int) -> ObservationBlock:
         """Live block ``bid`` with its own (copied) arrays."""
         s, e = int(self.start[bid]), int(self.start[bid] + self.size[bid])
-        al = self.alphas[s:e].copy() if self.two[bid] else None
-        return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), self.points[s:e].copy(), al,
-                                self.sigmas[s:e].copy())
+        if self.spilled[bid]:
+            points, alphas, sigmas = (self.disk.table(n) for n in ("points", "alphas", "sigmas"))
+        else:
+            points, alphas, sigmas = self.points, self.alphas, self.sigmas
+        al = np.array(alphas[s:e]) if self.two[bid] else None
+        return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), np.array(points[s:e]), al,
+                                np.array(sigmas[s:e]))
 
     def gather(self, bids: NDArray[np.int64]) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]]:
         """The rows of blocks ``bids`` in that order: points (M, 3), alphas (M,), sigmas (M,) and
@@ -189,11 +249,24 @@ class BlockColumns:
         starts = np.zeros(bids.shape[0] + 1, dtype=np.int64)
         np.cumsum(sizes, out=starts[1:])
         idx = np.repeat(self.start[bids] - starts[:-1], sizes) + np.arange(int(starts[-1]))
-        return self.points[idx], self.alphas[idx], self.sigmas[idx], starts
+        disk = self.spilled[bids]
+        if not disk.any():
+            return self.points[idx], self.alphas[idx], self.sigmas[idx], starts
+        on_disk = np.repeat(disk, sizes)
+        out = []
+        for name in ("points", "alphas", "sigmas"):
+            mem_rows, disk_rows = getattr(self, name), self.disk.table(name)
+            rows = np.empty((idx.shape[0], *mem_rows.shape[1:]))
+            rows[~on_disk] = mem_rows[idx[~on_disk]]
+            rows[on_disk] = disk_rows[idx[on_disk]]
+            out.append(rows)
+        return out[0], out[1], out[2], starts
 
     def nbytes(self) -> int:
+        """Bytes of the columns in memory (their capacity; the spill files left out)."""
         return sum(getattr(self, n).nbytes for n in ("knot", "plane", "two", "live", "start", "size", "held",
-                                                      "slot", "isam", "scatters", "points", "alphas", "sigmas"))
+                                                      "slot", "isam", "spilled", "scatters", "points", "alphas",
+                                                      "sigmas"))
 
 
 class BlockView(Mapping[int, ObservationBlock]):
@@ -538,7 +611,8 @@ class BlockStore:
     # ----------------------------------------------------------------- summaries
     def hold_before(self, first: int) -> None:
         """Summarise every block of the knots below ``first`` (their poses are held from now on)
-        and let go of their factors (built again, the same, if the final batch needs them)."""
+        and let go of their factors (built again, the same, if the final batch needs them); the
+        held blocks' rows go to disk once there are enough (:meth:`BlockColumns.spill_if_due`)."""
         todo: list[int] = []
         held = self.cols.held
         for k in range(self.summarized_upto, first):
@@ -550,6 +624,7 @@ class BlockStore:
         for knot in [k for k in self._groups if k + 1 < first]:
             del self._groups[knot]
         self.summarized_upto = max(self.summarized_upto, first)
+        self.cols.spill_if_due()
 
     def drop_summaries(self) -> None:
         """Forget the summaries (the held poses have moved)."""
