@@ -10,10 +10,13 @@ summaries and the release of their factors happen as in a run). The figures, aft
 
 - ``traced``: the Python heap ``tracemalloc`` traced since the ``Backend`` was made, per live block;
 - ``rows``: the bytes of the point rows (points, fractions, sigmas) the columns hold in memory
-  (their capacity), per live block; ``traced - rows`` is the per-block bookkeeping this script is for;
+  (their capacity), per live block; ``traced - rows`` is the per-block bookkeeping this script is for
+  (the rows of held blocks go to disk once there are ``--spill-rows`` of them in memory, where the
+  code spills: the walk is short, so the default here is the code's, 2^18 rows, and ``--spill-rows
+  16384`` shows an hour's steady state, its rows in memory bounded);
 - ``rss``: the process's resident set growth over the walk, per live block (gtsam's factors and
   values too; the allocator's slack makes it coarse);
-- the traced heap's twelve largest allocation sites.
+- the traced heap's twelve largest allocation sites, and the walk's time (``tracemalloc`` on: slow).
 
 With ``--baseline REV`` the same walk also runs on git revision REV (exported with ``git archive``,
 first on ``PYTHONPATH``) in its own child process, and both are printed.
@@ -30,6 +33,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -46,7 +50,7 @@ def _rss() -> int:
 
 
 def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, step_every: int,
-         seed: int = 0, warm_up: bool = True) -> dict[str, Any]:
+         spill_rows: int | None = None, seed: int = 0, warm_up: bool = True) -> dict[str, Any]:
     """The synthetic walk in this process; its figures (see the module doc)."""
     from slam.backend import Backend
     from slam.config import SlamConfig
@@ -63,12 +67,15 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
                         np.where(kind == 2, -1.5, 0.5)), axis=1)
     cfg = backend_config(SlamConfig(), False)
     if warm_up:  # imports and compilations out of the figures
-        walk(30, 20, blocks, points, coalesce, step_every, seed, warm_up=False)
+        walk(30, 20, blocks, points, coalesce, step_every, spill_rows, seed, warm_up=False)
     gc.collect()
     tracemalloc.start()
     rss0 = _rss()
     t0 = tracemalloc.get_traced_memory()[0]
+    t_start = time.perf_counter()
     be = Backend(cfg)
+    if spill_rows is not None and hasattr(be.blocks.cols, "spill_rows"):
+        be.blocks.cols.spill_rows = spill_rows
     added: set[int] = set()
     for i in range(knots):
         x = i / rate
@@ -99,6 +106,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
         if step_every and i % step_every == 0:
             be.step()
     be.step()
+    seconds = time.perf_counter() - t_start
     gc.collect()
     traced, _ = tracemalloc.get_traced_memory()
     snap = tracemalloc.take_snapshot()
@@ -107,22 +115,23 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
     cols = be.blocks.cols
     n_blocks = len(be.blocks.blocks)
     rows = sum(getattr(cols, name).nbytes for name in ("points", "alphas", "sigmas"))
-    rows_in_memory = getattr(cols, "rows_in_memory", None)
-    if rows_in_memory is not None:
-        rows = int(rows_in_memory())
+    disk = getattr(cols, "disk", None)
+    spilled = 0 if disk is None else disk.rows("points")
     top = [{"site": str(s.traceback[0]).replace(str(REPO) + "/", ""), "bytes": s.size}
            for s in snap.statistics("lineno")[:12]]
     return {"knots": knots, "blocks": n_blocks, "points": int(be.blocks.n_points),
-            "block_ids": int(be.graph._next_id), "traced_per_block": (traced - t0) / n_blocks,
+            "block_ids": int(be.graph._next_id), "rows_spilled": int(spilled), "traced_per_block": (traced - t0) / n_blocks,
             "rows_per_block": rows / n_blocks, "bookkeeping_per_block": (traced - t0 - rows) / n_blocks,
-            "rss_per_block": rss / n_blocks, "top": top}
+            "rss_per_block": rss / n_blocks, "seconds": seconds,
+            "top": top}
 
 
 def _spawn(tree: Path, args: argparse.Namespace) -> dict[str, Any]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     cmd = [sys.executable, __file__, "--child", "--knots", str(args.knots), "--planes", str(args.planes),
            "--blocks", str(args.blocks), "--points", str(args.points), "--coalesce", str(args.coalesce),
-           "--step-every", str(args.step_every)]
+           "--step-every", str(args.step_every)] + ([] if args.spill_rows is None else ["--spill-rows",
+                                                                                       str(args.spill_rows)])
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=tree, check=False)
     line = next((ln for ln in proc.stdout.splitlines() if ln.startswith(_ROW)), None)
     if proc.returncode != 0 or line is None:
@@ -132,9 +141,11 @@ def _spawn(tree: Path, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _print(name: str, r: dict[str, Any]) -> None:
-    print(f"{name}: {r['knots']} knots, {r['blocks']} live blocks ({r['block_ids']} ids used), {r['points']} points")
+    print(f"{name}: {r['knots']} knots, {r['blocks']} live blocks ({r['block_ids']} ids used), {r['points']} points"
+          f" ({r.get('rows_spilled', 0)} rows spilled to disk)")
     print(f"  per block: traced {r['traced_per_block']:.0f} B = rows {r['rows_per_block']:.0f} B + "
-          f"bookkeeping {r['bookkeeping_per_block']:.0f} B; RSS growth {r['rss_per_block']:.0f} B")
+          f"bookkeeping {r['bookkeeping_per_block']:.0f} B; RSS growth {r['rss_per_block']:.0f} B; "
+          f"walk {r['seconds']:.1f} s (tracemalloc on)")
     for t in r["top"]:
         print(f"    {t['bytes'] / 1e6:8.2f} MB  {t['site']}")
 
@@ -148,11 +159,14 @@ def main() -> int:
     ap.add_argument("--coalesce", type=float, default=0.4,
                     help="share of blocks added twice (joined by coalescing; default %(default)s)")
     ap.add_argument("--step-every", type=int, default=5, help="window step every N knots (0: none)")
+    ap.add_argument("--spill-rows", type=int, default=None,
+                    help="held rows kept in memory before spilling (default: the code's)")
     ap.add_argument("--baseline", default=None, metavar="REV", help="also run on git revision REV")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        row = walk(args.knots, args.planes, args.blocks, args.points, args.coalesce, args.step_every)
+        row = walk(args.knots, args.planes, args.blocks, args.points, args.coalesce, args.step_every,
+                   args.spill_rows)
         print(_ROW + json.dumps(row), flush=True)
         return 0
     sys.path.insert(0, str(Path(__file__).resolve().parent))
