@@ -75,9 +75,10 @@ def test_factors_of_knots_are_every_factor_by_highest_knot(seed: int) -> None:
         be.blocks.replace(bid, blk.points, blk.alphas, blk.sigmas)
     n = be.num_knots
     for a, b in ((0, n - 1), (3, 7), (n - 1, n - 1), (5, 4)):
-        ids, is_block = be.blocks.factors_of_knots(a, b)
+        ids, top, is_block = be.blocks.factors_of_knots(a, b)
         assert ids.tolist() == _brute_factors_of_knots(be, a, b)
         assert is_block.tolist() == [be.blocks.cols.has(f) for f in ids.tolist()]
+        assert top.tolist() == [top_knot(be.blocks.factor_keys(f)) for f in ids.tolist()]
 
 
 def test_a_removed_replaced_or_merged_block_leaves_every_lookup() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -50,6 +51,15 @@ class ObservationBlock:
     points: FloatArray
     alphas: FloatArray | None
     sigmas: FloatArray
+
+
+class KnotFactors(NamedTuple):
+    """Live factors by their highest knot (:meth:`BlockStore.factors_of_knots`): ids, ordered by
+    highest knot then id, each one's highest knot, and which are observation blocks."""
+
+    ids: IntArray
+    top: IntArray
+    is_block: NDArray[np.bool_]
 
 
 class BlockColumns:
@@ -517,13 +527,15 @@ class BlockStore:
         recs = np.fromiter(self.graph.records, dtype=np.int64, count=len(self.graph.records))
         return np.sort(np.concatenate((recs, self.cols.ids())))
 
-    def factors_of_knots(self, a: int, b: int) -> tuple[IntArray, NDArray[np.bool_]]:
+    def factors_of_knots(self, a: int, b: int) -> KnotFactors:
         """The live factors whose highest knot is in ``[a, b]`` (so every factor touching a knot
-        of ``[a, n)`` for ``b = n - 1``): their ids, ordered by highest knot then id, and which of
-        them are observation blocks (their knot, plane and span in :attr:`cols`)."""
+        of ``[a, n)`` for ``b = n - 1``), ordered by highest knot then id; which of them are
+        observation blocks (their knot, plane and span in :attr:`cols`) and which records
+        (:attr:`FactorGraph.records`)."""
         records, by_knot = self.graph.records, self.graph.by_knot
         ids: list[IntArray] = []
         is_block: list[NDArray[np.bool_]] = []
+        top: list[IntArray] = []
         for k in range(a, b + 1):
             recs = np.array([f for f in by_knot.get(k, ()) if f in records], dtype=np.int64)
             blks = self.by_knot.live(k)
@@ -531,9 +543,10 @@ class BlockStore:
             order = np.argsort(both, kind="stable")
             ids.append(both[order])
             is_block.append((np.arange(both.shape[0]) >= recs.shape[0])[order])
+            top.append(np.full(both.shape[0], k, dtype=np.int64))
         if not ids:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
-        return np.concatenate(ids), np.concatenate(is_block)
+            return KnotFactors(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool))
+        return KnotFactors(np.concatenate(ids), np.concatenate(top), np.concatenate(is_block))
 
     def set_isam_index(self, fid: int, index: int | None) -> None:
         """Record factor ``fid``'s index in iSAM2 (None: not in it)."""

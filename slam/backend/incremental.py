@@ -90,7 +90,7 @@ class WindowSolver:
         planes: set[int] = set()
         groups: dict[int, list[int]] = {}
         cols = blocks.cols
-        ids, is_block = blocks.factors_of_knots(first, n - 1)
+        ids, _, is_block = blocks.factors_of_knots(first, n - 1)
         block_ids = ids[is_block]
         bknot, two = cols.knot[block_ids], cols.two[block_ids]
         planes.update(cols.plane[block_ids].tolist())
