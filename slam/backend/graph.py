@@ -30,7 +30,7 @@ _INDEX_MASK = (1 << _INDEX_BITS) - 1
 _KNOT_CHARS = frozenset(map(ord, "xvb"))
 
 
-@dataclass
+@dataclass(slots=True)
 class Record:
     """One factor of the graph other than an observation block: the factor, its keys and its index
     in iSAM2 (None: not in iSAM2)."""

@@ -61,7 +61,10 @@ def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float
     return out
 
 
-_DAMPING_CACHE = 200_000  # damping factors kept (key, dimension, weight), cleared when full
+# damping factors kept (key, dimension, weight), cleared when full: enough for the window's
+# variables at a few damping levels; each costs ~1.8 kB, so 200,000 of them (an hour's knots)
+# held ~360 MB
+_DAMPING_CACHE = 8192
 _DAMPING_FACTORS: dict[tuple[int, int, float], gtsam.JacobianFactor] = {}
 
 
