@@ -14,6 +14,8 @@ summaries and the release of their factors happen as in a run). The figures, aft
   (the rows of held blocks go to disk once there are ``--spill-rows`` of them in memory, where the
   code spills: the walk is short, so the default here is the code's, 2^18 rows, and ``--spill-rows
   16384`` shows an hour's steady state, its rows in memory bounded);
+- ``marginal``: the traced heap's growth over the walk's second half per block added there (what
+  a longer walk adds: the window's fixed costs left out; the arrays' growth steps make it coarse);
 - ``rss``: the process's resident set growth over the walk, per live block (gtsam's factors and
   values too; the allocator's slack makes it coarse);
 - the traced heap's twelve largest allocation sites, and the walk's time (``tracemalloc`` on: slow).
@@ -105,6 +107,9 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
                 be.add_observations(i - 1, j, pb, al, 0.01)
         if step_every and i % step_every == 0:
             be.step()
+        if i == knots // 2:
+            gc.collect()
+            mid = (tracemalloc.get_traced_memory()[0], len(be.blocks.blocks))
     be.step()
     seconds = time.perf_counter() - t_start
     gc.collect()
@@ -123,6 +128,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
             "block_ids": int(be.graph._next_id), "rows_spilled": int(spilled), "traced_per_block": (traced - t0) / n_blocks,
             "rows_per_block": rows / n_blocks, "bookkeeping_per_block": (traced - t0 - rows) / n_blocks,
             "rss_per_block": rss / n_blocks, "seconds": seconds,
+            "marginal_per_block": (traced - mid[0]) / max(1, n_blocks - mid[1]),
             "top": top}
 
 
@@ -146,6 +152,8 @@ def _print(name: str, r: dict[str, Any]) -> None:
     print(f"  per block: traced {r['traced_per_block']:.0f} B = rows {r['rows_per_block']:.0f} B + "
           f"bookkeeping {r['bookkeeping_per_block']:.0f} B; RSS growth {r['rss_per_block']:.0f} B; "
           f"walk {r['seconds']:.1f} s (tracemalloc on)")
+    if "marginal_per_block" in r:
+        print(f"  second half of the walk: traced {r['marginal_per_block']:.0f} B per block added")
     for t in r["top"]:
         print(f"    {t['bytes'] / 1e6:8.2f} MB  {t['site']}")
 
