@@ -3,7 +3,9 @@
 The input is a JSON list of measurements ``{"label", "minutes", "peak_gb", "source"}`` (one
 line per code revision: the points of one label are joined, dashed when their ``source`` is
 ``"extrapolated"``); the goal lines of issue 27 (4 GB
-at 60 minutes, growth under 0.5 GB per further hour) are drawn for reference.
+at 60 minutes, growth under 0.5 GB per further hour) are drawn for reference. Records that also
+give ``"cpu_per_data_s"`` (CPU seconds per data second, every process of the run) and
+``"wall_per_data_s"`` are drawn in a second panel beside: time per data second against length.
 
 Usage:
     .venv/bin/python scripts/plot_memory.py docs/figures/memory_vs_length.json docs/figures/memory_vs_length.png
@@ -30,7 +32,23 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    timed = [r for r in rows if "cpu_per_data_s" in r]
+    if timed:
+        fig, (ax, ax_t) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [1.4, 1.0]})
+        for label in dict.fromkeys(r["label"] for r in timed):
+            mine = sorted((r for r in timed if r["label"] == label), key=lambda r: r["minutes"])
+            m = [r["minutes"] for r in mine]
+            ax_t.plot(m, [r["cpu_per_data_s"] for r in mine], "o-", label=f"CPU s / data s: {label}")
+            if all("wall_per_data_s" in r for r in mine):
+                ax_t.plot(m, [r["wall_per_data_s"] for r in mine], "s:", label=f"wall s / data s: {label}")
+        ax_t.set_xlabel("walk length (data minutes, office world)")
+        ax_t.set_ylabel("seconds per data second")
+        ax_t.set_xlim(0, 65)
+        ax_t.set_ylim(0, None)
+        ax_t.grid(alpha=0.3)
+        ax_t.legend(fontsize=7, loc="lower right")
+    else:
+        fig, ax = plt.subplots(figsize=(7, 4.2))
     for label in dict.fromkeys(r["label"] for r in rows):
         mine = [r for r in rows if r["label"] == label]
         pts = sorted((r["minutes"], r["peak_gb"]) for r in mine)

@@ -567,17 +567,18 @@ class BlockStore:
         return point_plane_factor(X(blk.knot), kb, P(blk.plane_id), blk.points, blk.alphas, blk.sigmas,
                                   kernel or self.kernel, anchor=self.graph.anchors.get(blk.plane_id))
 
-    def group_factor(self, knot: int, bids: list[int], kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
+    def group_factor(self, knot: int, bids: list[int], kernel: RobustKernel | None = None,
+                     keep: bool = True) -> gtsam.NonlinearFactor:
         """One factor for the blocks ``bids`` of interval ``knot`` (:func:`point_planes_factor`),
-        built from the columns. The factor of the configured kernel is kept until the interval's
-        blocks change or leave the window (:meth:`hold_before`)."""
+        built from the columns. The factor of the configured kernel is kept (with ``keep``) until
+        the interval's blocks change or leave the window (:meth:`hold_before`)."""
         key = tuple(sorted(bids))
         if kernel is None:
             hit = self._groups.get(knot)
             if hit is not None and hit[0] == key:
                 return hit[1]
         if len(key) == 1 and kernel is None:
-            factor = self.factor(key[0])
+            factor = self.factor(key[0]) if keep else self.block_factor(self.cols.block(key[0]))
         else:
             ids = np.array(key, dtype=np.int64)
             cols = self.cols
@@ -590,7 +591,7 @@ class BlockStore:
             factor = point_planes_factor(
                 X(knot), X(knot + 1), [P(j) for j in plane_ids], index, pts, al, sg, kernel or self.kernel,
                 np.array([self.graph.anchors[j] for j in plane_ids]), self.planes)
-        if kernel is None:
+        if kernel is None and keep:
             self._groups[knot] = (key, factor)
         return factor
 

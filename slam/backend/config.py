@@ -46,6 +46,9 @@ class BackendConfig:
     window_iterations: Gauss-Newton iterations of a window step.
     isam2_iterations: iSAM2 steps per :meth:`Backend.step`.
     isam2_fallback_iterations: batch iterations taken when an iSAM2 step fails even after a rebuild.
+    batch_section_knots: a walk of more knots has its final batch (and plane covariances) solved in
+        time-ordered sections of at most this many knots (:mod:`slam.backend.sections`).
+    batch_sweeps: sweeps over the sections of a sectioned final batch.
     """
 
     kernel: RobustKernel
@@ -70,6 +73,8 @@ class BackendConfig:
     window_iterations: int
     isam2_iterations: int
     isam2_fallback_iterations: int
+    batch_section_knots: int
+    batch_sweeps: int
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
@@ -86,7 +91,7 @@ class BackendConfig:
         if any(not (s >= 1.0) for s in self.robust_schedule):
             raise ValueError(f"robust_schedule: multipliers must be >= 1, got {self.robust_schedule}")
         for name in ("relinearize_skip", "lm_max_iterations", "window_iterations", "isam2_iterations",
-                     "isam2_fallback_iterations"):
+                     "isam2_fallback_iterations", "batch_section_knots", "batch_sweeps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.window_knots < 0:

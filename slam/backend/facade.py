@@ -37,6 +37,7 @@ from slam.backend.factors import RobustKernel, robust_weights
 from slam.backend.graph import FactorGraph
 from slam.backend.incremental import IncrementalSolver, make_incremental
 from slam.backend.knots import Knots
+from slam.backend.sections import SectionedBatch
 from slam.backend.ties import PlaneTies
 from slam.trajectory.interpolation import interpolate_trajectory
 
@@ -54,7 +55,9 @@ class Backend:
         self.ties = PlaneTies(self.graph, self.blocks, config.horizontal_sigma, config.vertical_sigma)
         self.batch = BatchSolver(self.graph, self.blocks, config)
         self.incremental: IncrementalSolver = make_incremental(config, self.graph, self.blocks, self.batch)
+        self.sections = SectionedBatch(self.graph, self.blocks, self.batch, config)
         self._marginals: tuple[int, gtsam.Marginals] | None = None  # (graph version, marginals)
+        self._section_covariances: tuple[int, dict[int, FloatArray]] | None = None  # (graph version, by plane)
 
     # ----------------------------------------------------------------- variables
     def add_pose(self, time: float, T_world_body: ArrayLike, velocity_world: ArrayLike | None = None) -> int:
@@ -170,12 +173,15 @@ class Backend:
         robust kernel) first with the kernel threshold scaled by each ``config.robust_schedule``
         multiplier, then nominal. ``max_iterations`` per stage (None: ``config.lm_max_iterations``);
         ``kernel``: the observation blocks' kernel for this solve (None: ``config.kernel``). The
-        window's summaries are dropped and iSAM2 is rebuilt at its next step."""
+        window's summaries are dropped and iSAM2 is rebuilt at its next step. A walk of more than
+        ``config.batch_section_knots`` knots is solved in sections (:mod:`slam.backend.sections`)."""
+        if self.sections.needed():
+            return self.sections.optimize(max_iterations, graduated, kernel)
         return self.batch.optimize(max_iterations, graduated, kernel)
 
     def error(self) -> float:
         """Total graph error (0.5 sum of whitened squares, robust losses) at the current estimate."""
-        return self.batch.error()
+        return self.sections.total_error() if self.sections.needed() else self.batch.error()
 
     @property
     def singular_systems(self) -> list[str]:
@@ -251,10 +257,18 @@ class Backend:
 
     def _covariance(self, key: int) -> FloatArray:
         """From the incremental solver if it holds the current graph, else from the whole graph
-        (kept until the graph or the estimate changes)."""
+        (kept until the graph or the estimate changes); a plane's of a sectioned walk from its
+        section (:meth:`SectionedBatch.plane_covariances`, all planes at once)."""
         cov = self.incremental.marginal_covariance(key)
         if cov is not None:
             return cov
+        if self.sections.needed() and chr(gtsam.Symbol(key).chr()) == "p":
+            if self._section_covariances is None or self._section_covariances[0] != self.graph.version:
+                self._section_covariances = (self.graph.version, self.sections.plane_covariances())
+            j = int(gtsam.Symbol(key).index())
+            if j not in self._section_covariances[1]:
+                raise ValueError(f"plane {j}: no marginal covariance (indeterminate in its section)")
+            return self._section_covariances[1][j]
         if self._marginals is None or self._marginals[0] != self.graph.version:
             graph = self.blocks.whole_graph()
             self._marginals = (self.graph.version, gtsam.Marginals(graph, self.graph.used_values(graph)))

@@ -1,0 +1,328 @@
+"""The final batch of a long walk solved one time-ordered section at a time, so that its memory
+is that of one section and not of the whole walk (issue 27): the same Gauss-Newton steps as the
+whole-graph batch (:mod:`slam.backend.batch`), assembled from reduced systems.
+
+A whole-graph batch builds one factor per knot interval, linearises them all and eliminates the
+system at once: its memory grows with the walk (about 56 MB per data minute on the office walk,
+before the elimination). Here the knots are cut into sections of at most
+``BackendConfig.batch_section_knots``. Every factor belongs to one section (an observation block
+to that of its knot, another factor to that of its highest knot; the factors on planes alone to
+none). A section's **interior** is its knots' variables (poses, velocities, biases) that no other
+section's factor touches; the **separator** is everything else: every plane and the knots within
+two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of floating-point sums):
+
+1. per section, in turn: build and linearise its factors, add the damping rows of its interior,
+   eliminate the interior (gtsam's partial elimination) and keep only what remains: a dense
+   factor on the section's separator (its planes and its cut knots), a few MB;
+2. solve the separator: those factors, the planes' own factors (priors, ties) and the separator's
+   damping rows, one small sparse system;
+3. per section, in turn: build, linearise and eliminate it again and back-substitute its interior
+   given the separator's step.
+
+The step is accepted, halved or retried with more damping as in :func:`slam.backend.solver.solve`
+(the error at a point is the sum of the sections' linearisations at zero). Nothing of a section
+is kept once it is passed, so the memory is one section's factors and elimination, the knots'
+values and the separator's system. A walk no longer than one section is solved whole, unchanged.
+
+The planes' marginal covariances come from the separator's system without damping: the exact
+marginals of the whole graph (every plane is in the separator).
+
+Frames: poses ``T_world_body``, planes in the world frame about their anchors.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from slam.backend.batch import BatchSolver
+from slam.backend.blocks import BlockStore
+from slam.backend.config import BackendConfig, OptimizeSummary
+from slam.backend.factors import RobustKernel
+from slam.backend.graph import FactorGraph, copy_value, top_knot
+from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
+
+FloatArray = NDArray[np.float64]
+_REACH = 2  # a factor spans at most this many knots below its highest (the constant-velocity prior: 3 knots)
+
+
+def plan_sections(n_knots: int, section_knots: int) -> list[tuple[int, int]]:
+    """Knot ranges ``[a, b)``: ``ceil(n / section_knots)`` sections of equal length (the last
+    shorter), in time order."""
+    if n_knots < 1 or section_knots < 1:
+        raise ValueError(f"plan_sections: expected positive sizes, got {n_knots}, {section_knots}")
+    size = math.ceil(n_knots / math.ceil(n_knots / section_knots))
+    return [(a, min(n_knots, a + size)) for a in range(0, n_knots, size)]
+
+
+def separator_knots(sections: list[tuple[int, int]]) -> set[int]:
+    """The knots that factors of two sections touch: within ``_REACH`` below each cut, and the cut."""
+    return {k for a, _ in sections[1:] for k in range(max(0, a - _REACH), a + 1)}
+
+
+@dataclass
+class Reduced:
+    """The separator's damped system at one point (the sections' interiors eliminated) and the
+    whole graph's error there."""
+
+    graph: gtsam.GaussianFactorGraph
+    error: float
+
+
+class SectionedBatch:
+    """The final batch (and the plane covariances) of a walk longer than one section; see the
+    module doc."""
+
+    def __init__(self, graph: FactorGraph, blocks: BlockStore, batch: BatchSolver, config: BackendConfig) -> None:
+        self.graph = graph
+        self.blocks = blocks
+        self.batch = batch
+        self.config = config
+        self.sections_solved = 0  # section eliminations so far (for the tests and the statistics)
+
+    def needed(self) -> bool:
+        """Whether the walk is longer than one section."""
+        return len(self.graph.times) > self.config.batch_section_knots
+
+    def plan(self) -> list[tuple[int, int]]:
+        return plan_sections(len(self.graph.times), self.config.batch_section_knots)
+
+    # ----------------------------------------------------------------- the sections' factors
+    def factors(self, a: int, b: int, kernel: RobustKernel) -> gtsam.NonlinearFactorGraph:
+        """The factors of the section of knots ``[a, b)``, built afresh (none is kept)."""
+        fg, blocks, cols = self.graph, self.blocks, self.blocks.cols
+        n = len(fg.times)
+        live, two, bknot = cols.live, cols.two, cols.knot
+        n_ids = live.shape[0]
+        graph = gtsam.NonlinearFactorGraph()
+        groups: dict[int, list[int]] = {}
+        for k in range(a, min(b + 1, n)):  # factors by their highest knot
+            for fid in fg.by_knot.get(k, ()):
+                rec = fg.records.get(fid)
+                if rec is None:
+                    continue
+                if fid < n_ids and live[fid]:
+                    if not a <= bknot[fid] < b:
+                        continue
+                    if two[fid]:
+                        groups.setdefault(int(bknot[fid]), []).append(fid)
+                    else:
+                        graph.add(blocks.block_factor(cols.block(fid), kernel))
+                elif k < b:
+                    low = min(i for i in _knot_indices(rec.keys))
+                    if low < k - _REACH:
+                        raise RuntimeError(f"factor {fid} spans knots {low}..{k}: more than the sections allow")
+                    graph.add(blocks.factor(fid))
+        for knot, bids in groups.items():
+            graph.add(blocks.group_factor(knot, bids, kernel, keep=False))
+        return graph
+
+    def plane_factors(self) -> gtsam.NonlinearFactorGraph:
+        """The factors on no knot (planes' priors and ties)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in self.graph.knotless:
+            rec = self.graph.records.get(fid)
+            if rec is not None:
+                graph.add(self.blocks.factor(fid))
+        return graph
+
+    def _linearize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        table = self.blocks.planes
+        table.at(values)
+        try:
+            return graph.linearize(values)
+        finally:
+            table.at(None)
+
+    # ----------------------------------------------------------------- one step
+    def reduce(self, values: gtsam.Values, kernel: RobustKernel, damping: float) -> Reduced:
+        """Step 1 and the system of step 2 (module doc) at ``values``; ``damping`` 0: none."""
+        sections = self.plan()
+        sep = separator_knots(sections)
+        dims = {int(k): int(d) for k, d in values.dims().items()}
+        out = gtsam.GaussianFactorGraph()
+        err = 0.0
+        sep_keys: set[int] = set()
+        for a, b in sections:
+            lin = self._linearize(self.factors(a, b, kernel), values)
+            keys = [int(k) for k in lin.keyVector()]
+            err += lin.error(_zeros(keys, dims))
+            interior = [k for k in keys if _is_interior(k, a, b, sep)]
+            sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
+            if damping > 0.0:
+                lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping))
+            _, rest = lin.eliminatePartialSequential(interior)
+            self.sections_solved += 1
+            out.push_back(rest)
+            del lin, rest
+        planes = self.plane_factors()
+        if planes.size():
+            lin = self._linearize(planes, values)
+            err += lin.error(_zeros([int(k) for k in lin.keyVector()], dims))
+            out.push_back(lin)
+            sep_keys.update(int(k) for k in lin.keyVector())
+        if damping > 0.0:
+            out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping))
+        return Reduced(out, err)
+
+    def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
+                        sep_delta: gtsam.VectorValues) -> gtsam.VectorValues:
+        """Step 3 (module doc): the whole step, the interiors solved given the separator's."""
+        sections = self.plan()
+        sep = separator_knots(sections)
+        dims = {int(k): int(d) for k, d in values.dims().items()}
+        delta = gtsam.VectorValues()
+        delta.insert(sep_delta)
+        for a, b in sections:
+            lin = self._linearize(self.factors(a, b, kernel), values)
+            keys = [int(k) for k in lin.keyVector()]
+            interior = [k for k in keys if _is_interior(k, a, b, sep)]
+            if damping > 0.0:
+                lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping))
+            bn, _ = lin.eliminatePartialSequential(interior)
+            self.sections_solved += 1
+            given = gtsam.VectorValues()
+            for k in keys:
+                if not _is_interior(k, a, b, sep):
+                    given.insert(k, sep_delta.at(k))
+            sol = bn.optimize(given)
+            for k in interior:
+                delta.insert(k, sol.at(k))
+            del lin, bn, sol
+        for k, d in dims.items():  # variables no factor touches stay where they are
+            if not delta.exists(k):
+                delta.insert(k, np.zeros(d))
+        return delta
+
+    # ----------------------------------------------------------------- solving
+    def optimize(self, max_iterations: int | None, graduated: bool, kernel: RobustKernel | None) -> OptimizeSummary:
+        """The sectioned batch (:meth:`Backend.batch_optimize`'s arguments and result)."""
+        cfg = self.config
+        kernel = cfg.kernel if kernel is None else kernel
+        robust = graduated and kernel.name != "none"
+        scales = [*(list(cfg.robust_schedule) if robust else []), 1.0]
+        t0 = _time.perf_counter()
+        n_max = max_iterations or cfg.lm_max_iterations
+        iterations = 0
+        e0 = e1 = float("nan")
+        for scale in scales:
+            k = kernel if scale == 1.0 else RobustKernel(kernel.name, kernel.threshold * scale)
+            try:
+                its, first, e1 = self.solve(k, n_max, cfg.lm_relative_tolerance)
+            except RuntimeError as err:
+                raise ValueError(f"sectioned batch optimisation failed ({' '.join(str(err).split())[:200]}); "
+                                 "is every variable constrained by its factors?") from None
+            iterations += its
+            e0 = first if e0 != e0 else e0
+        self.graph.restructure()
+        self.blocks.drop_summaries()  # the held poses have moved
+        return OptimizeSummary(e0, e1, iterations, _time.perf_counter() - t0)
+
+    def solve(self, kernel: RobustKernel, max_iterations: int, relative_tolerance: float) -> tuple[int, float, float]:
+        """Damped Gauss-Newton from the current estimate, as :func:`slam.backend.solver.solve`
+        (without its Levenberg-Marquardt fallback); the estimate is updated. Returns the
+        iterations and the errors before and after."""
+        values = gtsam.Values(self.graph.values)
+        damping = DAMPING
+        red: Reduced | None = self.reduce(values, kernel, damping)
+        assert red is not None
+        err0 = err = red.error
+        it = 0
+        for it in range(1, max_iterations + 1):
+            delta = None
+            while delta is None:
+                try:
+                    if red is None:
+                        red = self.reduce(values, kernel, damping)
+                    delta = self.back_substitute(values, kernel, damping, red.graph.optimize())
+                except RuntimeError:
+                    if damping * 100.0 > MAX_DAMPING:
+                        raise
+                    damping *= 100.0
+                red = None
+            step = 1.0
+            next_damping = max(DAMPING, damping / 10.0)
+            for _ in range(10):
+                trial = values.retract(delta if step == 1.0 else delta.scale(step))
+                red_trial: Reduced | None = None
+                if step == 1.0 and it < max_iterations:
+                    try:
+                        red_trial = self.reduce(trial, kernel, next_damping)
+                        new_err = red_trial.error
+                    except RuntimeError:
+                        new_err = self.total_error(kernel, trial)
+                else:
+                    new_err = self.total_error(kernel, trial)
+                if new_err <= err:
+                    red = red_trial
+                    break
+                step *= 0.5
+            else:
+                break  # no step lowers the error: converged
+            rel = (err - new_err) / max(err, 1e-300)
+            values, err = trial, new_err
+            damping = next_damping
+            if rel < relative_tolerance:
+                break
+        self.graph.values.update(values)
+        return it, err0, err
+
+    # ----------------------------------------------------------------- errors, covariances
+    def total_error(self, kernel: RobustKernel | None = None, values: gtsam.Values | None = None) -> float:
+        """The whole graph's error (0.5 sum of whitened squares, robust losses) at ``values``
+        (None: the current estimate), one section's factors at a time."""
+        kernel = self.config.kernel if kernel is None else kernel
+        values = self.graph.values if values is None else values
+        table = self.blocks.planes
+        total = 0.0
+        for graph in [*(self.factors(a, b, kernel) for a, b in self.plan()), self.plane_factors()]:
+            if graph.size():
+                table.at(values)
+                try:
+                    total += float(graph.error(values))
+                finally:
+                    table.at(None)
+        return total
+
+    def plane_covariances(self) -> dict[int, FloatArray]:
+        """Marginal covariance (3, 3) of every plane (retract coordinates about its anchor) from
+        the separator's undamped system: the whole graph's marginals. A plane the system leaves
+        indeterminate is left out."""
+        values = self.graph.values
+        red = self.reduce(values, self.config.kernel, 0.0)
+        sep = gtsam.Values()
+        for k in red.graph.keyVector():
+            copy_value(sep, values, int(k))
+        marg = gtsam.Marginals(red.graph, sep)
+        out: dict[int, FloatArray] = {}
+        for k in red.graph.keyVector():
+            sym = gtsam.Symbol(int(k))
+            if chr(sym.chr()) == "p":
+                try:
+                    out[int(sym.index())] = np.asarray(marg.marginalCovariance(int(k)))
+                except RuntimeError:
+                    continue
+        return out
+
+
+def _knot_indices(keys: tuple[int, ...]) -> list[int]:
+    """Knot indices of the knot keys (X, V, B) among ``keys``."""
+    return [t for t in (top_knot((k,)) for k in keys) if t is not None]
+
+
+def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:
+    """Whether ``key`` is a knot variable of ``[a, b)`` that no other section touches."""
+    k = top_knot((key,))
+    return k is not None and a <= k < b and k not in sep
+
+
+def _zeros(keys: list[int], dims: dict[int, int]) -> gtsam.VectorValues:
+    z = gtsam.VectorValues()
+    for k in keys:
+        z.insert(k, np.zeros(dims[k]))
+    return z

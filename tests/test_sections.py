@@ -1,0 +1,117 @@
+"""The final batch of a long walk solved one section at a time (slam/backend/sections.py): the
+plan, the separator, and that its steps, estimate, error and plane covariances are the
+whole-graph batch's, on a synthetic box room."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from backend_defaults import backend_defaults
+from box_scene import Scene, make_scene, perturb_pose
+
+from slam.backend import Backend, BackendConfig
+from slam.backend.sections import plan_sections, separator_knots
+from slam.backend.solver import DAMPING, damping_rows
+
+DEG = np.pi / 180.0
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return make_scene(duration=2.0, beams=61, sigma_range=0.003, seed=11)
+
+
+def _build(scene: Scene, config: BackendConfig, seed: int = 3) -> Backend:
+    rng = np.random.default_rng(seed)
+    be = Backend(config)
+    for i, (t, T) in enumerate(zip(scene.knot_times, scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
+    for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+        be.add_plane(j, n0 + rng.normal(0.0, 0.01, 3), d0 + rng.normal(0.0, 0.02), horizontal=j < 2)
+    for b in scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    return be
+
+
+@pytest.mark.parametrize("n,size", [(10, 20), (100, 20), (101, 20), (7, 1), (1000, 333)])
+def test_plan_cuts_every_knot_once(n: int, size: int) -> None:
+    plan = plan_sections(n, size)
+    assert plan[0][0] == 0 and plan[-1][1] == n
+    assert all(a < b <= a + size for a, b in plan)
+    assert all(plan[i][1] == plan[i + 1][0] for i in range(len(plan) - 1))  # no gap, no overlap
+    assert len(plan) == -(-n // size)
+    with pytest.raises(ValueError, match="plan_sections"):
+        plan_sections(0, size)
+
+
+def test_interiors_are_touched_by_their_section_alone(scene: Scene) -> None:
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=17))
+    assert be.sections.needed()
+    plan = be.sections.plan()
+    sep = separator_knots(plan)
+    keys = [{int(k) for k in be.sections.factors(a, b, be.config.kernel).keyVector()} for a, b in plan]
+    assert set().union(*keys) == {int(k) for k in be.blocks.whole_graph().keyVector()} - \
+        {int(k) for k in be.sections.plane_factors().keyVector()} | set().union(*keys)
+    for s, (a, b) in enumerate(plan):
+        interior = {k for k in keys[s] if gtsam.Symbol(k).chr() != ord("p") and a <= gtsam.Symbol(k).index() < b
+                    and gtsam.Symbol(k).index() not in sep}
+        assert interior
+        for t, other in enumerate(keys):
+            assert t == s or not interior & other
+
+
+def test_streamed_error_is_the_whole_graphs(scene: Scene) -> None:
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=17))
+    whole = be.batch.error()
+    assert whole > 0.0
+    assert be.sections.total_error() == pytest.approx(whole, rel=1e-12)
+    assert be.error() == pytest.approx(whole, rel=1e-12)
+
+
+def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=23))
+    values = gtsam.Values(be.graph.values)
+    red = be.sections.reduce(values, be.config.kernel, DAMPING)
+    delta = be.sections.back_substitute(values, be.config.kernel, DAMPING, red.graph.optimize())
+    assert not be.blocks._groups and not any(r.factor for r in be.graph.records.values() if r.keys[-1] >> 56 == ord("p")
+                                             and len(r.keys) > 1)  # nothing of a section kept
+    assert red.error == pytest.approx(be.batch.error(), rel=1e-12)
+    whole = be.blocks.whole_graph()
+    be.blocks.planes.at(values)
+    try:
+        lin = whole.linearize(values)
+    finally:
+        be.blocks.planes.at(None)
+    lin.push_back(damping_rows([(int(k), int(d)) for k, d in values.dims().items()], set(), DAMPING))
+    ref = lin.optimize()
+    for k in values.keys():
+        assert np.allclose(delta.at(k), ref.at(k), rtol=1e-7, atol=1e-10), gtsam.DefaultKeyFormatter(k)
+
+
+def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None:
+    whole = _build(scene, backend_defaults())
+    assert not whole.sections.needed()
+    s_whole = whole.batch_optimize(graduated=False)
+    cut = _build(scene, replace(backend_defaults(), batch_section_knots=20))
+    s_cut = cut.batch_optimize(graduated=False)
+    assert cut.sections.sections_solved >= 2 * 4 * s_cut.iterations
+    assert s_cut.initial_error == pytest.approx(s_whole.initial_error, rel=1e-9)
+    assert s_cut.final_error == pytest.approx(s_whole.final_error, rel=1e-6)
+    assert s_cut.iterations == s_whole.iterations
+    assert np.abs(cut.poses()[:, :3, 3] - whole.poses()[:, :3, 3]).max() < 1e-7
+    _, n_c, d_c = cut.planes()
+    _, n_w, d_w = whole.planes()
+    assert np.abs(d_c - d_w).max() < 1e-7 and np.abs(n_c - n_w).max() < 1e-8
+
+
+def test_sectioned_plane_covariances_are_the_whole_graphs(scene: Scene) -> None:
+    whole = _build(scene, backend_defaults())
+    whole.batch_optimize(graduated=False)
+    cut = _build(scene, replace(backend_defaults(), batch_section_knots=40))
+    cut.batch_optimize(graduated=False)
+    for j in range(6):
+        c_w, c_s = whole.plane_covariance(j), cut.plane_covariance(j)
+        assert np.allclose(c_s, c_w, rtol=1e-5, atol=1e-14), j
