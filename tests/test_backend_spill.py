@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from backend_defaults import backend_defaults
 from box_scene import Scene, make_scene
 
@@ -88,11 +89,12 @@ def test_spilled_blocks_read_back_through_every_reader() -> None:
     assert not folder.exists()
 
 
-def _walk(scene: Scene, spill_rows: int | None) -> Backend:
+def _walk(scene: Scene, spill_rows: int | None, section_knots: int) -> Backend:
     """The box-room walk read knot by knot with a short window (blocks held early), a merge of
-    two planes and a removal of held blocks midway, then the final batch and a trim."""
+    two planes and a removal of held blocks midway, then the final batch (in sections of
+    ``section_knots``) and a trim."""
     rng = np.random.default_rng(7)
-    be = Backend(replace(backend_defaults(), window_knots=6))
+    be = Backend(replace(backend_defaults(), window_knots=6, batch_section_knots=section_knots))
     be.blocks.cols.spill_rows = spill_rows
     for j, (n, d) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
         be.add_plane(j, n + rng.normal(0.0, 0.01, 3), d + rng.normal(0.0, 0.02), horizontal=j < 2)
@@ -118,10 +120,12 @@ def _walk(scene: Scene, spill_rows: int | None) -> Backend:
     return be
 
 
-def test_a_walk_with_spilling_is_bit_for_bit_the_walk_without() -> None:
+@pytest.mark.parametrize("section_knots", [10_000, 23])
+def test_a_walk_with_spilling_is_bit_for_bit_the_walk_without(section_knots: int) -> None:
     scene = make_scene(duration=1.5, beams=61, sigma_range=0.003, seed=11)
-    kept = _walk(scene, None)
-    spilled = _walk(scene, 0)  # every window step spills its held blocks
+    kept = _walk(scene, None, section_knots)
+    spilled = _walk(scene, 0, section_knots)  # every window step spills its held blocks
+    assert spilled.sections.needed() == (section_knots < scene.knot_times.size)
     assert spilled.blocks.cols.disk.rows("points") > 0 and kept.blocks.cols.disk.folder is None
     assert np.array_equal(kept.poses(), spilled.poses())
     for a, b in zip(kept.planes(), spilled.planes(), strict=True):

@@ -97,27 +97,23 @@ class SectionedBatch:
         """The factors of the section of knots ``[a, b)``, built afresh (none is kept)."""
         fg, blocks, cols = self.graph, self.blocks, self.blocks.cols
         n = len(fg.times)
-        live, two, bknot = cols.live, cols.two, cols.knot
-        n_ids = live.shape[0]
+        two, bknot = cols.two, cols.knot
         graph = gtsam.NonlinearFactorGraph()
         groups: dict[int, list[int]] = {}
-        for k in range(a, min(b + 1, n)):  # factors by their highest knot
-            for fid in fg.by_knot.get(k, ()):
-                rec = fg.records.get(fid)
-                if rec is None:
+        sel = blocks.factors_of_knots(a, min(b, n - 1))  # factors by their highest knot
+        for fid, k, is_block in zip(sel.ids.tolist(), sel.top.tolist(), sel.is_block.tolist(), strict=True):
+            if is_block:
+                if not a <= bknot[fid] < b:
                     continue
-                if fid < n_ids and live[fid]:
-                    if not a <= bknot[fid] < b:
-                        continue
-                    if two[fid]:
-                        groups.setdefault(int(bknot[fid]), []).append(fid)
-                    else:
-                        graph.add(blocks.block_factor(cols.block(fid), kernel))
-                elif k < b:
-                    low = min(i for i in _knot_indices(rec.keys))
-                    if low < k - _REACH:
-                        raise RuntimeError(f"factor {fid} spans knots {low}..{k}: more than the sections allow")
-                    graph.add(blocks.factor(fid))
+                if two[fid]:
+                    groups.setdefault(int(bknot[fid]), []).append(fid)
+                else:
+                    graph.add(blocks.block_factor(cols.block(fid), kernel))
+            elif k < b:
+                low = min(i for i in _knot_indices(fg.records[fid].keys))
+                if low < k - _REACH:
+                    raise RuntimeError(f"factor {fid} spans knots {low}..{k}: more than the sections allow")
+                graph.add(blocks.factor(fid))
         for knot, bids in groups.items():
             graph.add(blocks.group_factor(knot, bids, kernel, keep=False))
         return graph
