@@ -93,7 +93,7 @@ def test_a_removed_replaced_or_merged_block_leaves_every_lookup() -> None:
     every = set(be.blocks.factor_ids().tolist())
     all_of_planes = {b for j in be.plane_ids() for b in be.blocks_of_plane(j)}
     for dead in (gone, old):
-        assert dead not in be.blocks.blocks and not be.blocks.has_factor(dead) and dead not in every
+        assert dead not in be.blocks.blocks and not be.blocks.cols.has(dead) and dead not in be.graph.records and dead not in every
         assert dead not in all_of_planes and dead not in be.blocks.factors_of_knots(0, n - 1)[0].tolist()
         with pytest.raises(ValueError, match="no observation block"):
             be.block(dead)

@@ -511,10 +511,6 @@ class BlockStore:
             f = self._factors[fid] = self.block_factor(self.cols.block(fid))
         return f
 
-    def has_factor(self, fid: int) -> bool:
-        """Whether ``fid`` is a live factor (a record or a live block)."""
-        return self.cols.has(fid) or fid in self.graph.records
-
     def factor_keys(self, fid: int) -> tuple[int, ...]:
         """The keys of live factor ``fid``."""
         cols = self.cols
@@ -547,19 +543,6 @@ class BlockStore:
         if not ids:
             return KnotFactors(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool))
         return KnotFactors(np.concatenate(ids), np.concatenate(top), np.concatenate(is_block))
-
-    def set_isam_index(self, fid: int, index: int | None) -> None:
-        """Record factor ``fid``'s index in iSAM2 (None: not in it)."""
-        if self.cols.has(fid):
-            self.cols.isam[fid] = -1 if index is None else index
-        else:
-            self.graph.records[fid].isam_index = index
-
-    def clear_isam_indices(self) -> None:
-        """No factor is in iSAM2 (it is rebuilt)."""
-        for rec in self.graph.records.values():
-            rec.isam_index = None
-        self.cols.isam[:] = -1
 
     def block_factor(self, blk: ObservationBlock, kernel: RobustKernel | None = None) -> gtsam.NonlinearFactor:
         """A block's own factor, with ``kernel`` (None: the configured one)."""

@@ -184,7 +184,7 @@ class Isam2Solver:
         new_values = gtsam.Values()
         ids: list[int] = []
         for fid in fg.pending:
-            if not self.blocks.has_factor(fid):
+            if not (self.blocks.cols.has(fid) or fid in fg.records):  # removed since
                 continue
             graph.add(self.blocks.factor(fid))
             ids.append(fid)
@@ -200,8 +200,12 @@ class Isam2Solver:
             self._isam = None  # its state is undefined after a failed update
             raise ValueError(f"iSAM2 update failed ({name_keys(str(err))}); is every new "
                              "variable constrained by its factors?") from None
+        cols = self.blocks.cols
         for fid, idx in zip(ids, result.getNewFactorsIndices(), strict=True):
-            self.blocks.set_isam_index(fid, int(idx))
+            if cols.has(fid):  # an observation block: its index is a column
+                cols.isam[fid] = int(idx)
+            else:
+                fg.records[fid].isam_index = int(idx)
         self._keys.update(int(k) for k in new_values.keys())
         fg.pending, fg.pending_removals = [], []
         fg.values.update(self._isam.calculateEstimate())
@@ -223,7 +227,9 @@ class Isam2Solver:
         self._isam = gtsam.ISAM2(params)
         self._keys = set()
         self._epoch = self.graph.epoch
-        self.blocks.clear_isam_indices()
+        for rec in self.graph.records.values():
+            rec.isam_index = None
+        self.blocks.cols.isam[:] = -1
         self.graph.pending = self.blocks.factor_ids().tolist()
         self.graph.pending_removals = []
 
