@@ -41,6 +41,12 @@ def test_spill_tables_read_back_what_was_written_and_remove_their_folder() -> No
     assert np.array_equal(t.table("p"), np.concatenate((a, b))) and t.rows("s") == 5
     folder = t.folder
     assert folder is not None and (folder / "p").stat().st_size == 6 * 3 * 8
+    rows = np.array([5, 1, 1, 3], dtype=np.int64)
+    assert np.array_equal(t.read("p", rows), np.concatenate((a, b))[rows])
+    big = np.random.default_rng(0).normal(size=(10_000, 3))
+    t.append("p", big)
+    far = np.array([6 + 9_999, 6, 6 + 5_000], dtype=np.int64)  # a sparse read of a long span: mapped
+    assert np.array_equal(t.read("p", far), big[far - 6]) and t.read("p", far[:0]).shape == (0, 3)
     t.clear("s")
     assert t.rows("s") == 0 and t.table("s").shape == (0,)
     t.close()

@@ -192,7 +192,9 @@ class BlockColumns:
         """The scatter (4, 4) of held block ``bid`` (a copy)."""
         assert self.held[bid]
         k = int(self.slot[bid])
-        return np.array(self.scatters[k] if k >= 0 else self.disk.table("scatters")[-2 - k])
+        if k >= 0:
+            return np.array(self.scatters[k])
+        return self.disk.read("scatters", np.array([-2 - k], dtype=np.int64))[0]
 
     def release(self) -> None:
         """No block is held any more (spilled rows stay where they are)."""
@@ -243,14 +245,14 @@ class BlockColumns:
 
     def block(self, bid: int) -> ObservationBlock:
         """Live block ``bid`` with its own (copied) arrays."""
-        s, e = int(self.start[bid]), int(self.start[bid] + self.size[bid])
         if self.spilled[bid]:
-            points, alphas, sigmas = (self.disk.table(n) for n in ("points", "alphas", "sigmas"))
-        else:
-            points, alphas, sigmas = self.points, self.alphas, self.sigmas
-        al = np.array(alphas[s:e]) if self.two[bid] else None
-        return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), np.array(points[s:e]), al,
-                                np.array(sigmas[s:e]))
+            points, alphas, sigmas, _ = self.gather(np.array([bid], dtype=np.int64))
+            return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), points,
+                                    alphas if self.two[bid] else None, sigmas)
+        s, e = int(self.start[bid]), int(self.start[bid] + self.size[bid])
+        al = self.alphas[s:e].copy() if self.two[bid] else None
+        return ObservationBlock(int(self.knot[bid]), int(self.plane[bid]), self.points[s:e].copy(), al,
+                                self.sigmas[s:e].copy())
 
     def gather(self, bids: NDArray[np.int64]) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]]:
         """The rows of blocks ``bids`` in that order: points (M, 3), alphas (M,), sigmas (M,) and
@@ -265,10 +267,10 @@ class BlockColumns:
         on_disk = np.repeat(disk, sizes)
         out = []
         for name in ("points", "alphas", "sigmas"):
-            mem_rows, disk_rows = getattr(self, name), self.disk.table(name)
+            mem_rows = getattr(self, name)
             rows = np.empty((idx.shape[0], *mem_rows.shape[1:]))
             rows[~on_disk] = mem_rows[idx[~on_disk]]
-            rows[on_disk] = disk_rows[idx[on_disk]]
+            rows[on_disk] = self.disk.read(name, idx[on_disk])
             out.append(rows)
         return out[0], out[1], out[2], starts
 

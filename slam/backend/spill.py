@@ -2,8 +2,10 @@
 (:mod:`slam.backend.blocks`), so that an hour's points do not stay on the heap.
 
 Each table is one file of fixed-shape rows in a temporary folder made at the first append and
-removed when the tables are collected, closed, or the interpreter exits. Rows are read back
-through a read-only memory map (made again after an append), byte for byte as written.
+removed when the tables are collected, closed, or the interpreter exits. Rows are read back byte
+for byte as written, by :meth:`SpillTables.read`: one read of the span they lie in when they are
+close together (a knot interval's blocks, a section's), else through a memory map dropped after
+the read, so that no mapping keeps the files' pages counted in the process's memory.
 """
 
 from __future__ import annotations
@@ -25,7 +27,6 @@ class SpillTables:
     def __init__(self, shapes: dict[str, tuple[int, ...]]) -> None:
         self._shapes = dict(shapes)
         self._rows = dict.fromkeys(shapes, 0)
-        self._maps: dict[str, np.memmap] = {}
         self._dir: Path | None = None
         self._cleanup: weakref.finalize | None = None
 
@@ -44,29 +45,38 @@ class SpillTables:
         with open(self._dir / name, "ab") as f:
             f.write(arr.tobytes())
         self._rows[name] += arr.shape[0]
-        self._maps.pop(name, None)
         return first
 
     def table(self, name: str) -> FloatArray:
-        """Table ``name`` (rows, *shape), read-only, mapped from its file."""
-        m = self._maps.get(name)
-        if m is None:
-            if self._dir is None or self._rows[name] == 0:
-                return np.zeros((0, *self._shapes[name]))
-            m = np.memmap(self._dir / name, dtype=np.float64, mode="r", shape=(self._rows[name], *self._shapes[name]))
-            self._maps[name] = m
-        return m
+        """Table ``name`` (rows, *shape), read-only, mapped from its file (to inspect)."""
+        if self._dir is None or self._rows[name] == 0:
+            return np.zeros((0, *self._shapes[name]))
+        return np.memmap(self._dir / name, dtype=np.float64, mode="r", shape=(self._rows[name], *self._shapes[name]))
+
+    def read(self, name: str, rows: NDArray[np.int64]) -> FloatArray:
+        """Rows ``rows`` (indices, any order) of table ``name``, (len(rows), *shape), a copy."""
+        shape = self._shapes[name]
+        if rows.shape[0] == 0:
+            return np.zeros((0, *shape))
+        assert self._dir is not None
+        lo, hi = int(rows.min()), int(rows.max()) + 1
+        width = int(np.prod(shape, dtype=np.int64))
+        if hi - lo <= 4 * rows.shape[0] + 4096:  # close together: one read of their span
+            span = np.fromfile(self._dir / name, dtype=np.float64, count=(hi - lo) * width, offset=8 * width * lo)
+            return span.reshape(hi - lo, *shape)[rows - lo]
+        table = self.table(name)
+        out = np.asarray(table[rows])
+        del table
+        return out
 
     def clear(self, name: str) -> None:
         """Empty table ``name``."""
-        self._maps.pop(name, None)
         self._rows[name] = 0
         if self._dir is not None:
             (self._dir / name).unlink(missing_ok=True)
 
     def close(self) -> None:
         """Remove the folder and every table."""
-        self._maps.clear()
         if self._cleanup is not None:
             self._cleanup()
         self._dir, self._cleanup = None, None
