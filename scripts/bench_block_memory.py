@@ -109,7 +109,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
             be.step()
         if i == knots // 2:
             gc.collect()
-            mid = (tracemalloc.get_traced_memory()[0], len(be.blocks.blocks))
+            mid = (tracemalloc.get_traced_memory()[0], len(be.blocks.blocks), _rss())
     be.step()
     seconds = time.perf_counter() - t_start
     gc.collect()
@@ -129,6 +129,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
             "rows_per_block": rows / n_blocks, "bookkeeping_per_block": (traced - t0 - rows) / n_blocks,
             "rss_per_block": rss / n_blocks, "seconds": seconds,
             "marginal_per_block": (traced - mid[0]) / max(1, n_blocks - mid[1]),
+            "marginal_rss_per_block": (rss + rss0 - mid[2]) / max(1, n_blocks - mid[1]),
             "top": top}
 
 
@@ -153,7 +154,8 @@ def _print(name: str, r: dict[str, Any]) -> None:
           f"bookkeeping {r['bookkeeping_per_block']:.0f} B; RSS growth {r['rss_per_block']:.0f} B; "
           f"walk {r['seconds']:.1f} s (tracemalloc on)")
     if "marginal_per_block" in r:
-        print(f"  second half of the walk: traced {r['marginal_per_block']:.0f} B per block added")
+        print(f"  second half of the walk: traced {r['marginal_per_block']:.0f} B, RSS "
+              f"{r.get('marginal_rss_per_block', float('nan')):.0f} B per block added")
     for t in r["top"]:
         print(f"    {t['bytes'] / 1e6:8.2f} MB  {t['site']}")
 
