@@ -168,3 +168,23 @@ def test_isam2_keeps_block_indices_in_the_columns_and_follows_removals() -> None
     assert isinstance(be.incremental, Isam2Solver)
     err = np.array([np.linalg.norm(be.pose(i)[:3, 3] - scene.knot_poses[i][:3, 3]) for i in range(be.num_knots)])
     assert err.max() < 0.01
+
+
+def test_motion_factors_left_behind_are_released_and_rebuilt_the_same() -> None:
+    be = _random_backend(4, knots=20)
+    graph = be.blocks.whole_graph()
+    values = be.graph.used_values(graph)
+    be.blocks.planes.at(values)
+    before = [graph.at(i).error(values) for i in range(graph.size())]
+    be.blocks.planes.at(None)
+    be.blocks.hold_before(12)
+    released = [f for f, r in be.graph.records.items() if r.factor is None]
+    tops = {top_knot(be.graph.records[f].keys) for f in released}
+    assert len(released) == 10 and tops == set(range(2, 12))  # knots 2..11's constant-velocity factors
+    assert all(r.rebuildable for r in be.graph.records.values() if r.factor is None)
+    graph = be.blocks.whole_graph()
+    be.blocks.planes.at(values)
+    after = [graph.at(i).error(values) for i in range(graph.size())]
+    be.blocks.planes.at(None)
+    assert after == before
+    assert all(be.graph.records[f].factor is None for f in released)  # built for the graph, not kept

@@ -507,7 +507,7 @@ class BlockStore:
         """The factor ``fid`` (a record's, or an observation block's: built on first use and kept
         until the block leaves the window or changes)."""
         if not self.cols.has(fid):
-            return self.graph.records[fid].factor
+            return self.graph.factor(fid)
         f = self._factors.get(fid)
         if f is None:
             f = self._factors[fid] = self.block_factor(self.cols.block(fid))
@@ -615,6 +615,7 @@ class BlockStore:
         todo: list[int] = []
         held = self.cols.held
         for k in range(self.summarized_upto, first):
+            self.graph.release(k)
             for fid in self.by_knot.live(k).tolist():
                 self._factors.pop(fid, None)
                 if not held[fid]:

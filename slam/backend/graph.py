@@ -17,7 +17,7 @@ moved by another solver): iSAM2 is rebuilt from the current estimate at its next
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -32,12 +32,14 @@ _KNOT_CHARS = frozenset(map(ord, "xvb"))
 
 @dataclass(slots=True)
 class Record:
-    """One factor of the graph other than an observation block: the factor, its keys and its index
-    in iSAM2 (None: not in iSAM2)."""
+    """One factor of the graph other than an observation block: the factor (None: released, see
+    :meth:`FactorGraph.release`), its keys, its index in iSAM2 (None: not in iSAM2) and whether
+    :attr:`FactorGraph.rebuild` can build it again from its keys."""
 
-    factor: gtsam.NonlinearFactor
+    factor: gtsam.NonlinearFactor | None
     keys: tuple[int, ...]
     isam_index: int | None
+    rebuildable: bool = False
 
 
 class FactorGraph:
@@ -59,18 +61,37 @@ class FactorGraph:
         self.knotless: list[int] = []
         self.version = 0
         self.epoch = 0
+        # builds a rebuildable record's factor again from its keys, the same (the knots' motion
+        # factors: see slam.backend.knots)
+        self.rebuild: Callable[[tuple[int, ...]], gtsam.NonlinearFactor] | None = None
 
-    def add_factor(self, factor: gtsam.NonlinearFactor) -> int:
-        """Add ``factor`` (not an observation block's); returns its id."""
+    def add_factor(self, factor: gtsam.NonlinearFactor, rebuildable: bool = False) -> int:
+        """Add ``factor`` (not an observation block's; ``rebuildable``: :attr:`rebuild` makes it
+        again from its keys); returns its id."""
         fid = self.new_id()
         keys = tuple(int(k) for k in factor.keys())
-        self.records[fid] = Record(factor, keys, None)
+        self.records[fid] = Record(factor, keys, None, rebuildable)
         top = top_knot(keys)
         if top is None:
             self.knotless.append(fid)
         else:
             self.by_knot.setdefault(top, []).append(fid)
         return fid
+
+    def factor(self, fid: int) -> gtsam.NonlinearFactor:
+        """The factor of record ``fid``; a released one built again (not kept)."""
+        rec = self.records[fid]
+        if rec.factor is not None:
+            return rec.factor
+        assert self.rebuild is not None
+        return self.rebuild(rec.keys)
+
+    def release(self, knot: int) -> None:
+        """Let go of the rebuildable factors whose highest knot is ``knot`` (the window has left it)."""
+        for fid in self.by_knot.get(knot, ()):
+            rec = self.records.get(fid)
+            if rec is not None and rec.rebuildable:
+                rec.factor = None
 
     def new_id(self) -> int:
         """A new factor id, pending (an observation block's has no record)."""

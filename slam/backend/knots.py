@@ -37,6 +37,7 @@ class Knots:
         self.graph = graph
         self.config = config
         self._imu_intervals: set[int] = set()
+        graph.rebuild = self._motion_factor
 
     def add_pose(self, time: float, T_world_body: ArrayLike, velocity_world: ArrayLike | None) -> int:
         """See :meth:`Backend.add_pose`."""
@@ -63,7 +64,7 @@ class Knots:
                                         *cfg.initial_velocity_sigmas))
         if i >= 2 and cfg.use_motion_prior:
             dt1, dt2 = times[i - 1] - times[i - 2], t - times[i - 1]
-            add(constant_velocity_factor(X(i - 2), X(i - 1), X(i), dt1, dt2, cfg.motion))
+            add(constant_velocity_factor(X(i - 2), X(i - 1), X(i), dt1, dt2, cfg.motion), rebuildable=True)
         if cfg.imu is not None:
             self._add_imu_state(i, T, velocity_world, cfg.imu)
         return i
@@ -112,6 +113,13 @@ class Knots:
         return self.config.imu
 
     # ----------------------------------------------------------------- estimates
+    def _motion_factor(self, keys: tuple[int, ...]) -> gtsam.NonlinearFactor:
+        """The constant-velocity factor on ``keys`` (X(i-2), X(i-1), X(i)) as :meth:`add_pose` made it."""
+        i = gtsam.Symbol(keys[2]).index()
+        times = self.graph.times
+        return constant_velocity_factor(X(i - 2), X(i - 1), X(i), times[i - 1] - times[i - 2],
+                                        times[i] - times[i - 1], self.config.motion)
+
     def poses(self) -> FloatArray:
         """Current ``T_world_body`` of every knot, (K, 4, 4)."""
         values = self.graph.values
