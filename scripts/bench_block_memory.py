@@ -16,7 +16,7 @@ summaries and the release of their factors happen as in a run). The figures, aft
   16384`` shows an hour's steady state, its rows in memory bounded);
 - ``marginal``: the traced heap's growth over the walk's second half per block added there (what
   a longer walk adds: the window's fixed costs left out; the arrays' growth steps make it coarse);
-- ``rss``: the process's resident set growth over the walk, per live block (gtsam's factors and
+- ``rss``: (best with ``--no-trace``: tracemalloc's own records count in it) the process's resident set growth over the walk, per live block (gtsam's factors and
   values too; the allocator's slack makes it coarse);
 - the traced heap's twelve largest allocation sites, and the walk's time (``tracemalloc`` on: slow).
 
@@ -52,7 +52,7 @@ def _rss() -> int:
 
 
 def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, step_every: int,
-         spill_rows: int | None = None, seed: int = 0, warm_up: bool = True) -> dict[str, Any]:
+         spill_rows: int | None = None, seed: int = 0, warm_up: bool = True, trace: bool = True) -> dict[str, Any]:
     """The synthetic walk in this process; its figures (see the module doc)."""
     from slam.backend import Backend
     from slam.config import SlamConfig
@@ -69,9 +69,10 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
                         np.where(kind == 2, -1.5, 0.5)), axis=1)
     cfg = backend_config(SlamConfig(), False)
     if warm_up:  # imports and compilations out of the figures
-        walk(30, 20, blocks, points, coalesce, step_every, spill_rows, seed, warm_up=False)
+        walk(30, 20, blocks, points, coalesce, step_every, spill_rows, seed, warm_up=False, trace=trace)
     gc.collect()
-    tracemalloc.start()
+    if trace:
+        tracemalloc.start()
     rss0 = _rss()
     t0 = tracemalloc.get_traced_memory()[0]
     t_start = time.perf_counter()
@@ -114,7 +115,7 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
     seconds = time.perf_counter() - t_start
     gc.collect()
     traced, _ = tracemalloc.get_traced_memory()
-    snap = tracemalloc.take_snapshot()
+    snap = tracemalloc.take_snapshot() if trace else None
     rss = _rss() - rss0
     tracemalloc.stop()
     cols = be.blocks.cols
@@ -123,11 +124,11 @@ def walk(knots: int, planes: int, blocks: int, points: int, coalesce: float, ste
     disk = getattr(cols, "disk", None)
     spilled = 0 if disk is None else disk.rows("points")
     top = [{"site": str(s.traceback[0]).replace(str(REPO) + "/", ""), "bytes": s.size}
-           for s in snap.statistics("lineno")[:12]]
+           for s in (snap.statistics("lineno")[:12] if snap is not None else [])]
     return {"knots": knots, "blocks": n_blocks, "points": int(be.blocks.n_points),
             "block_ids": int(be.graph._next_id), "rows_spilled": int(spilled), "traced_per_block": (traced - t0) / n_blocks,
             "rows_per_block": rows / n_blocks, "bookkeeping_per_block": (traced - t0 - rows) / n_blocks,
-            "rss_per_block": rss / n_blocks, "seconds": seconds,
+            "rss_per_block": rss / n_blocks, "seconds": seconds, "traced": trace,
             "marginal_per_block": (traced - mid[0]) / max(1, n_blocks - mid[1]),
             "marginal_rss_per_block": (rss + rss0 - mid[2]) / max(1, n_blocks - mid[1]),
             "top": top}
@@ -137,7 +138,7 @@ def _spawn(tree: Path, args: argparse.Namespace) -> dict[str, Any]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     cmd = [sys.executable, __file__, "--child", "--knots", str(args.knots), "--planes", str(args.planes),
            "--blocks", str(args.blocks), "--points", str(args.points), "--coalesce", str(args.coalesce),
-           "--step-every", str(args.step_every)] + ([] if args.spill_rows is None else ["--spill-rows",
+           "--step-every", str(args.step_every)] + ([] if args.trace else ["--no-trace"]) + ([] if args.spill_rows is None else ["--spill-rows",
                                                                                        str(args.spill_rows)])
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=tree, check=False)
     line = next((ln for ln in proc.stdout.splitlines() if ln.startswith(_ROW)), None)
@@ -150,6 +151,10 @@ def _spawn(tree: Path, args: argparse.Namespace) -> dict[str, Any]:
 def _print(name: str, r: dict[str, Any]) -> None:
     print(f"{name}: {r['knots']} knots, {r['blocks']} live blocks ({r['block_ids']} ids used), {r['points']} points"
           f" ({r.get('rows_spilled', 0)} rows spilled to disk)")
+    if not r.get("traced", True):
+        print(f"  per block: RSS growth {r['rss_per_block']:.0f} B, over the second half "
+              f"{r['marginal_rss_per_block']:.0f} B per block added; walk {r['seconds']:.1f} s")
+        return
     print(f"  per block: traced {r['traced_per_block']:.0f} B = rows {r['rows_per_block']:.0f} B + "
           f"bookkeeping {r['bookkeeping_per_block']:.0f} B; RSS growth {r['rss_per_block']:.0f} B; "
           f"walk {r['seconds']:.1f} s (tracemalloc on)")
@@ -171,12 +176,14 @@ def main() -> int:
     ap.add_argument("--step-every", type=int, default=5, help="window step every N knots (0: none)")
     ap.add_argument("--spill-rows", type=int, default=None,
                     help="held rows kept in memory before spilling (default: the code's)")
+    ap.add_argument("--no-trace", dest="trace", action="store_false",
+                    help="without tracemalloc (its own records inflate the RSS): RSS figures only")
     ap.add_argument("--baseline", default=None, metavar="REV", help="also run on git revision REV")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         row = walk(args.knots, args.planes, args.blocks, args.points, args.coalesce, args.step_every,
-                   args.spill_rows)
+                   args.spill_rows, trace=args.trace)
         print(_ROW + json.dumps(row), flush=True)
         return 0
     sys.path.insert(0, str(Path(__file__).resolve().parent))
