@@ -40,8 +40,8 @@ HOLDERS: tuple[tuple[str, str], ...] = (
     ("backend: factor ids by knot (FactorGraph.by_knot)", "runner.backend.graph.by_knot"),
     ("backend: block ids by plane (BlockStore.plane_blocks)", "runner.backend.blocks.plane_blocks"),
     ("backend: interval-group factors (BlockStore._groups)", "runner.backend.blocks._groups"),
-    ("backend: block store rest (summaries, open blocks)", "runner.backend.blocks"),
     ("backend: graph rest (times, anchors, pending)", "runner.backend.graph"),
+    ("backend: block store rest (summaries, open blocks)", "runner.backend.blocks"),
     ("backend: incremental solver", "runner.backend.incremental"),
     ("backend: knots (motion, datum, IMU)", "runner.backend.knots"),
     ("backend: plane ties", "runner.backend.ties"),
@@ -49,15 +49,16 @@ HOLDERS: tuple[tuple[str, str], ...] = (
     ("frontend: compacted segment rows (for segments.npz)", "runner.queues._rows"),
     ("frontend: done scans (within the pool's reach)", "runner.queues.done"),
     ("frontend: recent and pending scans", "runner.queues"),
+    # before the components that refer to them
+    ("frontend: knot mirror (trajectory arrays)", "runner.knots"),
     ("frontend: plane map", "runner.pmap"),
     ("frontend: segment pool", "runner.pool"),
-    ("frontend: map builder (ties)", "runner.maps"),
-    ("frontend: edges", "runner.edges"),
-    ("frontend: knot mirror (trajectory arrays)", "runner.knots"),
-    ("frontend: tracker", "runner.tracker"),
+    ("motion model (IMU)", "runner.motion"),
     ("frontend: associator", "runner.associator"),
     ("frontend: transient filter", "runner.transients"),
-    ("motion model (IMU)", "runner.motion"),
+    ("frontend: edges", "runner.edges"),
+    ("frontend: map builder (ties)", "runner.maps"),
+    ("frontend: tracker", "runner.tracker"),
     ("scan preparer", "runner.preparer"),
     ("runner rest (stats, timer)", "runner"),
     ("result (SlamResult: segment rows, poses)", "result"),
@@ -139,6 +140,7 @@ def gtsam_counts(runner: Any) -> dict[str, int]:
         "block_points": int(n_points),
         "knots": len(be.graph.times),
         "planes": len(store.plane_blocks),
+        "marginals_kept": int(getattr(be, "_marginals", None) is not None),  # the whole graph's, C++
     }
 
 
