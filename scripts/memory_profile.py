@@ -63,9 +63,13 @@ HOLDERS: tuple[tuple[str, str], ...] = (
     ("runner rest (stats, timer)", "runner"),
     ("result (SlamResult: segment rows, poses)", "result"),
     ("export: cloud view (for map.rrd)", "cloud"),
+    ("input: bag source (the reader's message index)", "source"),
 )
+# after the holders: what the gc-tracked closure cells hold that no holder reached (the captured
+# arrays of gtsam CustomFactors, whose Python function only gtsam's C++ object refers to)
+CLOSURES = "closure cells not reached above (CustomFactors' captured arrays)"
 # objects of other packages (tqdm, numba dispatchers, logging, ...) are not followed
-_OURS = ("builtins", "numpy", "slam", "segmentation", "common", "collections", "gtsam")
+_OURS = ("builtins", "numpy", "slam", "segmentation", "common", "collections", "gtsam", "rosbags")
 _SKIP = (type, types.ModuleType, types.FunctionType, types.BuiltinFunctionType, types.MethodType, types.CodeType)
 _TOP = 25
 
@@ -104,9 +108,10 @@ def _attr(obj: object, path: str) -> object:
     return obj
 
 
-def holder_sizes(roots: object) -> dict[str, dict[str, int]]:
+def holder_sizes(roots: object, closures: bool = False) -> dict[str, dict[str, int]]:
     """Deep size (bytes) and object count of every holder of :data:`HOLDERS` (paths from
-    ``roots``' attributes; a holder whose path ends in None or a missing attribute is left out)."""
+    ``roots``' attributes; a holder whose path ends in None or a missing attribute is left out);
+    with ``closures`` also :data:`CLOSURES`."""
     seen: set[int] = set()
     out: dict[str, dict[str, int]] = {}
     for name, path in HOLDERS:
@@ -118,6 +123,15 @@ def holder_sizes(roots: object) -> dict[str, dict[str, int]]:
             continue
         b, n = deep_size(root, seen)
         out[name] = {"bytes": b, "objects": n}
+    if closures:
+        b = n = 0
+        for cell in [o for o in gc.get_objects() if isinstance(o, types.CellType)]:
+            try:
+                db, dn = deep_size(cell.cell_contents, seen)
+            except ValueError:  # an empty cell
+                continue
+            b, n = b + db, n + dn
+        out[CLOSURES] = {"bytes": b, "objects": n}
     return out
 
 
@@ -309,6 +323,7 @@ class Profiler:
         self.runner: Any = None
         self.result: Any = None
         self.cloud: Any = None
+        self.source: Any = None
         self._next = every
         self._t0 = time.perf_counter()
         self._mark = time.monotonic()
@@ -335,12 +350,12 @@ class Profiler:
             by_line = {f"{s.traceback[0].filename.split('/site-packages/')[-1].replace(sys.prefix, '')}:"
                        f"{s.traceback[0].lineno}": s.size for s in snap.statistics("lineno")[:_TOP]}
         runner = self.runner
-        roots = types.SimpleNamespace(runner=runner, result=self.result, cloud=self.cloud)
+        roots = types.SimpleNamespace(runner=runner, result=self.result, cloud=self.cloud, source=self.source)
         self.points.append(Point(
             label, data_time, time.perf_counter() - self._t0, rss, peak, pss, pss_all, n_proc,
             stage["rss"], stage["pss_all"], malloc_info(), cur, tpeak, by_line, types_by_count(),
             gtsam_counts(runner) if runner is not None else {},
-            holder_sizes(roots) if with_holders else {}))
+            holder_sizes(roots, closures=True) if with_holders else {}))
         p = self.points[-1]
         self._mark = time.monotonic()
         p.seconds = self._mark - t_start
@@ -422,6 +437,15 @@ class Profiler:
                 return _step
             return make
 
+        def enter(fn: Any) -> Callable[..., Any]:
+            def _enter(source: Any) -> Any:
+                out = fn(source)
+                if prof.source is None:  # run_slam's own (the first opened after the hook)
+                    prof.source = source
+                return out
+            return _enter
+
+        wrap(slam.run.BagSource, "__enter__", enter)
         wrap(SlamRunner, "_process_knot", knot)
         wrap(SlamRunner, "result", result)
         wrap(Backend, "batch_optimize", batch)
@@ -459,8 +483,10 @@ def profile_run(bag: str, out: str, points: int, trace: bool = True) -> dict[str
         summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=False)
     finally:
         undo()
-    prof.runner = prof.result = prof.cloud = None
+    prof.runner = prof.result = prof.cloud = prof.source = None
     prof.take("export (after run_slam)", t1 - t0)
+    gc.collect()  # what only reference cycles kept after run_slam returned
+    prof.take("after run_slam and gc.collect()", t1 - t0)
     if trace:
         tracemalloc.stop()
     series = sampler.series() if sampler is not None else np.zeros((0, 5))
