@@ -432,6 +432,11 @@ class BlockStore:
             graph.add(self.group_factor(int(uniq[u]), bids, kernel))
         return graph
 
+    def drop_group_factors(self) -> None:
+        """Forget the interval factors kept for the next solve (a final batch keeps every
+        interval's: 12 kB each)."""
+        self._groups.clear()
+
     # ----------------------------------------------------------------- summaries
     def hold_before(self, first: int) -> None:
         """Summarise every block of the knots below ``first`` (their poses are held from now on)
