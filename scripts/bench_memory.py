@@ -24,12 +24,16 @@ factors, the variables of the estimate) and the size of each holder (:data:`HOLD
 sizes with shared objects counted once, in that order). The report gives each holder's bytes
 at every point and its growth per data minute (least-squares slope over the walk's points).
 ``tracemalloc`` slows the run about 1.5-2x; the figures are for finding holders, not timing.
+With ``--no-trace`` there is no ``tracemalloc``: the points add the PSS of all the run's processes,
+glibc's malloc figures and each stage's peak RSS and PSS, sampled every 0.25 s by a separate
+process (the final batch's own peak, the covariances', the export's steps'), and the report
+extrapolates every holder and stage to 60 data minutes.
 
 Usage (2 cores: the children run one at a time; use ``nice``):
     nice .venv/bin/python scripts/bench_memory.py [BAG ...] [--baseline REV] [--current REV]
         [--out DIR] [--markdown FILE]
-    nice .venv/bin/python scripts/bench_memory.py --profile [BAG ...] [--points 6] [--json FILE]
-        [--markdown FILE]
+    nice .venv/bin/python scripts/bench_memory.py --profile [BAG ...] [--points 6] [--no-trace]
+        [--json FILE] [--markdown FILE]
 BAG defaults to the 60 s and 120 s office walks in /tmp/bench_slam_cache (``bench_slam.py``
 simulates them); each needs its ``<stem>.gt`` folder beside it.
 """
@@ -184,7 +188,8 @@ def profile(args: argparse.Namespace) -> int:
     tree = export_revision(args.current, Path(tempfile.mkdtemp(prefix="bench_memory_"))) if args.current else REPO
     for bag in args.bags:
         print(f"{bag.name}: profile ...", flush=True)
-        runs.append(_spawn(tree, "profile", str(bag), str(args.out / bag.stem / "profile"), str(args.points)))
+        runs.append(_spawn(tree, "profile", str(bag), str(args.out / bag.stem / "profile"), str(args.points),
+                           "notrace" if args.no_trace else "trace"))
     text = "\n\n".join(report(r) for r in runs) + "\n"
     print(text)
     if args.markdown:
@@ -204,6 +209,8 @@ def main() -> int:
     ap.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")
     ap.add_argument("--profile", action="store_true", help="find the holders of the memory (see above)")
     ap.add_argument("--points", type=int, default=6, help="--profile: points over the walk (default %(default)s)")
+    ap.add_argument("--no-trace", action="store_true",
+                    help="--profile: without tracemalloc (deep sizes, malloc figures and sampled stage peaks only)")
     ap.add_argument("--json", type=Path, default=None, help="--profile: also write the raw points to this file")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -212,7 +219,7 @@ def main() -> int:
         if mode == "profile":
             from memory_profile import profile_run
 
-            row = profile_run(rest[0], rest[1], int(rest[2]))
+            row = profile_run(rest[0], rest[1], int(rest[2]), trace=rest[3] != "notrace")
         else:
             row = _child_run(*rest) if mode == "run" else _child_eval(*rest)
         print(_ROW + json.dumps(row), flush=True)

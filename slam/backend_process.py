@@ -471,6 +471,9 @@ class BackendProcess:
         out: FloatArray = self._sync("plane_covariance", plane_id)
         return out
 
+    def release(self) -> None:
+        self._sync("release")
+
     def residual_statistics(self) -> dict[str, float]:
         out: dict[str, float] = self._sync("residual_statistics")
         return out

@@ -301,6 +301,7 @@ class SlamRunner:
                 cov[pid] = self.backend.plane_covariance(pid)
             except (ValueError, RuntimeError):  # no marginal for this plane (an indeterminate system)
                 continue
+        self.backend.release()  # the marginals and the batch's factors: the export needs the memory
         return SlamResult(
             knot_times=self.backend.knot_times(),
             T_world_body=poses,

@@ -665,3 +665,15 @@ def test_all_whitened_residuals_equal_the_blocks_own(clean_scene: Scene) -> None
     for bid, e in got:
         assert np.array_equal(e, be.block_residuals(bid)[0])
     assert np.abs(np.concatenate([e for _, e in got])).max() > 1.0  # perturbed: residuals far from zero
+
+
+def test_release_lets_go_of_the_solves_caches_and_keeps_the_estimates(clean_scene: Scene) -> None:
+    be = _build(clean_scene, backend_defaults(), seed=4)
+    be.batch_optimize(graduated=False)
+    cov = be.plane_covariance(2)
+    poses = be.poses()
+    assert be.blocks._groups and be._marginals is not None  # what the batch and the marginals keep
+    be.release()
+    assert not be.blocks._groups and be._marginals is None
+    assert np.array_equal(be.poses(), poses)
+    assert np.allclose(be.plane_covariance(2), cov, rtol=1e-9, atol=0.0)  # built again when asked

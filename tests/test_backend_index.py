@@ -124,7 +124,7 @@ def test_a_removed_replaced_or_merged_block_leaves_every_lookup() -> None:
 def test_held_blocks_keep_their_scatters_through_removal_merge_and_release() -> None:
     be = _random_backend(3)
     be.blocks.hold_before(8)
-    held = be.blocks.summarized
+    held = be.blocks.cols.summarized()
     assert held and all(be.blocks.cols.held[b] for b in held)
     total = {j: np.zeros((4, 4)) for j in be.plane_ids()}
     for b, C in held.items():
@@ -134,10 +134,10 @@ def test_held_blocks_keep_their_scatters_through_removal_merge_and_release() -> 
     b0 = next(iter(held))
     j0 = be.block(b0).plane_id
     be.remove_observations(b0)
-    assert b0 not in be.blocks.summarized
+    assert b0 not in be.blocks.cols.summarized()
     np.testing.assert_allclose(be.blocks.summary[j0], total[j0] - held[b0], atol=1e-9)
     be.blocks.drop_summaries()
-    assert be.blocks.summarized == {} and be.blocks.cols.n_slots == 0 and not be.blocks.cols.held.any()
+    assert be.blocks.cols.summarized() == {} and be.blocks.cols.n_slots == 0 and not be.blocks.cols.held.any()
 
 
 def test_isam2_keeps_block_indices_in_the_columns_and_follows_removals() -> None:

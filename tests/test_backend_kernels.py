@@ -85,7 +85,7 @@ def test_summaries_of_many_blocks_are_the_single_ones(seed: int) -> None:
             if b.blocks.cols.has(fid) and not b.blocks.cols.held[fid]:
                 b.blocks._summarize(fid)
     assert np.array_equal(a.blocks.cols.held, b.blocks.cols.held)
-    sa, sb = a.blocks.summarized, b.blocks.summarized
+    sa, sb = a.blocks.cols.summarized(), b.blocks.cols.summarized()
     assert sa.keys() == sb.keys() and all(np.array_equal(sa[k], sb[k]) for k in sa)
     assert a.blocks.summary.keys() == b.blocks.summary.keys()
     for j in a.blocks.summary:

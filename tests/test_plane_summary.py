@@ -139,7 +139,7 @@ def test_summaries_follow_merges_and_removals() -> None:
     ids = be.plane_ids()
     j = ids[0]
     M = be.blocks.summary[j].copy()
-    old = [b for b in be.blocks_of_plane(j) if b in be.blocks.summarized]
+    old = [b for b in be.blocks_of_plane(j) if b in be.blocks.cols.summarized()]
     be.remove_observations(old[0])
     assert not np.allclose(be.blocks.summary[j], M)
     # a duplicate plane of j, made of one late block, merged into j: the summaries add up
@@ -152,7 +152,7 @@ def test_summaries_follow_merges_and_removals() -> None:
     np.testing.assert_allclose(be.blocks.summary[j], before, rtol=1e-12, atol=1e-9)
     assert 77 not in be.blocks.summary
     be.batch_optimize(1)
-    assert not be.blocks.summary and not be.blocks.summarized  # the held poses moved: summaries dropped
+    assert not be.blocks.summary and not be.blocks.cols.summarized()  # the held poses moved: summaries dropped
 
 
 def test_coalesced_blocks_cost_what_the_separate_blocks_cost() -> None:

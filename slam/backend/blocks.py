@@ -196,6 +196,10 @@ class BlockColumns:
             return np.array(self.scatters[k])
         return self.disk.read("scatters", np.array([-2 - k], dtype=np.int64))[0]
 
+    def summarized(self) -> dict[int, FloatArray]:
+        """Held (summarised) block id -> its scatter about its plane's anchor (copies, to inspect)."""
+        return {int(b): self.scatter_of(int(b)) for b in np.flatnonzero(self.held)}
+
     def release(self) -> None:
         """No block is held any more (spilled rows stay where they are)."""
         self.held[:] = False
@@ -327,12 +331,6 @@ class BlockStore:
 
     def _alive(self, ids: IntArray) -> NDArray[np.bool_]:
         return self.cols.live[ids]
-
-    @property
-    def summarized(self) -> dict[int, FloatArray]:
-        """Held (summarised) block id -> its scatter about its plane's anchor (copies, to inspect)."""
-        cols = self.cols
-        return {int(b): cols.scatter_of(int(b)) for b in np.flatnonzero(cols.held)}
 
     @property
     def n_points(self) -> int:
@@ -606,6 +604,12 @@ class BlockStore:
             bids = two_ids[order[bounds[u]:bounds[u + 1]]].tolist()
             graph.add(self.group_factor(int(uniq[u]), bids, kernel))
         return graph
+
+    def drop_group_factors(self) -> None:
+        """Forget the interval factors and blocks' factors kept for the next solve (a final
+        batch keeps every interval's: 12 kB each)."""
+        self._groups.clear()
+        self._factors.clear()
 
     # ----------------------------------------------------------------- summaries
     def hold_before(self, first: int) -> None:

@@ -274,6 +274,14 @@ class Backend:
             self._marginals = (self.graph.version, gtsam.Marginals(graph, self.graph.used_values(graph)))
         return np.asarray(self._marginals[1].marginalCovariance(key))
 
+    def release(self) -> None:
+        """Let go of what the solves keep for their next call (the whole graph's marginals, the
+        interval factors the final batch built); the estimates stay, and anything let go is
+        built again if asked for. Meant for the end of a run, before the export."""
+        self._marginals = None
+        self._section_covariances = None
+        self.blocks.drop_group_factors()
+
     # ----------------------------------------------------------------- statistics
     def residual_statistics(self) -> dict[str, float]:
         """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5);
