@@ -17,6 +17,17 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
+
+
+def _style(ax: Any, ylabel: str, fontsize: int, legend_loc: str) -> None:
+    """Axes against walk length (0-65 data minutes), from zero up, with a grid and a legend."""
+    ax.set_xlabel("walk length (data minutes, office world)")
+    ax.set_ylabel(ylabel)
+    ax.set_xlim(0, 65)
+    ax.set_ylim(0, None)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=fontsize, loc=legend_loc)
 
 
 def main() -> int:
@@ -41,12 +52,7 @@ def main() -> int:
             ax_t.plot(m, [r["cpu_per_data_s"] for r in mine], "o-", label=f"CPU s / data s: {label}")
             if all("wall_per_data_s" in r for r in mine):
                 ax_t.plot(m, [r["wall_per_data_s"] for r in mine], "s:", label=f"wall s / data s: {label}")
-        ax_t.set_xlabel("walk length (data minutes, office world)")
-        ax_t.set_ylabel("seconds per data second")
-        ax_t.set_xlim(0, 65)
-        ax_t.set_ylim(0, None)
-        ax_t.grid(alpha=0.3)
-        ax_t.legend(fontsize=7, loc="lower right")
+        _style(ax_t, "seconds per data second", 7, "lower right")
     else:
         fig, ax = plt.subplots(figsize=(7, 4.2))
     for label in dict.fromkeys(r["label"] for r in rows):
@@ -59,12 +65,7 @@ def main() -> int:
     ax.axhline(4.0, color="grey", ls="--", lw=0.8)
     ax.plot([60], [4.0], "kx")
     ax.annotate("goal: < 4 GB at 60 min", (60, 4.0), textcoords="offset points", xytext=(-120, 6), fontsize=8)
-    ax.set_xlabel("walk length (data minutes, office world)")
-    ax.set_ylabel("peak memory (GB)")
-    ax.set_xlim(0, 65)
-    ax.set_ylim(0, None)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
+    _style(ax, "peak memory (GB)", 8, "upper left")
     fig.tight_layout()
     fig.savefig(args.out, dpi=120)
     return 0

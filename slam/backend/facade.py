@@ -55,7 +55,7 @@ class Backend:
         self.ties = PlaneTies(self.graph, self.blocks, config.horizontal_sigma, config.vertical_sigma)
         self.batch = BatchSolver(self.graph, self.blocks, config)
         self.incremental: IncrementalSolver = make_incremental(config, self.graph, self.blocks, self.batch)
-        self.sections = SectionedBatch(self.graph, self.blocks, self.batch, config)
+        self.sections = SectionedBatch(self.graph, self.blocks, config)
         self._marginals: tuple[int, gtsam.Marginals] | None = None  # (graph version, marginals)
         self._section_covariances: tuple[int, dict[int, FloatArray]] | None = None  # (graph version, by plane)
 

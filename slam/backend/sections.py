@@ -40,7 +40,6 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.backend.batch import BatchSolver
 from slam.backend.blocks import BlockStore
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
@@ -78,10 +77,9 @@ class SectionedBatch:
     """The final batch (and the plane covariances) of a walk longer than one section; see the
     module doc."""
 
-    def __init__(self, graph: FactorGraph, blocks: BlockStore, batch: BatchSolver, config: BackendConfig) -> None:
+    def __init__(self, graph: FactorGraph, blocks: BlockStore, config: BackendConfig) -> None:
         self.graph = graph
         self.blocks = blocks
-        self.batch = batch
         self.config = config
         self.sections_solved = 0  # section eliminations so far (for the tests and the statistics)
 
