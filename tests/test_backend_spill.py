@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from backend_defaults import backend_defaults
+from block_helpers import same_block
 from box_scene import Scene, make_scene
 
 from slam.backend import Backend
@@ -26,11 +27,6 @@ def _blocks(n: int, seed: int = 5) -> dict[int, ObservationBlock]:
                                           rng.uniform(0, 1, m) if two else None, rng.uniform(0.01, 0.02, m))
     return out
 
-
-def _same(a: ObservationBlock, b: ObservationBlock) -> bool:
-    return (a.knot == b.knot and a.plane_id == b.plane_id and np.array_equal(a.points, b.points)
-            and np.array_equal(a.sigmas, b.sigmas)
-            and (a.alphas is None if b.alphas is None else np.array_equal(a.alphas, b.alphas)))
 
 
 def test_spill_tables_read_back_what_was_written_and_remove_their_folder() -> None:
@@ -66,7 +62,7 @@ def test_spilled_blocks_read_back_through_every_reader() -> None:
     cols.spill()
     assert cols.spilled[ids[:40]].all() and not cols.spilled[ids[40:]].any() and cols.held_rows == 0
     assert cols.rows == sum(blocks[b].points.shape[0] for b in ids[40:])  # memory keeps the rest only
-    assert all(_same(cols.block(b), blocks[b]) for b in ids)
+    assert all(same_block(cols.block(b), blocks[b]) for b in ids)
     assert all(np.array_equal(cols.scatter_of(b), scatters[b]) for b in ids[:40])
     order = np.array(ids[::-1][::3] + ids[5:9], dtype=np.int64)  # mixed, any order
     pts, al, sg, starts = cols.gather(order)
@@ -85,10 +81,10 @@ def test_spilled_blocks_read_back_through_every_reader() -> None:
     assert np.array_equal(cols.scatter_of(ids[0]), C)
     assert all(np.array_equal(cols.scatter_of(b), scatters[b]) for b in ids[2:50])
     assert not cols.has(ids[1]) and cols.count == len(ids) - 1
-    assert all(_same(cols.block(b), blocks[b]) for b in ids if b != ids[1])
+    assert all(same_block(cols.block(b), blocks[b]) for b in ids if b != ids[1])
     cols.release()
     assert not cols.held.any() and cols.disk.rows("scatters") == 0
-    assert all(_same(cols.block(b), blocks[b]) for b in ids if b != ids[1])
+    assert all(same_block(cols.block(b), blocks[b]) for b in ids if b != ids[1])
     folder = cols.disk.folder
     assert folder is not None and folder.exists()
     cols.close()

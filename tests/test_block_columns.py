@@ -4,6 +4,7 @@ their data through growth and the rewrite of removed blocks' rows."""
 from __future__ import annotations
 
 import numpy as np
+from block_helpers import same_block
 
 from slam.backend.blocks import BlockColumns, ObservationBlock
 
@@ -18,11 +19,6 @@ def _blocks(n: int, rows: int, seed: int = 3) -> dict[int, ObservationBlock]:
     return out
 
 
-def _same(a: ObservationBlock, b: ObservationBlock) -> bool:
-    return (a.knot == b.knot and a.plane_id == b.plane_id and np.array_equal(a.points, b.points)
-            and np.array_equal(a.sigmas, b.sigmas)
-            and (a.alphas is None if b.alphas is None else np.array_equal(a.alphas, b.alphas)))
-
 
 def test_blocks_survive_growth_and_compaction() -> None:
     blocks = _blocks(100, 1000)
@@ -36,7 +32,7 @@ def test_blocks_survive_growth_and_compaction() -> None:
     # the rows were rewritten when the garbage passed 65,536 rows (the 66th removal); 4 removals since
     assert cols.garbage == 4000 and cols.rows == 1000 * len(live) + cols.garbage
     assert cols.ids().tolist() == live and cols.count == len(live) and cols.n_points == 1000 * len(live)
-    assert all(_same(cols.block(bid), blocks[bid]) for bid in live)
+    assert all(same_block(cols.block(bid), blocks[bid]) for bid in live)
     assert not any(cols.has(bid) for bid in gone) and not cols.has(0) and not cols.has(10**6)
     pts, _, sg, starts = cols.gather(np.array(live[::-1]))
     assert np.array_equal(pts, np.concatenate([blocks[b].points for b in live[::-1]]))
@@ -50,4 +46,4 @@ def test_block_records_are_copies() -> None:
     cols.put(1, blk)
     got = cols.block(1)
     got.points[:] = 0.0
-    assert _same(cols.block(1), blk)
+    assert same_block(cols.block(1), blk)
