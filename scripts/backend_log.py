@@ -40,9 +40,9 @@ def _public_methods(cls: type) -> list[str]:
 
 
 def record(bag: Path, log: Path, out: Path) -> dict[str, Any]:
-    """Run SLAM (default config, rig ``itc_backpack``) on ``bag`` into ``out`` and write the
-    back-end call log to ``log``; returns the run's summary."""
-    import slam.pipeline
+    """Run SLAM (default config with the back end in this process, rig ``itc_backpack``) on ``bag``
+    into ``out`` and write the back-end call log to ``log``; returns the run's summary."""
+    import slam.backend_process
     from common.rig import resolve_rig
     from slam.backend import Backend
     from slam.config import SlamConfig
@@ -69,12 +69,13 @@ def record(bag: Path, log: Path, out: Path) -> dict[str, Any]:
 
     for name in _public_methods(Backend):
         setattr(RecordingBackend, name, wrap(name))
-    saved = slam.pipeline.Backend
-    slam.pipeline.Backend = RecordingBackend  # type: ignore[misc]
+    saved = slam.backend_process.Backend
+    slam.backend_process.Backend = RecordingBackend  # type: ignore[misc]
+    config = SlamConfig.model_validate({"backend": {"pipelined": False}})  # every call in this process, in order
     try:
-        summary = run_slam(bag, resolve_rig("itc_backpack"), SlamConfig(), out, progress=False)
+        summary = run_slam(bag, resolve_rig("itc_backpack"), config, out, progress=False)
     finally:
-        slam.pipeline.Backend = saved  # type: ignore[misc]
+        slam.backend_process.Backend = saved  # type: ignore[misc]
     with open(log, "wb") as f:
         pickle.dump({"config": configs[0], "calls": calls, "data_duration": summary["data_duration"]}, f)
     return summary

@@ -330,10 +330,13 @@ class BackEndConfig(StrictModel):
     batch_iterations: int = Field(10, ge=1)
     batch_section_seconds: float = Field(
         900.0, gt=0, description="s: a longer walk's final batch is solved in time-ordered sections of at most this "
-        "length, the observations outside a section summarised per plane, so that its memory is one section's "
-        "(slam/backend/sections.py); a shorter walk is solved whole")
-    batch_sweeps: int = Field(2, ge=1, description="sweeps over the sections of a sectioned final batch (each "
-                              "after the first the other way, the cuts shifted by half a section)")
+        "length, each section's own variables eliminated in turn onto the planes and the cut knots (the same steps "
+        "as a whole-graph batch), so that its memory is one section's (slam/backend/sections.py); a shorter walk is "
+        "solved whole")
+    batch_cache_mb: float = Field(
+        512.0, ge=0, description="MB: a sectioned final batch keeps the sections' factors built for its first "
+        "iteration, up to about this much, for the iterations that follow (the rest are built again from the "
+        "observations each time: slower, no memory)")
     final_trim_sigmas: float = Field(
         3.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
         "sigmas and final_trim_distance, then solve again (0: off)")

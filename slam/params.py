@@ -311,7 +311,7 @@ def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
         isam2_iterations=be.isam2_iterations,
         isam2_fallback_iterations=be.isam2_fallback_iterations,
         batch_section_knots=max(1, round(be.batch_section_seconds * cfg.trajectory.knot_rate)),
-        batch_sweeps=be.batch_sweeps,
+        batch_cache_bytes=round(be.batch_cache_mb * 1e6),
     )
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
+import psutil
 import pytest
 
 
@@ -83,10 +84,14 @@ def test_sampler_samples_this_process_without_itself(tmp_path: Path) -> None:
         while s.series().shape[0] < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
         series = s.series()
+        # children an earlier test of this worker left (multiprocessing's resource tracker, say)
+        others = [p for p in psutil.Process().children(recursive=True) if p.pid != s.pid]
     finally:
         s.stop()
     assert series.shape[0] >= 3
     assert np.all(series[:, 1] == np.maximum(series[:, 1], 1e6))  # an RSS of at least 1 MB
     assert np.all(np.diff(series[:, 0]) > 0)
-    # this process has no other children here: the sampler leaves itself out
-    assert np.all(series[:, 4] == 1) and np.all(series[:, 3] == series[:, 2])
+    # the sampler leaves itself out: this process and the others
+    assert series[-1, 4] == 1 + len(others)
+    if not others:
+        assert np.all(series[:, 4] == 1) and np.all(series[:, 3] == series[:, 2])

@@ -564,16 +564,8 @@ class BlockStore:
             factor = self.factor(key[0]) if keep else self.block_factor(self.cols.block(key[0]))
         else:
             ids = np.array(key, dtype=np.int64)
-            cols = self.cols
-            assert bool(cols.two[ids].all())
-            bplane = cols.plane[ids]
-            plane_ids = sorted(set(bplane.tolist()))
-            slot = {j: i for i, j in enumerate(plane_ids)}
-            pts, al, sg, starts = cols.gather(ids)
-            index = np.repeat(np.array([slot[j] for j in bplane.tolist()], dtype=np.int64), np.diff(starts))
-            factor = point_planes_factor(
-                X(knot), X(knot + 1), [P(j) for j in plane_ids], index, pts, al, sg, kernel or self.kernel,
-                np.array([self.graph.anchors[j] for j in plane_ids]), self.planes)
+            pts, al, sg, starts = self.cols.gather(ids)
+            factor = interval_factor(self, knot, ids, pts, al, sg, starts, kernel)
         if kernel is None and keep:
             self._groups[knot] = (key, factor)
         return factor
@@ -704,6 +696,41 @@ class BlockStore:
         key = (blk.knot, j, blk.alphas is not None)
         if self._open.get(key) == bid:
             del self._open[key]
+
+
+def interval_factors(store: BlockStore, groups: dict[int, list[int]],
+                     kernel: RobustKernel) -> list[gtsam.NonlinearFactor]:
+    """One factor per interval ``knot -> bids`` (as :meth:`BlockStore.group_factor` with
+    ``kernel``, not kept), the rows of all of them gathered at once: one read of the spill files
+    for a section of the final batch instead of one per interval."""
+    keys = [(knot, np.array(sorted(bids), dtype=np.int64)) for knot, bids in groups.items()]
+    if not keys:
+        return []
+    all_ids = np.concatenate([ids for _, ids in keys])
+    pts, al, sg, starts = store.cols.gather(all_ids)
+    out = []
+    i = 0
+    for knot, ids in keys:
+        n = ids.shape[0]
+        lo, hi = int(starts[i]), int(starts[i + n])
+        out.append(interval_factor(store, knot, ids, pts[lo:hi], al[lo:hi], sg[lo:hi], starts[i:i + n + 1] - lo, kernel))
+        i += n
+    return out
+
+
+def interval_factor(store: BlockStore, knot: int, ids: NDArray[np.int64], pts: FloatArray, al: FloatArray,
+                    sg: FloatArray, starts: NDArray[np.int64], kernel: RobustKernel | None) -> gtsam.NonlinearFactor:
+    """The factor of two-pose blocks ``ids`` of interval ``knot`` from their gathered rows
+    (``starts``: each block's first row)."""
+    cols = store.cols
+    assert bool(cols.two[ids].all())
+    bplane = cols.plane[ids]
+    plane_ids = sorted(set(bplane.tolist()))
+    slot = {j: i for i, j in enumerate(plane_ids)}
+    index = np.repeat(np.array([slot[j] for j in bplane.tolist()], dtype=np.int64), np.diff(starts))
+    return point_planes_factor(
+        X(knot), X(knot + 1), [P(j) for j in plane_ids], index, pts, al, sg, kernel or store.kernel,
+        np.array([store.graph.anchors[j] for j in plane_ids]), store.planes)
 
 
 def block_keys(blk: ObservationBlock) -> tuple[int, ...]:

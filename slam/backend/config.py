@@ -48,7 +48,8 @@ class BackendConfig:
     isam2_fallback_iterations: batch iterations taken when an iSAM2 step fails even after a rebuild.
     batch_section_knots: a walk of more knots has its final batch (and plane covariances) solved in
         time-ordered sections of at most this many knots (:mod:`slam.backend.sections`).
-    batch_sweeps: sweeps over the sections of a sectioned final batch.
+    batch_cache_bytes: how much of the sections' factors a sectioned final batch keeps from one
+        iteration to the next (estimated from their points); the rest are built again each time.
     """
 
     kernel: RobustKernel
@@ -74,7 +75,7 @@ class BackendConfig:
     isam2_iterations: int
     isam2_fallback_iterations: int
     batch_section_knots: int
-    batch_sweeps: int
+    batch_cache_bytes: int
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
@@ -91,9 +92,11 @@ class BackendConfig:
         if any(not (s >= 1.0) for s in self.robust_schedule):
             raise ValueError(f"robust_schedule: multipliers must be >= 1, got {self.robust_schedule}")
         for name in ("relinearize_skip", "lm_max_iterations", "window_iterations", "isam2_iterations",
-                     "isam2_fallback_iterations", "batch_section_knots", "batch_sweeps"):
+                     "isam2_fallback_iterations", "batch_section_knots"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if self.batch_cache_bytes < 0:
+            raise ValueError(f"batch_cache_bytes: must be >= 0, got {self.batch_cache_bytes}")
         if self.window_knots < 0:
             raise ValueError(f"window_knots: must be >= 0, got {self.window_knots}")
 

@@ -38,15 +38,19 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+import scipy.linalg
 from numpy.typing import NDArray
 
-from slam.backend.blocks import BlockStore
+from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
 from slam.backend.graph import FactorGraph, copy_value, top_knot
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
 
 FloatArray = NDArray[np.float64]
+# a cached interval factor's points (body point, fraction, sigma, plane index, their copies in the
+# factor's arrays) and the factor's own objects, estimated
+_BYTES_PER_POINT, _BYTES_PER_FACTOR = 48, 2048
 _REACH = 2  # a factor spans at most this many knots below its highest (the constant-velocity prior: 3 knots)
 
 
@@ -71,6 +75,7 @@ class Reduced:
 
     graph: gtsam.GaussianFactorGraph
     error: float
+    nets: list[gtsam.GaussianBayesNet] | None = None  # each section's interior eliminated, if kept
 
 
 class SectionedBatch:
@@ -82,6 +87,12 @@ class SectionedBatch:
         self.blocks = blocks
         self.config = config
         self.sections_solved = 0  # section eliminations so far (for the tests and the statistics)
+        self.sections_built = 0  # sections' factors built (the rest came from the cache)
+        # the sections' factors kept through one solve (same kernel, same observations), the
+        # bytes they are estimated to hold
+        self._cache: dict[tuple[int, int, str, float], gtsam.NonlinearFactorGraph] = {}
+        self._cache_bytes = 0
+        self._caching = False  # only within optimize(): the observations change between solves
 
     def needed(self) -> bool:
         """Whether the walk is longer than one section."""
@@ -92,7 +103,27 @@ class SectionedBatch:
 
     # ----------------------------------------------------------------- the sections' factors
     def factors(self, a: int, b: int, kernel: RobustKernel) -> gtsam.NonlinearFactorGraph:
-        """The factors of the section of knots ``[a, b)``, built afresh (none is kept)."""
+        """The factors of the section of knots ``[a, b)``: from the cache of this solve, else
+        built from the observations (and cached while ``config.batch_cache_bytes`` allows)."""
+        key = (a, b, kernel.name, float(kernel.threshold))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        graph, n_bytes = self._build(a, b, kernel)
+        if self._caching and self._cache_bytes + n_bytes <= self.config.batch_cache_bytes:
+            self._cache[key] = graph
+            self._cache_bytes += n_bytes
+        return graph
+
+    def clear_cache(self) -> None:
+        """Let go of the cached factors (the observations or the kernel changed, or the solve ended)."""
+        self._cache.clear()
+        self._cache_bytes = 0
+
+    def _build(self, a: int, b: int, kernel: RobustKernel) -> tuple[gtsam.NonlinearFactorGraph, int]:
+        """The factors of the section ``[a, b)`` built afresh, and the bytes they are estimated to
+        hold (their points' rows and each factor's own)."""
+        self.sections_built += 1
         fg, blocks, cols = self.graph, self.blocks, self.blocks.cols
         n = len(fg.times)
         two, bknot = cols.two, cols.knot
@@ -112,9 +143,10 @@ class SectionedBatch:
                 if low < k - _REACH:
                     raise RuntimeError(f"factor {fid} spans knots {low}..{k}: more than the sections allow")
                 graph.add(blocks.factor(fid))
-        for knot, bids in groups.items():
-            graph.add(blocks.group_factor(knot, bids, kernel, keep=False))
-        return graph
+        for factor in interval_factors(blocks, groups, kernel):
+            graph.add(factor)
+        n_points = sum(int(cols.size[np.array(bids, dtype=np.int64)].sum()) for bids in groups.values())
+        return graph, _BYTES_PER_POINT * n_points + _BYTES_PER_FACTOR * graph.size()
 
     def plane_factors(self) -> gtsam.NonlinearFactorGraph:
         """The factors on no knot (planes' priors and ties)."""
@@ -134,14 +166,16 @@ class SectionedBatch:
             table.at(None)
 
     # ----------------------------------------------------------------- one step
-    def reduce(self, values: gtsam.Values, kernel: RobustKernel, damping: float) -> Reduced:
-        """Step 1 and the system of step 2 (module doc) at ``values``; ``damping`` 0: none."""
+    def reduce(self, values: gtsam.Values, kernel: RobustKernel, damping: float, keep: bool = False) -> Reduced:
+        """Step 1 and the system of step 2 (module doc) at ``values``; ``damping`` 0: none. With
+        ``keep``, each section's elimination is kept for :meth:`back_substitute` at this point."""
         sections = self.plan()
         sep = separator_knots(sections)
         dims = {int(k): int(d) for k, d in values.dims().items()}
         out = gtsam.GaussianFactorGraph()
         err = 0.0
         sep_keys: set[int] = set()
+        nets: list[gtsam.GaussianBayesNet] | None = [] if keep else None
         for a, b in sections:
             lin = self._linearize(self.factors(a, b, kernel), values)
             keys = [int(k) for k in lin.keyVector()]
@@ -150,10 +184,12 @@ class SectionedBatch:
             sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
             if damping > 0.0:
                 lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping))
-            _, rest = lin.eliminatePartialSequential(interior)
+            bn, rest = lin.eliminatePartialSequential(interior)
             self.sections_solved += 1
             out.push_back(rest)
-            del lin, rest
+            if nets is not None:
+                nets.append(bn)
+            del lin, rest, bn
         planes = self.plane_factors()
         if planes.size():
             lin = self._linearize(planes, values)
@@ -162,16 +198,27 @@ class SectionedBatch:
             sep_keys.update(int(k) for k in lin.keyVector())
         if damping > 0.0:
             out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping))
-        return Reduced(out, err)
+        return Reduced(out, err, nets)
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
-                        sep_delta: gtsam.VectorValues) -> gtsam.VectorValues:
-        """Step 3 (module doc): the whole step, the interiors solved given the separator's."""
+                        sep_delta: gtsam.VectorValues,
+                        nets: list[gtsam.GaussianBayesNet] | None = None) -> gtsam.VectorValues:
+        """Step 3 (module doc): the whole step, the interiors solved given the separator's; from
+        ``nets`` (:attr:`Reduced.nets` of :meth:`reduce` at ``values`` and ``damping``) if
+        given, else each section linearised and eliminated again."""
         sections = self.plan()
         sep = separator_knots(sections)
         dims = {int(k): int(d) for k, d in values.dims().items()}
         delta = gtsam.VectorValues()
         delta.insert(sep_delta)
+        if nets is not None:
+            for bn in nets:
+                sol = bn.optimize(sep_delta)
+                for i in range(bn.size()):
+                    k = int(bn.at(i).firstFrontalKey())
+                    delta.insert(k, sol.at(k))
+                del sol
+            return self._fill(delta, dims)
         for a, b in sections:
             lin = self._linearize(self.factors(a, b, kernel), values)
             keys = [int(k) for k in lin.keyVector()]
@@ -188,6 +235,10 @@ class SectionedBatch:
             for k in interior:
                 delta.insert(k, sol.at(k))
             del lin, bn, sol
+        return self._fill(delta, dims)
+
+    @staticmethod
+    def _fill(delta: gtsam.VectorValues, dims: dict[int, int]) -> gtsam.VectorValues:
         for k, d in dims.items():  # variables no factor touches stay where they are
             if not delta.exists(k):
                 delta.insert(k, np.zeros(d))
@@ -206,11 +257,16 @@ class SectionedBatch:
         e0 = e1 = float("nan")
         for scale in scales:
             k = kernel if scale == 1.0 else RobustKernel(kernel.name, kernel.threshold * scale)
+            self.clear_cache()
+            self._caching = True
             try:
                 its, first, e1 = self.solve(k, n_max, cfg.lm_relative_tolerance)
             except RuntimeError as err:
                 raise ValueError(f"sectioned batch optimisation failed ({' '.join(str(err).split())[:200]}); "
                                  "is every variable constrained by its factors?") from None
+            finally:
+                self._caching = False
+                self.clear_cache()
             iterations += its
             e0 = first if e0 != e0 else e0
         self.graph.restructure()
@@ -223,7 +279,7 @@ class SectionedBatch:
         iterations and the errors before and after."""
         values = gtsam.Values(self.graph.values)
         damping = DAMPING
-        red: Reduced | None = self.reduce(values, kernel, damping)
+        red: Reduced | None = self.reduce(values, kernel, damping, keep=True)
         assert red is not None
         err0 = err = red.error
         it = 0
@@ -232,8 +288,8 @@ class SectionedBatch:
             while delta is None:
                 try:
                     if red is None:
-                        red = self.reduce(values, kernel, damping)
-                    delta = self.back_substitute(values, kernel, damping, red.graph.optimize())
+                        red = self.reduce(values, kernel, damping, keep=True)
+                    delta = self.back_substitute(values, kernel, damping, red.graph.optimize(), red.nets)
                 except RuntimeError:
                     if damping * 100.0 > MAX_DAMPING:
                         raise
@@ -246,7 +302,7 @@ class SectionedBatch:
                 red_trial: Reduced | None = None
                 if step == 1.0 and it < max_iterations:
                     try:
-                        red_trial = self.reduce(trial, kernel, next_damping)
+                        red_trial = self.reduce(trial, kernel, next_damping, keep=True)
                         new_err = red_trial.error
                     except RuntimeError:
                         new_err = self.total_error(kernel, trial)
@@ -285,16 +341,39 @@ class SectionedBatch:
 
     def plane_covariances(self) -> dict[int, FloatArray]:
         """Marginal covariance (3, 3) of every plane (retract coordinates about its anchor) from
-        the separator's undamped system: the whole graph's marginals. A plane the system leaves
-        indeterminate is left out."""
+        the separator's undamped system: the whole graph's marginals. The separator's information
+        matrix is dense (each section's reduced factor spans all its planes), so it is inverted
+        once, by Cholesky, for all planes; if it is singular, each plane's marginal is asked of
+        gtsam in turn and a plane the system leaves indeterminate is left out."""
         values = self.graph.values
         red = self.reduce(values, self.config.kernel, 0.0)
-        sep = gtsam.Values()
-        for k in red.graph.keyVector():
-            copy_value(sep, values, int(k))
-        marg = gtsam.Marginals(red.graph, sep)
+        keys = sorted(int(k) for k in red.graph.keyVector())
+        dims = {int(k): int(d) for k, d in values.dims().items()}
+        first = np.concatenate(([0], np.cumsum([dims[k] for k in keys])))
+        planes = [(i, k) for i, k in enumerate(keys) if chr(gtsam.Symbol(k).chr()) == "p"]
+        info, _ = red.graph.hessian(gtsam.Ordering(keys))
+        try:
+            factor = scipy.linalg.cho_factor(info, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return self._plane_covariances_one_by_one(red.graph, values)
+        cols = np.concatenate([np.arange(first[i], first[i + 1]) for i, _ in planes]) if planes else np.zeros(0, int)
+        unit = np.zeros((info.shape[0], cols.shape[0]))
+        unit[cols, np.arange(cols.shape[0])] = 1.0
+        inv = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
         out: dict[int, FloatArray] = {}
-        for k in red.graph.keyVector():
+        for n, (_, k) in enumerate(planes):
+            block = inv[3 * n:3 * n + 3, 3 * n:3 * n + 3]
+            out[int(gtsam.Symbol(k).index())] = 0.5 * (block + block.T)
+        return out
+
+    @staticmethod
+    def _plane_covariances_one_by_one(graph: gtsam.GaussianFactorGraph, values: gtsam.Values) -> dict[int, FloatArray]:
+        sep = gtsam.Values()
+        for k in graph.keyVector():
+            copy_value(sep, values, int(k))
+        marg = gtsam.Marginals(graph, sep)
+        out: dict[int, FloatArray] = {}
+        for k in graph.keyVector():
             sym = gtsam.Symbol(int(k))
             if chr(sym.chr()) == "p":
                 try:
