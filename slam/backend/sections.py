@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import math
 import time as _time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import gtsam
@@ -158,10 +160,17 @@ class SectionedBatch:
         return graph
 
     def _linearize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        with self._serving(values):
+            return graph.linearize(values)
+
+    @contextmanager
+    def _serving(self, values: gtsam.Values) -> Iterator[None]:
+        """The plane table serves ``values`` to the interval factors meanwhile (set once for
+        all the sections: it reads every pose)."""
         table = self.blocks.planes
         table.at(values)
         try:
-            return graph.linearize(values)
+            yield
         finally:
             table.at(None)
 
@@ -176,28 +185,29 @@ class SectionedBatch:
         err = 0.0
         sep_keys: set[int] = set()
         nets: list[gtsam.GaussianBayesNet] | None = [] if keep else None
-        for a, b in sections:
-            lin = self._linearize(self.factors(a, b, kernel), values)
-            keys = [int(k) for k in lin.keyVector()]
-            err += lin.error(_zeros(keys, dims))
-            interior = [k for k in keys if _is_interior(k, a, b, sep)]
-            sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
-            if damping > 0.0:
-                lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping))
-            bn, rest = lin.eliminatePartialSequential(interior)
-            self.sections_solved += 1
-            out.push_back(rest)
-            if nets is not None:
-                nets.append(bn)
-            del lin, rest, bn
-        planes = self.plane_factors()
-        if planes.size():
-            lin = self._linearize(planes, values)
-            err += lin.error(_zeros([int(k) for k in lin.keyVector()], dims))
-            out.push_back(lin)
-            sep_keys.update(int(k) for k in lin.keyVector())
+        with self._serving(values):
+            for a, b in sections:
+                lin = self.factors(a, b, kernel).linearize(values)
+                keys = [int(k) for k in lin.keyVector()]
+                err += lin.error(_zeros(keys, dims))
+                interior = [k for k in keys if _is_interior(k, a, b, sep)]
+                sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
+                if damping > 0.0:
+                    lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
+                bn, rest = lin.eliminatePartialSequential(interior)
+                self.sections_solved += 1
+                out.push_back(rest)
+                if nets is not None:
+                    nets.append(bn)
+                del lin, rest, bn
+            planes = self.plane_factors()
+            if planes.size():
+                lin = planes.linearize(values)
+                err += lin.error(_zeros([int(k) for k in lin.keyVector()], dims))
+                out.push_back(lin)
+                sep_keys.update(int(k) for k in lin.keyVector())
         if damping > 0.0:
-            out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping))
+            out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping, cache=False))
         return Reduced(out, err, nets)
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
@@ -328,15 +338,11 @@ class SectionedBatch:
         (None: the current estimate), one section's factors at a time."""
         kernel = self.config.kernel if kernel is None else kernel
         values = self.graph.values if values is None else values
-        table = self.blocks.planes
         total = 0.0
-        for graph in [*(self.factors(a, b, kernel) for a, b in self.plan()), self.plane_factors()]:
-            if graph.size():
-                table.at(values)
-                try:
-                    total += float(graph.error(values))
-                finally:
-                    table.at(None)
+        with self._serving(values):
+            for a, b in self.plan():  # one section's factors at a time
+                total += float(self.factors(a, b, kernel).error(values))
+            total += float(self.plane_factors().error(values))
         return total
 
     def plane_covariances(self) -> dict[int, FloatArray]:

@@ -18,8 +18,11 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from slam.backend.factors import PlaneTable
+
+FloatArray = NDArray[np.float64]
 
 DAMPING = 1e-2  # on the whitened Jacobian: 1e-4 on the Hessian's diagonal
 MAX_DAMPING = 1e2  # the largest damping a singular system is retried with
@@ -45,10 +48,21 @@ def damped_gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return s.values, s.iterations
 
 
-def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float) -> gtsam.GaussianFactorGraph:
+def damping_rows(dims: Sequence[tuple[int, int]], hold: set[int], damping: float,
+                 cache: bool = True) -> gtsam.GaussianFactorGraph:
     """One factor per variable (key, dimension): ``damping * I`` rows (``HOLD`` for the keys in
-    ``hold``) with zero right-hand side."""
+    ``hold``) with zero right-hand side. ``cache``: keep the factors for the next call (the
+    window's variables); off for rows used once (a section of the final batch)."""
     out = gtsam.GaussianFactorGraph()
+    if not cache:
+        parts: dict[tuple[int, float], tuple[FloatArray, FloatArray, gtsam.noiseModel.Diagonal]] = {}
+        for k, d in dims:
+            w = HOLD if k in hold else damping
+            p = parts.get((d, w))
+            if p is None:
+                p = parts[(d, w)] = (w * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d))
+            out.add(gtsam.JacobianFactor(k, p[0], p[1], p[2]))
+        return out
     for k, d in dims:
         w = HOLD if k in hold else damping
         f = _DAMPING_FACTORS.get((k, d, w))
