@@ -11,21 +11,26 @@ none). A section's **interior** is its knots' variables (poses, velocities, bias
 section's factor touches; the **separator** is everything else: every plane and the knots within
 two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of floating-point sums):
 
-1. per section, in turn: build and linearise its factors, add the damping rows of its interior,
-   eliminate the interior (gtsam's partial elimination) and keep only what remains: a dense
-   factor on the section's separator (its planes and its cut knots), a few MB;
+1. per section, in turn: linearise its factors, add the damping rows of its interior, eliminate
+   the interior (gtsam's partial elimination) and keep what remains: a dense factor on the
+   section's separator (its planes and its cut knots), a few MB, and the interior's conditionals
+   (the elimination's Bayes net, about 8 kB per knot on the office walk);
 2. solve the separator: those factors, the planes' own factors (priors, ties) and the separator's
    damping rows, one small sparse system;
-3. per section, in turn: build, linearise and eliminate it again and back-substitute its interior
-   given the separator's step.
+3. per section: back-substitute its interior into its kept conditionals, given the separator's
+   step.
 
 The step is accepted, halved or retried with more damping as in :func:`slam.backend.solver.solve`
-(the error at a point is the sum of the sections' linearisations at zero). Nothing of a section
-is kept once it is passed, so the memory is one section's factors and elimination, the knots'
+(the error at a point is the sum of the sections' linearisations at zero); the trial point's
+step 1 is the next iteration's. A section's factors are built from the observations once per
+solve and kept for its iterations while they fit ``BackendConfig.batch_cache_bytes`` (the rest
+are built again at each pass); its linearisation is let go once it is eliminated. The memory is
+therefore the cached factors, the kept conditionals, one section's linearisation, the knots'
 values and the separator's system. A walk no longer than one section is solved whole, unchanged.
 
 The planes' marginal covariances come from the separator's system without damping: the exact
-marginals of the whole graph (every plane is in the separator).
+marginals of the whole graph (every plane is in the separator), its dense information matrix
+inverted once.
 
 Frames: poses ``T_world_body``, planes in the world frame about their anchors.
 """
