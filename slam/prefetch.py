@@ -83,12 +83,15 @@ def prepared_scans(
     ``BagSource``, prepares them and this iterator hands them on, ``chunk`` scans at a time, at
     most ``max_chunks`` chunks ahead; an error in the reader (an ``InputError`` naming the bag,
     say) is raised here. Closing the iterator early stops the reader. The bag and its topics are
-    checked before this returns."""
+    checked before this returns; then ``source`` lets go of its message index
+    (:meth:`BagSource.release`) while the reader holds its own, so that the walk's memory holds
+    one index, not two (``source`` opens the bag again when next read: the export)."""
     if not (process and can_fork_reader()):
         preparer = ScanPreparer(rig, cfg, imu)
         stream = source.scans(rig=rig, echo=cfg.input.echo)
         return PreparedScans((preparer.prepare(line) for line in stream), stream.index)
     source.scan_plan(rig=rig)  # checks the bag's topics now, in this process
+    source.release()
     index = StreamIndex()
     return PreparedScans(_from_reader(source.path, rig, cfg, imu, chunk, max_chunks, index), index)
 

@@ -185,8 +185,10 @@ def run_slam(
             if report is not None:
                 report(note)
         cfg, noise = estimate_noise(source, rig, cfg)
-        runner = SlamRunner(rig, cfg, imu)
+        # the scans first: a forked reader lets go of this process's bag index before the back
+        # end's process is forked (which would keep a copy of it)
         scans = prepared_scans(source, rig, cfg, imu, process=cfg.parallel.reader)
+        runner = SlamRunner(rig, cfg, imu)
         _estimate(runner, scans, t_range, progress)
         if runner.stats["segments"] == 0:
             raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "

@@ -68,9 +68,14 @@ def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig:
     with BagSource(walk.bag) as source:
         in_process = prepared_scans(source, rig, cfg, imu, process=False)
         here = list(in_process)
+        span = source.time_range()
         reader = prepared_scans(source, rig, cfg, imu, process=True, chunk=7, max_chunks=2)
+        assert source._held is None  # this process let go of its index while the reader reads
         there = list(reader)
-    assert len(here) == len(there) > 100
+        assert source.time_range() == span and source._held is not None  # opened again when read
+        again = list(prepared_scans(source, rig, cfg, imu, process=False))
+    assert len(here) == len(there) == len(again) > 100
+    assert [s.stamp for s in again] == [s.stamp for s in here]
     # the reader process hands back its stream's index: the same as this process's
     assert reader.index == in_process.index and len(reader.index) == len(here)
     assert reader.index.stamps == [s.stamp for s in here] and reader.index.lag_ns is not None
@@ -113,8 +118,9 @@ def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, 
     one = run_slam(walk.bag, rig, _cfg(False, 1), tmp_path / "one", progress=False)
     assert list(opens().values()) == [1]  # one process, one open
     par = run_slam(walk.bag, rig, _cfg(True, 3), tmp_path / "par", progress=False)
-    # this process, the reader and two cloud parts: each opens the bag once
-    assert list(opens().values()) == [1, 1, 1, 1]
+    # the reader and two cloud parts open the bag once each; this process twice: it lets go of
+    # its index while the reader reads and opens the bag again for the export
+    assert list(opens().values()) == [2, 1, 1, 1]
     for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply"):
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "par" / name).read_bytes(), name
     assert one["counts"] == par["counts"]
