@@ -14,8 +14,9 @@ output):
 - ``map.rrd``: the rerun recording; ``summary.json``: config, counts,
   timings, residual statistics, peak memory after the estimation and after the export.
 
-The bag is opened once in this process (``slam.io.source.BagSource``; the reader process and the
-cloud's export processes open their own). The cloud is written as it is placed, never held: the
+The bag is opened in this process (``slam.io.source.BagSource``; the reader process and the
+cloud's export processes open their own); while a forked reader reads it, this process lets go of
+its message index (a few hundred MB an hour) and opens the bag again for the export. The cloud is written as it is placed, never held: the
 export's memory does not grow with the walk's length (``slam.cloud_pass``).
 """
 
