@@ -334,9 +334,10 @@ class BackEndConfig(StrictModel):
         "as a whole-graph batch), so that its memory is one section's (slam/backend/sections.py); a shorter walk is "
         "solved whole")
     batch_cache_mb: float = Field(
-        512.0, ge=0, description="MB: a sectioned final batch keeps the sections' factors built for its first "
-        "iteration, up to about this much, for the iterations that follow (the rest are built again from the "
-        "observations each time: slower, no memory)")
+        1024.0, ge=0, description="MB a sectioned final batch may keep from one pass over the sections to the "
+        "next: first each section's elimination (for the back-substitution; about 8 kB per knot), then the "
+        "sections' factors (about 12 kB per knot); what does not fit is eliminated or built again (slower, no "
+        "memory). The batch's memory stops growing with the walk once this is full")
     final_trim_sigmas: float = Field(
         3.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
         "sigmas and final_trim_distance, then solve again (0: off)")

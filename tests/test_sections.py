@@ -13,7 +13,7 @@ from backend_defaults import backend_defaults
 from box_scene import Scene, make_scene, perturb_pose
 
 from slam.backend import Backend, BackendConfig
-from slam.backend.sections import plan_sections, separator_knots
+from slam.backend.sections import _net_bytes, plan_sections, separator_knots
 from slam.backend.solver import DAMPING, damping_rows
 
 DEG = np.pi / 180.0
@@ -96,6 +96,16 @@ def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
     assert be.sections.sections_solved == solved + len(be.sections.plan())
     for k in values.keys():
         assert np.array_equal(again.at(k), delta.at(k)), gtsam.DefaultKeyFormatter(k)
+    # a memory budget for one section's elimination: the others are eliminated again, same step
+    first = _net_bytes(kept.nets[0])
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_cache_bytes=first))
+    some = tight.sections.reduce(values, be.config.kernel, DAMPING, keep=True)
+    assert some.nets is not None and some.nets[0] is not None and all(n is None for n in some.nets[1:])
+    solved = tight.sections.sections_solved
+    part = tight.sections.back_substitute(values, be.config.kernel, DAMPING, some.graph.optimize(), some.nets)
+    assert tight.sections.sections_solved == solved + len(some.nets) - 1
+    for k in values.keys():
+        assert np.array_equal(part.at(k), delta.at(k)), gtsam.DefaultKeyFormatter(k)
 
 
 def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None:

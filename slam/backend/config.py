@@ -48,8 +48,9 @@ class BackendConfig:
     isam2_fallback_iterations: batch iterations taken when an iSAM2 step fails even after a rebuild.
     batch_section_knots: a walk of more knots has its final batch (and plane covariances) solved in
         time-ordered sections of at most this many knots (:mod:`slam.backend.sections`).
-    batch_cache_bytes: how much of the sections' factors a sectioned final batch keeps from one
-        iteration to the next (estimated from their points); the rest are built again each time.
+    batch_cache_bytes: how much a sectioned final batch keeps from one pass to the next: the
+        sections' eliminations first, then their factors (estimated from their points); what does
+        not fit is eliminated or built again.
     """
 
     kernel: RobustKernel

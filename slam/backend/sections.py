@@ -14,19 +14,21 @@ two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of 
 1. per section, in turn: linearise its factors, add the damping rows of its interior, eliminate
    the interior (gtsam's partial elimination) and keep what remains: a dense factor on the
    section's separator (its planes and its cut knots), a few MB, and the interior's conditionals
-   (the elimination's Bayes net, about 8 kB per knot on the office walk);
+   (the elimination's Bayes net, about 8 kB per knot on the office walk) while the budget allows;
 2. solve the separator: those factors, the planes' own factors (priors, ties) and the separator's
    damping rows, one small sparse system;
-3. per section: back-substitute its interior into its kept conditionals, given the separator's
-   step.
+3. per section: back-substitute its interior into its kept conditionals (or those of a fresh
+   elimination), given the separator's step.
 
 The step is accepted, halved or retried with more damping as in :func:`slam.backend.solver.solve`
 (the error at a point is the sum of the sections' linearisations at zero); the trial point's
-step 1 is the next iteration's. A section's factors are built from the observations once per
-solve and kept for its iterations while they fit ``BackendConfig.batch_cache_bytes`` (the rest
-are built again at each pass); its linearisation is let go once it is eliminated. The memory is
-therefore the cached factors, the kept conditionals, one section's linearisation, the knots'
-values and the separator's system. A walk no longer than one section is solved whole, unchanged.
+step 1 is the next iteration's. ``BackendConfig.batch_cache_bytes`` bounds what is kept between
+passes: the sections' eliminations first (a kept one saves a linearisation and an elimination),
+then the sections' factors, built from the observations once per solve (a kept one saves
+building it at every pass); what does not fit is built or eliminated again when needed. The
+memory is therefore at most that budget, one section's linearisation, the knots' values and the
+separator's system: it stops growing with the walk once the budget is full, at the price of
+more work per pass. A walk no longer than one section is solved whole, unchanged.
 
 The planes' marginal covariances come from the separator's system without damping: the exact
 marginals of the whole graph (every plane is in the separator), its dense information matrix
@@ -82,7 +84,8 @@ class Reduced:
 
     graph: gtsam.GaussianFactorGraph
     error: float
-    nets: list[gtsam.GaussianBayesNet] | None = None  # each section's interior eliminated, if kept
+    # each section's interior eliminated (None: not kept, over the budget); None: none kept
+    nets: list[gtsam.GaussianBayesNet | None] | None = None
 
 
 class SectionedBatch:
@@ -99,6 +102,7 @@ class SectionedBatch:
         # bytes they are estimated to hold
         self._cache: dict[tuple[int, int, str, float], gtsam.NonlinearFactorGraph] = {}
         self._cache_bytes = 0
+        self._nets_bytes = 0  # the eliminations kept by the latest reduce
         self._caching = False  # only within optimize(): the observations change between solves
 
     def needed(self) -> bool:
@@ -117,7 +121,7 @@ class SectionedBatch:
         if hit is not None:
             return hit
         graph, n_bytes = self._build(a, b, kernel)
-        if self._caching and self._cache_bytes + n_bytes <= self.config.batch_cache_bytes:
+        if self._caching and self._cache_bytes + n_bytes + self._nets_bytes <= self.config.batch_cache_bytes:
             self._cache[key] = graph
             self._cache_bytes += n_bytes
         return graph
@@ -189,7 +193,8 @@ class SectionedBatch:
         out = gtsam.GaussianFactorGraph()
         err = 0.0
         sep_keys: set[int] = set()
-        nets: list[gtsam.GaussianBayesNet] | None = [] if keep else None
+        nets: list[gtsam.GaussianBayesNet | None] | None = [] if keep else None
+        self._nets_bytes = 0
         with self._serving(values):
             for a, b in sections:
                 lin = self.factors(a, b, kernel).linearize(values)
@@ -202,8 +207,11 @@ class SectionedBatch:
                 bn, rest = lin.eliminatePartialSequential(interior)
                 self.sections_solved += 1
                 out.push_back(rest)
-                if nets is not None:
-                    nets.append(bn)
+                if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
+                    n_bytes = _net_bytes(bn)
+                    fits = self._nets_bytes + n_bytes <= self.config.batch_cache_bytes
+                    nets.append(bn if fits else None)
+                    self._nets_bytes += n_bytes if fits else 0
                 del lin, rest, bn
             planes = self.plane_factors()
             if planes.size():
@@ -217,39 +225,31 @@ class SectionedBatch:
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
                         sep_delta: gtsam.VectorValues,
-                        nets: list[gtsam.GaussianBayesNet] | None = None) -> gtsam.VectorValues:
-        """Step 3 (module doc): the whole step, the interiors solved given the separator's; from
-        ``nets`` (:attr:`Reduced.nets` of :meth:`reduce` at ``values`` and ``damping``) if
-        given, else each section linearised and eliminated again."""
+                        nets: list[gtsam.GaussianBayesNet | None] | None = None) -> gtsam.VectorValues:
+        """Step 3 (module doc): the whole step, the interiors solved given the separator's; each
+        section from its kept elimination in ``nets`` (:attr:`Reduced.nets` of :meth:`reduce` at
+        ``values`` and ``damping``), else linearised and eliminated again."""
         sections = self.plan()
         sep = separator_knots(sections)
         dims = {int(k): int(d) for k, d in values.dims().items()}
         delta = gtsam.VectorValues()
         delta.insert(sep_delta)
-        if nets is not None:
-            for bn in nets:
+        with self._serving(values):
+            for i, (a, b) in enumerate(sections):
+                bn = nets[i] if nets is not None else None
+                if bn is None:
+                    lin = self.factors(a, b, kernel).linearize(values)
+                    interior = [k for k in (int(k) for k in lin.keyVector()) if _is_interior(k, a, b, sep)]
+                    if damping > 0.0:
+                        lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
+                    bn, _ = lin.eliminatePartialSequential(interior)
+                    self.sections_solved += 1
+                    del lin
                 sol = bn.optimize(sep_delta)
-                for i in range(bn.size()):
-                    k = int(bn.at(i).firstFrontalKey())
+                for j in range(bn.size()):
+                    k = int(bn.at(j).firstFrontalKey())
                     delta.insert(k, sol.at(k))
-                del sol
-            return self._fill(delta, dims)
-        for a, b in sections:
-            lin = self._linearize(self.factors(a, b, kernel), values)
-            keys = [int(k) for k in lin.keyVector()]
-            interior = [k for k in keys if _is_interior(k, a, b, sep)]
-            if damping > 0.0:
-                lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping))
-            bn, _ = lin.eliminatePartialSequential(interior)
-            self.sections_solved += 1
-            given = gtsam.VectorValues()
-            for k in keys:
-                if not _is_interior(k, a, b, sep):
-                    given.insert(k, sep_delta.at(k))
-            sol = bn.optimize(given)
-            for k in interior:
-                delta.insert(k, sol.at(k))
-            del lin, bn, sol
+                del bn, sol
         return self._fill(delta, dims)
 
     @staticmethod
@@ -403,6 +403,11 @@ def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:
     """Whether ``key`` is a knot variable of ``[a, b)`` that no other section touches."""
     k = top_knot((key,))
     return k is not None and a <= k < b and k not in sep
+
+
+def _net_bytes(bn: gtsam.GaussianBayesNet) -> int:
+    """Bytes of a Bayes net's conditionals' matrices ([R S d] of each)."""
+    return 8 * sum(int(c.rows()) * int(c.cols()) for c in (bn.at(i) for i in range(bn.size())))
 
 
 def _zeros(keys: list[int], dims: dict[int, int]) -> gtsam.VectorValues:
