@@ -168,10 +168,6 @@ class SectionedBatch:
                 graph.add(self.blocks.factor(fid))
         return graph
 
-    def _linearize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        with self._serving(values):
-            return graph.linearize(values)
-
     @contextmanager
     def _serving(self, values: gtsam.Values) -> Iterator[None]:
         """The plane table serves ``values`` to the interval factors meanwhile (set once for
@@ -200,12 +196,8 @@ class SectionedBatch:
                 lin = self.factors(a, b, kernel).linearize(values)
                 keys = [int(k) for k in lin.keyVector()]
                 err += lin.error(_zeros(keys, dims))
-                interior = [k for k in keys if _is_interior(k, a, b, sep)]
+                bn, rest = self._eliminate(lin, keys, (a, b), sep, dims, damping)
                 sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
-                if damping > 0.0:
-                    lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
-                bn, rest = lin.eliminatePartialSequential(interior)
-                self.sections_solved += 1
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     n_bytes = _net_bytes(bn)
@@ -239,11 +231,7 @@ class SectionedBatch:
                 bn = nets[i] if nets is not None else None
                 if bn is None:
                     lin = self.factors(a, b, kernel).linearize(values)
-                    interior = [k for k in (int(k) for k in lin.keyVector()) if _is_interior(k, a, b, sep)]
-                    if damping > 0.0:
-                        lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
-                    bn, _ = lin.eliminatePartialSequential(interior)
-                    self.sections_solved += 1
+                    bn, _ = self._eliminate(lin, [int(k) for k in lin.keyVector()], (a, b), sep, dims, damping)
                     del lin
                 sol = bn.optimize(sep_delta)
                 for j in range(bn.size()):
@@ -251,6 +239,17 @@ class SectionedBatch:
                     delta.insert(k, sol.at(k))
                 del bn, sol
         return self._fill(delta, dims)
+
+    def _eliminate(self, lin: gtsam.GaussianFactorGraph, keys: list[int], section: tuple[int, int], sep: set[int],
+                   dims: dict[int, int], damping: float) -> tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph]:
+        """A section's linearisation (its ``keys``) with its interior's damping rows added, the
+        interior eliminated: its conditionals and the factor left on the separator."""
+        interior = [k for k in keys if _is_interior(k, *section, sep)]
+        if damping > 0.0:
+            lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
+        self.sections_solved += 1
+        out: tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph] = lin.eliminatePartialSequential(interior)
+        return out
 
     @staticmethod
     def _fill(delta: gtsam.VectorValues, dims: dict[int, int]) -> gtsam.VectorValues:

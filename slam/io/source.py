@@ -228,8 +228,8 @@ class BagSource:
         return self._held
 
     def release(self) -> None:
-        """Let go of the bag's reader and its message index (about 250 MB per hour of a 3-scanner
-        bag) until the bag is next read, when it is opened again: for the time a forked reader
+        """Let go of the bag's reader and its message index (322 MB for the hour-long, 3-scanner
+        office bag) until the bag is next read, when it is opened again: for the time a forked reader
         process reads the bag with its own."""
         if self._held is not None:
             self._held.close()
