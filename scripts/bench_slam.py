@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 STAGES = ("segmentation", "frontend", "tracking", "association", "plane_creation", "backend", "batch", "export")
 GOALS = {  # issue 4, office 10 min walk
     "ate": ("ATE RMSE (start-aligned)", 0.01, "m"),
@@ -75,6 +77,7 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     cpu0 = _cpu_seconds()
     summary = run_slam(bag, resolve_rig("itc_backpack"), cfg, out, progress=True)
     cpu = _cpu_seconds() - cpu0  # the run's reader and export processes have been waited for
+    peak_run = peak_rss_gb() * 1e9  # before the evaluation
     res = evaluate(out, gt)
     peak = peak_rss_gb() * 1e9  # SLAM and evaluation in this one process
     tr = res.trajectory
@@ -85,6 +88,8 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
         "realtime_factor": summary["realtime_factor"],
         "cpu_seconds": cpu,
         "peak_bytes": peak,
+        "peak_run_bytes": peak_run,
+        **pace_figures(summary.get("pace") or []),
         "counts": summary["counts"],
         "path_length": tr.path_length,
         "ate": tr.ate["start_aligned"].rmse,
@@ -152,6 +157,52 @@ def _bag(cache: Path, duration: float, seed: int, world: str = "office", start_r
     return sim.bag, sim.gt
 
 
+def pace_figures(pace: list[list[float]]) -> dict[str, float]:
+    """CPU and wall seconds per data second over the first and the last sixth of the walk's
+    estimation (summary.json ``pace``: rows of data s, wall s, CPU s), to show whether the cost
+    per data second stays constant as the walk grows."""
+    if len(pace) < 12:
+        return {}
+    arr = np.asarray(pace, dtype=np.float64)
+    k = len(arr) // 6
+
+    def rate(a: int, b: int, col: int) -> float:
+        return float((arr[b, col] - arr[a, col]) / (arr[b, 0] - arr[a, 0]))
+
+    n = len(arr) - 1
+    return {"pace_cpu_first": rate(0, k, 2), "pace_cpu_last": rate(n - k, n, 2),
+            "pace_wall_first": rate(0, k, 1), "pace_wall_last": rate(n - k, n, 1)}
+
+
+def plot_pace(pace: list[list[float]], path: Path, title: str) -> None:
+    """CPU and wall seconds per data second in 60 s windows of data over the walk."""
+    if len(pace) < 7:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arr = np.asarray(pace, dtype=np.float64)
+    step = max(1, round(60.0 / max(arr[1, 0] - arr[0, 0], 1e-9)))
+    a, b = arr[:-step:step], arr[step::step]
+    mid = 0.5 * (a[:, 0] + b[:, 0]) / 60.0
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    ax.plot(mid, (b[:, 2] - a[:, 2]) / (b[:, 0] - a[:, 0]), label="CPU s per data s (all processes)")
+    ax.plot(mid, (b[:, 1] - a[:, 1]) / (b[:, 0] - a[:, 0]), label="wall s per data s")
+    ax.set_xlabel("data time (min)")
+    ax.set_ylabel("s per data s (60 s windows)")
+    ax.set_ylim(0, None)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".part.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
 def _fmt(v: Any, scale: float = 1.0, digits: int = 2) -> str:
     if v is None or (isinstance(v, float) and v != v):
         return "-"
@@ -177,6 +228,12 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
         [_fmt(r["cpu_seconds"] / r["data_duration"], 1, 3) if "cpu_seconds" in r else "-" for r in rows])
     add("**peak memory (GB)**: all processes (summed PSS)", [_fmt(r.get("peak_pss_bytes"), 1e-9) for r in rows])
     add("peak memory (GB): the estimator's process (ru_maxrss)", [_fmt(r["peak_bytes"], 1e-9) for r in rows])
+    add("peak memory (GB): the estimator's process before the evaluation (ru_maxrss)",
+        [_fmt(r.get("peak_run_bytes"), 1e-9) for r in rows])
+    add("CPU s per data s while estimating: first / last sixth of the walk",
+        [f"{_fmt(r.get('pace_cpu_first'), 1, 3)} / {_fmt(r.get('pace_cpu_last'), 1, 3)}" for r in rows])
+    add("wall s per data s while estimating: first / last sixth of the walk",
+        [f"{_fmt(r.get('pace_wall_first'), 1, 3)} / {_fmt(r.get('pace_wall_last'), 1, 3)}" for r in rows])
     add("knots / planes / merged", [f"{r['counts']['knots']} / {r['counts']['planes']} / {r['counts']['planes_merged']}" for r in rows])
     add("path length (m)", [_fmt(r["path_length"], 1, 1) for r in rows])
     add("**ATE RMSE start-aligned (mm)**", [_fmt(r["ate"], 1e3) for r in rows])
@@ -374,11 +431,14 @@ def main() -> int:
             continue
         rows.append(json.loads(line[len("BENCH_ROW "):]) | {"peak_pss_bytes": sampler.peak})
         try:
-            timings = json.loads((out / m / "summary.json").read_text()).get("timings", {})
+            summary = json.loads((out / m / "summary.json").read_text())
         except (OSError, ValueError):
-            timings = {}
-        sampler.write(out / m, timings)
-        print(f"  memory over time: {out / m / 'memory_over_time.png'}", flush=True)
+            summary = {}
+        sampler.write(out / m, summary.get("timings", {}))
+        plot_pace(summary.get("pace") or [], out / m / "pace_over_time.png",
+                  f"{args.world} {args.duration:g} s walk, seed {args.seed}, {m}")
+        print(f"  memory over time: {out / m / 'memory_over_time.png'}; pace: {out / m / 'pace_over_time.png'}",
+              flush=True)
         print(f"  done in {time.perf_counter() - t0:.0f} s (incl. evaluation)", flush=True)
     if not rows:
         return 1

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.atomic import OutputFileError, read_json, write_json
+from slam.beam_rows import BeamRows, NpzRows, as_rows
 from slam.export import (
     CloudRecord,
     PlaneRecord,
@@ -318,16 +319,18 @@ def majority(groups: IntArray, values: IntArray, n_groups: int) -> tuple[IntArra
 
 def segment_true_planes(
     segments: SegmentTable,
-    beam_plane_ids: Mapping[str, NDArray[np.integer]],
+    beam_plane_ids: Mapping[str, NDArray[np.integer] | BeamRows],
     beam_stamps: Mapping[str, FloatArray] | None = None,
     chunk_beams: int = 4_000_000,
     stamp_tolerance: float = 1e-4,
 ) -> tuple[IntArray, FloatArray]:
     """True plane of each segment (majority of its beams' ids, -1 if none) and its purity.
 
-    ``beam_plane_ids[name]`` is (n_scans, n_beams) per scanner (-1 = no plane). Purity is the
-    fraction of the segment's beams carrying the winning id. When ``beam_stamps`` is given,
-    each segment's stamp must match its scan's first-beam time.
+    ``beam_plane_ids[name]`` is (n_scans, n_beams) per scanner (-1 = no plane): an array, or
+    ``BeamRows`` read a block of about ``chunk_beams`` beams (whole scans) at a time in
+    increasing scan order (``GroundTruth.beam_rows``: an hour's walk is not held at once).
+    Purity is the fraction of the segment's beams carrying the winning id. When ``beam_stamps``
+    is given, each segment's stamp must match its scan's first-beam time.
     """
     n = len(segments)
     true = np.full(n, -1, dtype=np.int64)
@@ -338,14 +341,16 @@ def segment_true_planes(
             continue
         if name not in beam_plane_ids:
             raise EvaluationError(f"beams.npz: no ground truth for scanner '{name}'")
-        ids = beam_plane_ids[name]
-        scan = segments.scan_index[rows]
+        ids = as_rows(beam_plane_ids[name])
+        n_scans, n_beams = ids.shape
+        rows = rows[np.argsort(segments.scan_index[rows], kind="stable")]
+        scan = segments.scan_index[rows].astype(np.int64)
         first = segments.first_beam[rows].astype(np.int64)
         last = segments.last_beam[rows].astype(np.int64)
-        if scan.min() < 0 or scan.max() >= ids.shape[0] or last.max() >= ids.shape[1]:
+        if scan.min() < 0 or scan.max() >= n_scans or last.max() >= n_beams:
             raise EvaluationError(
                 f"segments.npz: scanner '{name}' scan/beam indices exceed beams.npz "
-                f"({ids.shape[0]} scans x {ids.shape[1]} beams)"
+                f"({n_scans} scans x {n_beams} beams)"
             )
         if beam_stamps is not None and name in beam_stamps:
             bad = np.abs(segments.stamp[rows] - beam_stamps[name][scan]) > stamp_tolerance
@@ -355,17 +360,19 @@ def segment_true_planes(
                     "have stamps that disagree with beams.npz for their scan_index"
                 )
         lengths = last - first + 1
-        # chunks of about chunk_beams beams keep the flat index arrays bounded
-        bounds = np.searchsorted(
-            np.cumsum(lengths), np.arange(1, 1 + lengths.sum() // chunk_beams) * chunk_beams
-        )
-        for part in np.split(np.arange(rows.size), bounds):
+        # blocks of whole scans, about chunk_beams beams each, keep the rows read and the flat
+        # index arrays bounded
+        per_block = max(1, chunk_beams // max(1, n_beams))
+        starts = np.arange(int(scan[0]), int(scan[-1]) + 1, per_block)
+        bounds = np.searchsorted(scan, starts[1:])
+        for lo, part in zip(starts, np.split(np.arange(rows.size), bounds), strict=True):
             if part.size == 0:
                 continue
+            block = ids.rows(int(lo), int(scan[part[-1]]) + 1)
             L = lengths[part]
             local = np.repeat(np.arange(part.size), L)
             offsets = np.arange(L.sum()) - np.repeat(np.cumsum(L) - L, L)
-            vals = ids[np.repeat(scan[part], L), np.repeat(first[part], L) + offsets]
+            vals = block[np.repeat(scan[part] - lo, L), np.repeat(first[part], L) + offsets]
             w, c = majority(local, vals, part.size)
             true[rows[part]] = w
             purity[rows[part]] = c / L
@@ -937,6 +944,41 @@ class GroundTruth:
             raise EvaluationError(f"{path}: not a readable .npz ({' '.join(str(e).split())})") from None
         return ids, stamps
 
+    def beam_rows(self, names: Sequence[str]) -> tuple[dict[str, BeamRows], dict[str, FloatArray]]:
+        """Like ``beams``, but each scanner's plane ids as ``NpzRows`` read from the file a block
+        of scans at a time (the stamps are loaded); close them with ``close_rows``."""
+        path = self.folder / "beams.npz"
+        if not path.is_file():
+            raise EvaluationError(f"{path}: no such file")
+        alias = self._scanner_aliases()
+        ids: dict[str, BeamRows] = {}
+        stamps: dict[str, FloatArray] = {}
+        try:
+            with zipfile.ZipFile(path) as z:
+                members = set(z.namelist())
+            with np.load(path, allow_pickle=False) as npz:
+                for name in names:
+                    key = name if f"{name}_plane_id.npy" in members else alias.get(name, name)
+                    if f"{key}_plane_id.npy" not in members:
+                        raise EvaluationError(f"{path}: no array '{name}_plane_id'")
+                    ids[name] = NpzRows(path, f"{key}_plane_id.npy")
+                    if f"{key}_stamps.npy" in members:
+                        stamps[name] = npz[f"{key}_stamps"].astype(np.float64)
+        except EvaluationError:
+            close_rows(ids)
+            raise
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            close_rows(ids)
+            raise EvaluationError(f"{path}: not a readable .npz ({' '.join(str(e).split())})") from None
+        return ids, stamps
+
+
+def close_rows(rows: Mapping[str, BeamRows]) -> None:
+    """Close the files behind ``GroundTruth.beam_rows``'s readers."""
+    for r in rows.values():
+        if isinstance(r, NpzRows):
+            r.close()
+
 
 def load_ground_truth(gt_dir: str | Path) -> GroundTruth:
     """Read the ground truth's trajectory and planes (mesh and beams are read on demand)."""
@@ -1020,8 +1062,13 @@ def evaluate(
         skipped["association"] = f"{gt.folder / 'beams.npz'} missing"
     else:
         segs = read_segments_npz(run / "segments.npz")
-        ids, stamps = gt.beams(segs.scanner_names)
-        seg_true, purity = segment_true_planes(segs, ids, stamps)
+        ids, stamps = gt.beam_rows(segs.scanner_names)
+        try:
+            seg_true, purity = segment_true_planes(segs, ids, stamps)
+        except ValueError as e:  # a beams.npz member shorter than its header says
+            raise EvaluationError(" ".join(str(e).split())) from None
+        finally:
+            close_rows(ids)
         assoc = association_errors(segs, seg_true, purity, {t.id: t.kind for t in gt.planes},
                                    coplanar_surfaces(gt.planes))
 

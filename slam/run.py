@@ -190,7 +190,8 @@ def run_slam(
         # end's process is forked (which would keep a copy of it)
         scans = prepared_scans(source, rig, cfg, imu, process=cfg.parallel.reader)
         runner = SlamRunner(rig, cfg, imu)
-        _estimate(runner, scans, t_range, progress)
+        pace: list[list[float]] = []
+        _estimate(runner, scans, t_range, progress, pace)
         if runner.stats["segments"] == 0:
             raise input_error(source.path, "no line segment in any scan: no usable returns on the topics "
                               + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
@@ -211,7 +212,7 @@ def run_slam(
             res.timings["export"] = time.perf_counter() - t0
             memory["peak_rss_gb_after_export"] = peak_rss_gb()
             summary = RunSummary.of(bag, rig, cfg, res, cloud.points, memory, time.perf_counter() - t_wall,
-                                    t_range, health, check.notes, noise).to_dict()
+                                    t_range, health, check.notes, noise, pace).to_dict()
             write_summary_json(tmp / "summary.json", summary)
     return summary
 
@@ -233,9 +234,29 @@ def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool,
                   imu_rms_whitened=residuals.get("imu_rms_whitened"), echoes=echoes)
 
 
-def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool) -> None:
-    """Every scan through the runner, with a progress bar over the data's time; then its finish."""
+def cpu_seconds_of_tree() -> float:
+    """User + system CPU seconds of this process and of its live children (the reader and back-end
+    processes), so far."""
+    import psutil
+
+    me = psutil.Process()
+    total = 0.0
+    for p in (me, *me.children(recursive=True)):
+        try:
+            t = p.cpu_times()
+        except psutil.Error:  # a child that ended meanwhile
+            continue
+        total += t.user + t.system
+    return total
+
+
+def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, float], progress: bool,
+              pace: list[list[float]] | None = None, pace_every: float = 10.0) -> None:
+    """Every scan through the runner, with a progress bar over the data's time; then its finish.
+    ``pace`` gets a row (data s since the start, wall s, CPU s of the process tree) every
+    ``pace_every`` s of data (the speed over the walk: summary.json ``pace``)."""
     t_start, t_end = t_range
+    w0, c0, mark = time.perf_counter(), cpu_seconds_of_tree(), t_start
     bar = tqdm(
         total=round(t_end - t_start, 2),
         desc="slam",
@@ -246,6 +267,10 @@ def _estimate(runner: SlamRunner, scans: PreparedScans, t_range: tuple[float, fl
     last = t_start
     for scan in scans:
         runner.add_prepared(scan)
+        if pace is not None and scan.stamp - mark >= pace_every:
+            mark = scan.stamp
+            pace.append([round(mark - t_start, 3), round(time.perf_counter() - w0, 3),
+                         round(cpu_seconds_of_tree() - c0, 3)])
         if scan.stamp - last >= 0.5:
             bar.update(round(scan.stamp - last, 2))
             last = scan.stamp

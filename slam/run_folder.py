@@ -37,6 +37,10 @@ MEMORY_DEFINITION = ("peak resident memory (ru_maxrss, GB) of the process so far
                      "(runner.result) and after the export; it never decreases, so the stage whose "
                      "figure rises is the one that sets the peak")
 
+PACE_DEFINITION = ("rows [data s since the log's start, wall s, CPU s] every 10 s of data while the scans are "
+                   "estimated (the final batch and the export not included): wall and CPU (user + system, of "
+                   "the estimator and its live reader and back-end processes) since the first scan")
+
 TIMINGS_DEFINITION = ("seconds per stage; 'segmentation' and 'frontend' (lifting into the body frame, deskew, the "
                       "scan-only edge tests) are spent in the reader process when parallel.reader is on, overlapped "
                       "with the estimator's stages; 'export' is elapsed time (its cloud pass split across "
@@ -177,11 +181,14 @@ class RunSummary:
     rig_checks: list[str]
     start: dict[str, Any]
     noise: dict[str, Any]
+    pace: list[list[float]]
+    pace_definition: str
 
     @classmethod
     def of(cls, bag: str | Path, rig: Rig, cfg: SlamConfig, res: SlamResult, cloud_points: int,
            memory: dict[str, float], wall: float, time_range: tuple[float, float], health: Health,
-           rig_checks: list[str], noise: dict[str, Any] | None = None) -> RunSummary:
+           rig_checks: list[str], noise: dict[str, Any] | None = None,
+           pace: list[list[float]] | None = None) -> RunSummary:
         """The summary of a run on ``bag`` (log ``time_range``, s) that took ``wall`` s."""
         st = res.stats
         timings = {k: round(v, 3) for k, v in res.timings.items()} | {"wall": round(wall, 3)}
@@ -203,6 +210,8 @@ class RunSummary:
             rig_checks=list(rig_checks),
             start=dict(st["initial_motion"]),
             noise=dict(noise or {}),
+            pace=[list(r) for r in pace or []],
+            pace_definition=PACE_DEFINITION,
         )
 
     def to_dict(self) -> dict[str, Any]:

@@ -480,3 +480,44 @@ def test_plane_extents_plot(tmp_path: Path) -> None:
     assert set(pe.outlines) == {5} and pe.matches[0].extent_error_m == pytest.approx(0.1)
     out = plot_plane_extents(pe, tmp_path / "plane_extents.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_streamed_beam_rows_give_the_in_memory_answer(tmp_path: Path, compressed: bool) -> None:
+    """beams.npz read a block of scans at a time (stored or deflated, blocks smaller than a scan's
+    segments, rows asked for out of order) gives the same true planes as the array in memory."""
+    from slam.beam_rows import NpzRows
+    from slam.evaluate import close_rows, load_ground_truth
+
+    rng = np.random.default_rng(3)
+    n_scans, n_beams = 50, 40
+    ids = {name: rng.integers(-1, 6, size=(n_scans, n_beams)).astype(np.int32) for name in ("top", "left")}
+    stamps = {name: np.arange(n_scans) * 0.025 + k * 0.01 for k, name in enumerate(ids)}
+    path = tmp_path / "beams.npz"
+    save = np.savez_compressed if compressed else np.savez
+    save(path, **{f"{n}_plane_id": a for n, a in ids.items()}, **{f"{n}_stamps": s for n, s in stamps.items()})
+    rows = []
+    for s in range(2):
+        for k in rng.permutation(n_scans)[:30]:
+            cuts = np.sort(rng.choice(np.arange(1, n_beams), size=3, replace=False))
+            for a, b in zip([0, *cuts], [*cuts, n_beams], strict=True):
+                rows.append((s, int(k), int(a), int(b) - 1))
+    r = np.array(rows)
+    names = list(ids)
+    seg = make_segment_table(names, r[:, 0], r[:, 1], np.array([stamps[names[s]][k] for s, k in r[:, :2]]),
+                             r[:, 2], r[:, 3], np.zeros(len(r), dtype=np.int64))
+    want, want_p = segment_true_planes(seg, ids, stamps)
+    (tmp_path / "trajectory.tum").write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n")
+    gt = load_ground_truth(tmp_path)
+    for chunk in (n_beams * 7, 5, 10**7):
+        streamed, st = gt.beam_rows(names)
+        got, got_p = segment_true_planes(seg, streamed, st, chunk_beams=chunk)
+        close_rows(streamed)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(got_p, want_p)
+    with NpzRows(path, "top_plane_id.npy") as reader:
+        np.testing.assert_array_equal(reader.rows(30, 35), ids["top"][30:35])
+        np.testing.assert_array_equal(reader.rows(3, 4), ids["top"][3:4])  # behind: opened again
+        np.testing.assert_array_equal(reader.rows(45, 99), ids["top"][45:])
+    with pytest.raises(KeyError):
+        NpzRows(path, "right_plane_id.npy")
