@@ -92,30 +92,36 @@ class ScanQueues:
 
     def segment_rows(self, resolve: Callable[[int], int]) -> dict[str, NDArray[Any]]:
         """Every scan's segment rows, sorted by scanner, scan and first beam, with plane ids
-        resolved through the merges (``resolve``: id -> current id)."""
+        resolved through the merges (``resolve``: id -> current id); the dtypes of segments.npz
+        (int32 but for the int64 scan index and the float64 stamp)."""
         parts = [*self._rows, _rows_of(self.done + self.pending)]
         scanner, scan_index, stamp, first, last, pid = (np.concatenate(c) for c in zip(*parts, strict=True))
-        resolved = np.array([resolve(int(i)) if i >= 0 else -1 for i in pid], dtype=np.int64)
         order = np.lexsort((first, scan_index, scanner))
+        pid = pid[order]
+        ids, inverse = np.unique(pid, return_inverse=True)  # each plane id resolved once
+        resolved = np.array([resolve(int(i)) if i >= 0 else -1 for i in ids], dtype=np.int32)
         return {
-            "scanner": scanner[order],
-            "scan_index": scan_index[order],
+            "scanner": scanner[order].astype(np.int32),
+            "scan_index": scan_index[order].astype(np.int64),
             "stamp": stamp[order],
             "first_beam": first[order],
             "last_beam": last[order],
-            "plane_id": resolved[order],
+            "plane_id": resolved[inverse.reshape(-1)] if ids.size else pid,
         }
 
 
 def _rows_of(recs: list[PendingScan]) -> SegmentRows:
+    """The compacted rows of ``recs``: scanner int16, scan index, first and last beam and plane id
+    int32, stamp float64 (26 B a segment; an hour's walk has about 2.7 M)."""
     if not recs:
-        z = np.zeros(0, dtype=np.int64)
-        return z, z, np.zeros(0), z, z, z
+        z = np.zeros(0, dtype=np.int32)
+        return z.astype(np.int16), z, np.zeros(0), z, z, z
+    counts = np.array([r.segs.n_segments for r in recs], dtype=np.int64)
     return (
-        np.concatenate([np.full(r.segs.n_segments, r.segs.scanner) for r in recs]),
-        np.concatenate([np.full(r.segs.n_segments, r.segs.scan_index) for r in recs]),
-        np.concatenate([np.full(r.segs.n_segments, r.segs.stamp) for r in recs]),
-        np.concatenate([r.segs.first_beam for r in recs]),
-        np.concatenate([r.segs.last_beam for r in recs]),
-        np.concatenate([r.plane_ids for r in recs]),
+        np.repeat(np.array([r.segs.scanner for r in recs], dtype=np.int16), counts),
+        np.repeat(np.array([r.segs.scan_index for r in recs], dtype=np.int32), counts),
+        np.repeat(np.array([r.segs.stamp for r in recs], dtype=np.float64), counts),
+        np.concatenate([r.segs.first_beam for r in recs]).astype(np.int32),
+        np.concatenate([r.segs.last_beam for r in recs]).astype(np.int32),
+        np.concatenate([r.plane_ids for r in recs]).astype(np.int32),
     )
