@@ -30,7 +30,7 @@ import multiprocessing as mp
 import os
 import queue as queue_mod
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -201,6 +201,8 @@ class BackendProcess:
     many of the newest knots a step's result carries."""
 
     def __init__(self, config: BackendConfig, knots: KnotMirror, recent_knots: int) -> None:
+        # the worker's ids must follow FactorIds' counting: links stay links until fold_links
+        config = replace(config, fold_links_in_window=False)
         self.config = config
         self._knots = knots
         self._recent = recent_knots

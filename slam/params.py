@@ -312,6 +312,7 @@ def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
         isam2_fallback_iterations=be.isam2_fallback_iterations,
         batch_section_knots=max(1, round(be.batch_section_seconds * cfg.trajectory.knot_rate)),
         batch_cache_bytes=round(be.batch_cache_mb * 1e6),
+        fold_links_in_window=be.fold_links == "step" and be.solver == "window",
     )
 
 

@@ -677,3 +677,56 @@ def test_release_lets_go_of_the_solves_caches_and_keeps_the_estimates(clean_scen
     assert not be.blocks._groups and be._marginals is None
     assert np.array_equal(be.poses(), poses)
     assert np.allclose(be.plane_covariance(2), cov, rtol=1e-9, atol=0.0)  # built again when asked
+
+
+def test_a_window_step_folds_the_links_so_a_revisited_wall_stays_one_plane(clean_scene: Scene) -> None:
+    """With ``fold_links_in_window`` a step merges the planes linked since the last step: the
+    copies of a wall become one variable with all their blocks, their ties to the wall's door
+    are one tie, a copy's old id reaches the surviving plane, and the window's graph does not
+    grow with the number of copies; the estimate agrees with carrying the links to the end."""
+    from gtsam.symbol_shorthand import P
+
+    from slam.backend.graph import top_knot
+
+    def build(fold: bool) -> tuple[Backend, int, list[int]]:
+        be = _build(clean_scene, replace(backend_defaults(), fold_links_in_window=fold), seed=8)
+        wall = next(j for j in be.plane_ids() if abs(be.plane(j)[0][2]) < 0.5)
+        n_w, d_w = be.plane(wall)
+        be.add_plane(50, n_w, d_w + 0.02, vertical=True)  # a door set into the wall, tied parallel
+        be.add_parallel(wall, 50, 0.01 * DEG)
+        copies = []
+        for c in range(4):  # the wall found again four times, each copy with the wall's last blocks
+            j = 60 + c
+            be.add_plane(j, n_w, d_w + 0.001 * (c + 1), vertical=True)
+            for bid in be.blocks_of_plane(wall)[-3:]:
+                blk = be.block(bid)
+                be.add_observations(blk.knot, j, blk.points, blk.alphas, blk.sigmas)
+            be.add_parallel(j, 50, 0.01 * DEG)
+            be.link_planes(wall, j, 1e-3, 1e-3)
+            copies.append(j)
+        return be, wall, copies
+
+    be, wall, copies = build(True)
+    n_blocks = len(be.blocks_of_plane(wall)) + sum(len(be.blocks_of_plane(j)) for j in copies)
+    be.step()
+    assert not be.ties.links and set(be.plane_ids()).isdisjoint(copies)
+    assert len(be.blocks_of_plane(wall)) == n_blocks
+    assert all(be.blocks_of_plane(j) == be.blocks_of_plane(wall) for j in copies)  # old ids: the wall
+    np.testing.assert_array_equal(be.plane(copies[0])[0], be.plane(wall)[0])
+    assert [{a, b} for a, b, *_ in be.ties.parallels] == [{wall, 50}]  # one tie, not five
+    assert be.link_planes(wall, copies[1], 1e-3, 1e-3) == -1  # one plane already: nothing to tie
+    with pytest.raises(ValueError, match="itself"):
+        be.link_planes(wall, wall, 1e-3, 1e-3)
+    knotless = sorted(tuple(sorted(r.keys)) for r in be.graph.records.values() if top_knot(r.keys) is None)
+    # the door's and the wall's (from its copies) verticality priors and the one tie: no links
+    assert knotless == sorted([(P(50),), (P(wall),), tuple(sorted((P(wall), P(50))))])
+    be.batch_optimize()
+    ref, wall_r, _ = build(False)
+    ref.step()
+    assert ref.ties.links  # carried to the end
+    ref.fold_links()
+    ref.batch_optimize()
+    n_a, d_a = be.plane(wall)
+    n_b, d_b = ref.plane(wall_r)
+    assert np.degrees(np.arccos(min(1.0, float(n_a @ n_b)))) < 0.01 and abs(d_a - d_b) < 1e-4
+    np.testing.assert_allclose(be.poses()[:, :3, 3], ref.poses()[:, :3, 3], atol=1e-4)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ DEG = np.pi / 180.0
 
 def _pair(config: BackendConfig, dt: float = 1.0 / 40.0) -> tuple[Backend, BackendProcess, KnotMirror]:
     knots = KnotMirror(dt)
+    config = replace(config, fold_links_in_window=False)  # as the proxy's worker runs
     return Backend(config), BackendProcess(config, knots, recent_knots=20), knots
 
 

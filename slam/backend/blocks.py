@@ -328,6 +328,9 @@ class BlockStore:
         self.summary: dict[int, FloatArray] = {}  # plane id -> scatter M of its summarised blocks
         self.summarized_upto = 0  # blocks whose highest knot is below this are summarised
         self.planes = PlaneTable()  # the planes of the point a solve evaluates the interval factors at
+        # plane id -> the plane it was merged into while the walk went on (PlaneTies.fold_links): a
+        # caller that still holds the old id reaches the surviving plane
+        self.folded: dict[int, int] = {}
 
     def _alive(self, ids: IntArray) -> NDArray[np.bool_]:
         return self.cols.live[ids]
@@ -342,8 +345,11 @@ class BlockStore:
         self.by_plane.add_key(plane_id)
 
     def check_plane(self, plane_id: int) -> int:
-        """``plane_id`` as the id of an existing plane."""
+        """``plane_id`` as the id of an existing plane (a plane merged into another by
+        :meth:`PlaneTies.fold_links` answers as the one it was merged into)."""
         j = int(plane_id)
+        while j in self.folded:
+            j = self.folded[j]
         if j not in self.by_plane:
             raise ValueError(f"plane_id: no plane {j}")
         return j

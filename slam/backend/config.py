@@ -51,6 +51,8 @@ class BackendConfig:
     batch_cache_bytes: how much a sectioned final batch keeps from one pass to the next: the
         sections' eliminations first, then their factors (estimated from their points); what does
         not fit is eliminated or built again.
+    fold_links_in_window: :meth:`Backend.step` first merges the planes linked since the last step
+        (:meth:`Backend.fold_links`) instead of carrying the links to the end of the run.
     """
 
     kernel: RobustKernel
@@ -77,6 +79,7 @@ class BackendConfig:
     isam2_fallback_iterations: int
     batch_section_knots: int
     batch_cache_bytes: int
+    fold_links_in_window: bool
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):

@@ -152,8 +152,9 @@ class Backend:
 
     def fold_links(self) -> dict[int, int]:
         """Turn every :meth:`link_planes` tie into a real merge (blocks re-keyed onto the surviving
-        plane, linked variables removed). Returns dropped id -> surviving id. Meant for the end of
-        a run, before the batch."""
+        plane, linked variables removed). Returns dropped id -> surviving id; a dropped id given
+        to any method afterwards means the surviving plane. Made at the end of a run, before the
+        batch, and with ``config.fold_links_in_window`` at every :meth:`step`."""
         return self.ties.fold_links()
 
     def remove_plane(self, plane_id: int) -> None:
@@ -164,7 +165,12 @@ class Backend:
     def step(self) -> StepReport:
         """The configured incremental solver's step (``config.solver``: a fixed-lag window
         solve, or an iSAM2 update with its rebuild and batch fallback) over everything added or
-        removed since the last step; nothing before the second knot."""
+        removed since the last step; nothing before the second knot. With
+        ``config.fold_links_in_window`` the planes linked since the last step are merged first
+        (:meth:`fold_links`): a window then carries one plane per surface, not a link to every
+        earlier copy of a wall walked past again (whose number, and cost, grew with the walk)."""
+        if self.config.fold_links_in_window and self.ties.links:
+            self.ties.fold_links()
         return self.incremental.step()
 
     def batch_optimize(self, max_iterations: int | None = None, graduated: bool = True,

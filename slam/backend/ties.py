@@ -101,9 +101,11 @@ class PlaneTies:
 
     def link(self, keep_id: int, drop_id: int, sigma_angle: float, sigma_offset: float) -> int:
         """See :meth:`Backend.link_planes`."""
+        if int(keep_id) == int(drop_id):
+            raise ValueError(f"link_planes: cannot link plane {int(keep_id)} with itself")
         keep, drop = self.blocks.check_plane(keep_id), self.blocks.check_plane(drop_id)
-        if keep == drop:
-            raise ValueError(f"link_planes: cannot link plane {keep} with itself")
+        if keep == drop:  # merged into one already (fold_links): nothing left to tie
+            return -1
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_angle, sigma_angle, sigma_offset]))
         error = plane_equality(self.graph.anchors[keep], self.graph.anchors[drop])
         fid = self.graph.add_factor(gtsam.CustomFactor(noise, [P(keep), P(drop)], error))
@@ -129,6 +131,7 @@ class PlaneTies:
         for drop, keep in out.items():
             if drop != keep:
                 self.merge(keep, drop)
+                self.blocks.folded[drop] = keep
         self.graph.restructure()
         return out
 
@@ -137,6 +140,9 @@ class PlaneTies:
         a, b = self.blocks.check_plane(host_id), self.blocks.check_plane(plane_id)
         if a == b:
             raise ValueError(f"add_{'perpendicular' if perpendicular else 'parallel'}: cannot tie plane {a} to itself")
+        same = next((t for t in self.parallels if {t[0], t[1]} == {a, b} and t[4] == perpendicular), None)
+        if same is not None:  # the pair is tied so already (its planes were merged into these)
+            return same[2]
         fid = self._tie_factor(a, b, sigma_angle, perpendicular)
         self.parallels.append((a, b, fid, float(sigma_angle), perpendicular))
         return fid
@@ -150,7 +156,9 @@ class PlaneTies:
         return self.graph.add_factor(gtsam.CustomFactor(noise, [P(a), P(b)], error))
 
     def _rekey_parallels(self, drop: int, keep: int | None) -> None:
-        """Move the orientation ties of plane ``drop`` onto ``keep`` (None: remove them)."""
+        """Move the orientation ties of plane ``drop`` onto ``keep`` (None: remove them). A
+        structural tie holds once per pair: one that would join two planes tied so already goes."""
+        pairs = {(frozenset(t[:2]), t[4]) for t in self.parallels if drop not in t[:2]}
         out = []
         for a, b, fid, sigma, perp in self.parallels:
             if drop not in (a, b):
@@ -161,7 +169,8 @@ class PlaneTies:
             if keep is None:
                 continue
             na, nb = (keep if a == drop else a), (keep if b == drop else b)
-            if na != nb:
+            if na != nb and (frozenset((na, nb)), perp) not in pairs:
+                pairs.add((frozenset((na, nb)), perp))
                 out.append((na, nb, self._tie_factor(na, nb, sigma, perp), sigma, perp))
         self.parallels = out
 
