@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import multiprocessing as mp
+from array import array
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,8 +97,8 @@ class CloudPartResult:
     (scan stamps, plane ids, end points in the world frame, (m, 3), two rows per segment)."""
 
     count: int
-    seg_stamp: list[float]
-    seg_pid: list[int]
+    seg_stamp: FloatArray  # (k,)
+    seg_pid: NDArray[np.int32]  # (k,)
     endpoints_world: FloatArray
 
 
@@ -145,8 +146,10 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
     order = np.argsort(key, kind="stable")
     key_sorted = key[order]
     kt = res.knot_times
-    seg_stamp: list[float] = []
-    seg_pid: list[int] = []
+    # typed buffers, not lists: an hour's walk has about 2.7 M associated segments (8 + 4 B each
+    # here, ~60 B as Python floats and ints in a list)
+    seg_stamp = array("d")
+    seg_pid = array("i")
     counters = list(part.first_scan_index)
     batch = _CloudBatch(res, writer)
     n_scans = 0
@@ -189,7 +192,8 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
     if part.hi is not None and n_scans != part.hi - part.lo:
         raise RuntimeError(f"cloud pass: scans {part.lo}:{part.hi} of the stream came back as {n_scans} scans")
     endpoints = np.concatenate(batch.endpoints_world) if batch.endpoints_world else np.zeros((0, 3))
-    return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints)
+    return CloudPartResult(writer.count, np.frombuffer(seg_stamp, dtype=np.float64).copy(),
+                           np.frombuffer(seg_pid, dtype=np.int32).copy(), endpoints)
 
 
 def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any,
@@ -272,8 +276,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
         for path in row_files:
             path.unlink(missing_ok=True)
     lines = SegmentLines(
-        np.asarray([t for part in found for t in part.seg_stamp], dtype=np.float64),
+        np.concatenate([part.seg_stamp for part in found]).astype(np.float64),
         np.concatenate([part.endpoints_world for part in found]).reshape(-1, 2, 3),
-        np.asarray([i for part in found for i in part.seg_pid], dtype=np.int32),
+        np.concatenate([part.seg_pid for part in found]).astype(np.int32),
     )
     return n_points, lines
