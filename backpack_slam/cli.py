@@ -22,6 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse
+import gc
 import importlib
 import signal
 import sys
@@ -80,16 +81,22 @@ class _Redeliver:
     release around a fork), a weakref callback (importlib's module locks) or a ``__del__``, the
     handler's exception is "unraisable": printed as "Exception ignored" with a traceback and then
     lost. ``sys.unraisablehook`` catches exactly those, keeps the print quiet and raises the
-    signal again 5 ms later (a SIGALRM), where the clean-up sees it."""
+    signal again 5 ms later (a SIGALRM), where the clean-up sees it.
+
+    Once an interrupt has arrived, any other unraisable error is its consequence and is kept quiet
+    too: an object the interrupt stopped inside its ``__init__`` (llvmlite's ``OutputString``
+    while numba compiles) fails in its ``__del__`` for want of the attributes it never set."""
 
     pending: int | None = None
 
     @classmethod
-    def hook(cls, previous: Callable[[Any], object]) -> Callable[[Any], object]:
+    def hook(cls, previous: Callable[[Any], object], received: list[int]) -> Callable[[Any], object]:
         def unraisable(info: Any) -> None:
             if isinstance(info.exc_value, (KeyboardInterrupt, Terminated)):
                 cls.pending = signal.SIGTERM if isinstance(info.exc_value, Terminated) else signal.SIGINT
                 signal.setitimer(signal.ITIMER_REAL, 0.005)
+                return
+            if received:
                 return
             previous(info)
         return unraisable
@@ -120,7 +127,7 @@ def signals_as_interrupt() -> Iterator[list[int]]:
 
     previous = {}
     previous_hook = sys.unraisablehook
-    sys.unraisablehook = _Redeliver.hook(previous_hook)
+    sys.unraisablehook = _Redeliver.hook(previous_hook, received)
     try:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
             previous[sig] = signal.signal(sig, handler)
@@ -129,6 +136,8 @@ def signals_as_interrupt() -> Iterator[list[int]]:
     try:
         yield received
     finally:
+        if received:  # what the interrupt left half-built goes while the quiet hook holds
+            gc.collect()
         for sig, old in previous.items():
             signal.signal(sig, old)
         sys.unraisablehook = previous_hook
@@ -145,9 +154,10 @@ def _interrupted(signum: int) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
     debug = os.environ.get("BACKPACK_SLAM_DEBUG", "") not in ("", "0")
-    received: list[int] = []
-    try:
-        with signals_as_interrupt() as received:
+    # the interrupt is handled inside the block: its traceback's frames (and what an interrupted
+    # constructor left half-built in them) are freed while the quiet unraisable hook still holds
+    with signals_as_interrupt() as received:
+        try:
             parser = build_parser()
             args = parser.parse_args(argv)
             run: Any = getattr(args, "_run", None)
@@ -156,19 +166,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{PROG}: error: a command is required (one of: {', '.join(COMMANDS)})", file=sys.stderr)
                 return 2
             return int(run(args))
-    except Terminated:
-        return _interrupted(signal.SIGTERM)
-    except KeyboardInterrupt:
-        return _interrupted(signal.SIGINT)
-    except SystemExit as e:  # --help, --version
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    except Exception as e:
-        if received:
-            return _interrupted(received[-1])
-        if debug or not isinstance(e, ValueError | OSError):
-            raise
-        print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
-        return 2
+        except Terminated:
+            return _interrupted(signal.SIGTERM)
+        except KeyboardInterrupt:
+            return _interrupted(signal.SIGINT)
+        except SystemExit as e:  # --help, --version
+            return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+        except Exception as e:
+            if received:
+                return _interrupted(received[-1])
+            if debug or not isinstance(e, ValueError | OSError):
+                raise
+            print(f"{PROG}: error: {one_line(e)}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

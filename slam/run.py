@@ -22,6 +22,7 @@ export's memory does not grow with the walk's length (``slam.cloud_pass``).
 
 from __future__ import annotations
 
+import gc
 import resource
 import sys
 import time
@@ -197,6 +198,10 @@ def run_slam(
                               + ", ".join(s.topic for s in rig.scanners) + " (every range invalid, or too few per scan)")
         res = runner.result(batch=cfg.backend.final_batch)
         runner.close()
+        # the estimator's graph, blocks and map are not needed by the export (res holds what it
+        # needs): let them go before the cloud pass forks its parts
+        del runner
+        gc.collect()
         health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches],
                             None if share is None else (cfg.input.echo, share))
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}
