@@ -190,6 +190,13 @@ class FrontEndConfig(StrictModel):
         "else it is held back (an unmapped door or board, or a segment straddling its edge). Off by default: it took "
         "the small room's confusions from 6.8 % to 0.16 %, but on the demo a board's plane lost its segments to "
         "its wall (largest position error 1.3 -> 21.9 mm) and on the office walk it removed 14 % of them (issue 26)")
+    choice_lever_model: bool = Field(
+        False, description="the parallel choice judges each segment by what the other segments of its scan say of "
+        "the pose error (leave-one-out: a lone segment no longer sets the offset it is judged by), with the "
+        "rotation's lever modelled across them in the map's association instead of added to every far segment's "
+        "sigma. Off by default (issue 26, session 20): the small room's wall<->door/board confusions 3.38 -> 1.45 %, "
+        "but on the demo a board 18 mm proud, now a plane of its own, was merged into its wall by the drift-grown "
+        "merge tolerance (1,107 board segments on the wall)")
     host_sigma: float = Field(
         0.0004, gt=0, description="m, what a wall's own segment misses of its distance to the wall once the scan's "
         "offset is removed, in the host test (office walk: 99 % of wall segments within 1.6 mm up to 2.5 m)")
@@ -212,6 +219,11 @@ class FrontEndConfig(StrictModel):
     wall_thickness: tuple[float, float] = Field(
         (0.05, 0.3), description="m, the range of wall thicknesses for wall_faces (min, max)")
     wall_faces_sigma_deg: float = Field(0.02, gt=0, description="sigma of the two faces' parallelism tie (deg)")
+    merge_distinct_offset: float = Field(
+        0.008, ge=0, description="m: two parallel planes of one facing whose offsets differ by more than this and "
+        "that took segments of one scan are two surfaces (a board and its wall seen side by side), merged only "
+        "within child_merge_distance however far the walk has gone since (the drift-grown tolerance merged the "
+        "demo's whiteboard, 18 mm proud, into its wall after 38 s); 0 = off")
     merge_distance: float = Field(0.008, gt=0, description="m, offset difference of planes merged (plus drift, see merge_drift_over)")
     merge_coobserved_max: float = Field(
         0.15, gt=0, description="m, largest offset difference of two planes merged once they were seen together "

@@ -119,7 +119,8 @@ def gates(cfg: SlamConfig) -> Gates:
         choice=ChoiceParams(relative_sigma=fe.relative_sigma, gate=fe.relative_gate, ratio=fe.ambiguity_ratio,
                             sigma_pose=fe.choice_sigma_pose, sigma_lever=np.radians(fe.choice_sigma_lever_deg),
                             walls_only=False, veto=False, host_sigma=fe.host_sigma,
-                            host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test)
+                            host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test,
+                            model=fe.choice_lever_model)
         if fe.parallel_choice else None,
     )
 
@@ -212,6 +213,7 @@ def map_params(cfg: SlamConfig) -> MapParams:
         link_sigma=fe.link_sigma,
         child_merge_distance=fe.child_merge_distance if fe.parallel_choice else float("inf"),
         child_adopt_cells=1 if fe.parallel_choice else 1 << 20,
+        distinct_offset=fe.merge_distinct_offset,
     )
 
 

@@ -239,6 +239,45 @@ def test_planes_seen_together_merge_only_within_the_coobserved_limit() -> None:
     assert merge_tolerance(0.008, 0.003, walked, True, 0.001) == 0.008  # never below merge_distance
 
 
+def test_a_board_seen_beside_its_wall_in_one_scan_is_not_merged_into_it() -> None:
+    """The demo's whiteboard (issue 26, session 20): made a plane before its wall had the segments
+    to host it (so untied), 18 mm proud; 37 s later the drift-grown merge tolerance (seen together,
+    up to merge_coobserved_max) passed 18 mm and the board was folded into the wall with its 1,107
+    segments. Once one scan's segments have taken both, they are two surfaces and merge only
+    within child_merge_distance; a duplicate of the wall seen instead of it still merges."""
+    from types import SimpleNamespace
+
+    from slam.frontend.map_builder import MapBuilder
+    from slam.params import map_params
+
+    def scene() -> tuple[MapBuilder, list[tuple[int, int]], int, int]:
+        pmap = PlaneMap(bucket=0.5)
+        n = np.array([0.0, -1.0, 0.0])
+        wall = pmap.add(n, 7.25, 1, 1.0, 0.0)
+        board = pmap.add(n, 7.232, 1, 3.0, 2.0)
+        xs, zs = np.meshgrid(np.linspace(0.0, 8.0, 40), np.linspace(0.2, 2.6, 12))
+        pmap.extend(wall.id, np.column_stack((xs.ravel(), np.full(xs.size, 7.25), zs.ravel())))
+        xb, zb = np.meshgrid(np.linspace(2.5, 4.5, 10), np.linspace(0.9, 2.1, 6))
+        pmap.extend(board.id, np.column_stack((xb.ravel(), np.full(xb.size, 7.232), zb.ravel())))
+        for pl in (wall, board):
+            pl.n_segments = 1000
+            pmap.seen(pl.id, 37.8, 40.0)
+        links: list[tuple[int, int]] = []
+        sink = SimpleNamespace(link_planes=lambda keep, drop, *a: links.append((keep, drop)))
+        builder = MapBuilder(map_params(SlamConfig()), pmap, None, SimpleNamespace(odometer=45.0), sink,  # type: ignore[arg-type]
+                             SimpleNamespace(planes_merged=0))  # type: ignore[arg-type]
+        return builder, links, wall.id, board.id
+
+    builder, links, wall, board = scene()
+    builder.merge(38.0)  # 45 m walked since the board was made: the tolerance passes 18 mm
+    assert links == [(wall, board)] or links == [(board, wall)]
+    builder, links, wall, board = scene()
+    builder._note_distinct({wall, board})  # one scan's segments on both
+    builder.merge(38.0)
+    assert links == []
+    assert not builder.pmap.planes[board].merged_into >= 0
+
+
 def test_the_other_face_of_a_wall_faces_away_and_lies_its_thickness_behind() -> None:
     # the corridor's face of a partition: y = 6.15, seen from the corridor (normal +y)
     wall_n, wall_d = np.array([0.0, 1.0, 0.0]), -6.15

@@ -11,7 +11,7 @@ WALL, BOARD, FLOOR = 0, 1, 2
 NORMALS = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 GAP = 0.02
 # the configuration's host-test defaults (slam.config: host_sigma, host_lever_deg, host_test)
-HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False}
+HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False, "model": False}
 
 
 def _params(sigma_pose: float = 0.004) -> ChoiceParams:
@@ -137,3 +137,44 @@ def test_the_host_test_leaves_the_choice_between_a_wall_and_its_board_alone() ->
     ch = choose(cands, dist, sig, np.full(len(on), 100.0), NORMALS, _office_params(), np.full(len(on), 2.0),
                 np.array([True, False, False]))
     np.testing.assert_array_equal(ch.column, on)
+
+
+def _model_params() -> ChoiceParams:
+    """The office parameters with the leave-one-out model (``frontend.choice_lever_model``)."""
+    p = _office_params()
+    return ChoiceParams(**{**p.__dict__, "model": True})
+
+
+def test_a_lone_segment_does_not_set_the_offset_it_is_judged_by() -> None:
+    """The small room (issue 26, session 20): a wall's segment at 5.7 m, alone in its family in
+    its scan, 10.6 mm off its wall and 9.4 mm off the board in front. Its own distance became the
+    scan's offset, so it looked certain to be the board's; judged by the others (none: the prior)
+    it fits both and is held back."""
+    dist = np.array([[0.0106, -0.0094, 0.0]])
+    cands = [[WALL, BOARD]]
+    sig, rng_ = np.full(1, 0.0008), np.full(1, 5.74)
+    old = choose(cands, dist, sig, np.full(1, 59.0), NORMALS, _office_params(), rng_)
+    assert old.column[0] == BOARD
+    arm = np.array([[2.0, 5.38, 0.0]])
+    for a in (None, arm):
+        assert choose(cands, dist, sig, np.full(1, 59.0), NORMALS, _model_params(), rng_, arm=a).column[0] == HELD
+
+
+def test_a_board_beside_its_placed_wall_is_not_the_wall_at_range() -> None:
+    """A board 19 mm proud at 5.3 m, its plane not made yet, beside three wall segments the scan
+    has placed on the wall. The rotation's lever added to every segment's sigma (0.05 deg: 4.6 mm
+    at 5.3 m) lets the wall take it; modelled across the scan, the rotation moves segments a metre
+    apart by under a millimetre relative to each other, so the board's segment fits no plane and
+    goes to the pool, where it makes the board's plane. The wall's segments stay."""
+    dist = np.array([[-0.0004, 0.0, 0.0], [0.0003, 0.0, 0.0], [-0.0001, 0.0, 0.0], [0.0191, 0.0, 0.0]])
+    cands = [[WALL]] * 4
+    sig = np.full(4, 0.0008)
+    arm = np.array([[1.5, 5.3, 0.0], [2.5, 5.3, 0.0], [-1.5, 5.3, 0.0], [0.5, 5.28, 0.0]])
+    ranges = np.linalg.norm(arm, axis=1)
+    w = np.full(4, 69.0)
+    old = choose(cands, dist, sig, w, NORMALS, _office_params(), ranges)
+    np.testing.assert_array_equal(old.column, [WALL] * 4)
+    ch = choose(cands, dist, sig, w, NORMALS, _model_params(), ranges, arm=arm)
+    np.testing.assert_array_equal(ch.column, [WALL, WALL, WALL, NONE])
+    # without positions the lever stays in each sigma: the wall takes it as before
+    np.testing.assert_array_equal(choose(cands, dist, sig, w, NORMALS, _model_params(), ranges).column, [WALL] * 4)

@@ -119,7 +119,7 @@ def family_labels(normals: FloatArray, used: IntArray, cos_min: float) -> IntArr
 @nb.njit(cache=True)
 def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: FloatArray, weight: FloatArray,
                    tau: FloatArray, tau_host: FloatArray, hosts: BoolArray, has_hosts: bool, sp2: float,
-                   outlier_nats: float) -> tuple[float, int]:
+                   outlier_nats: float) -> tuple[float, int, float]:
     """``parallel_choice._common_offset`` for one family: member ``i`` is segment ``m_seg[i]``
     with its candidates ``m_cols[m_start[i]:m_start[i + 1]]`` of the family."""
     m_n = m_seg.shape[0]
@@ -131,7 +131,7 @@ def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: F
             hyps[q + 1] = dist[m_seg[i], m_cols[q]]
     # sorted; a repeated hypothesis scores the same and is never strictly better, as the set's one
     hyps = np.sort(hyps)
-    best_score, delta, support = -np.inf, 0.0, 0
+    best_score, delta, support, best_h = -np.inf, 0.0, 0, 0.0
     for hi in range(n_h):
         h = hyps[hi]
         w_in, n_in, acc = 0.0, 0, 0.0
@@ -150,34 +150,113 @@ def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: F
                     acc += weight[k] * (h + r)
         score = n_in * outlier_nats - 0.5 * h * h / sp2
         if score > best_score:
-            best_score, support = score, n_in
+            best_score, support, best_h = score, n_in, h
             delta = acc / w_in if w_in > 0 else h
-    return delta, support
+    return delta, support, best_h
+
+
+@nb.njit(cache=True)
+def _offsets_without_each(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: FloatArray, h: float,
+                          s0: FloatArray, tau: FloatArray, tau_host: FloatArray, hosts: BoolArray, has_hosts: bool,
+                          sp2: float, arm: FloatArray, has_arm: bool, normal: FloatArray,
+                          sl2: float, gate: float) -> tuple[FloatArray, FloatArray]:
+    """Per member of a family (normal ``normal``), what the *other* members' inliers of hypothesis
+    ``h`` say of its distance to the planes: the mean and variance of the pose error along the
+    normal at its centroid. The pose error is an offset ``delta`` (prior ``N(0, sp2)``) and, with
+    ``has_arm``, a small rotation ``theta`` (prior ``N(0, sl2)`` about each axis across the normal)
+    that moves a centroid at ``arm`` (centroid minus the scanner's position, world frame) by
+    ``theta . (arm x normal)``: a board 2 cm proud at 5 m next to a wall segment the scan has
+    placed is then 2 cm off by the wall's own evidence, not within the rotation's 5 mm lever.
+    Each inlier (nearest candidate within ``tau``; a host wall's within ``tau_host``) weighs by
+    its precision ``1 / s0^2``; an inlier that the others' prediction does not explain within
+    ``gate`` is dropped and the prediction made again. Leaving the member out matters: a segment alone in its family
+    set the offset to its own distance to the board and so looked certain to be the board's."""
+    m_n = m_seg.shape[0]
+    # axes across the normal: e1 horizontal where the normal is not vertical
+    e1 = np.empty(3)
+    if abs(normal[2]) < 0.9:
+        e1[0], e1[1], e1[2] = -normal[1], normal[0], 0.0
+    else:
+        e1[0], e1[1], e1[2] = 1.0, 0.0, 0.0
+    e1 -= (e1 @ normal) * normal
+    e1 /= math.sqrt(e1 @ e1)
+    e2 = np.cross(normal, e1)
+    rows = np.zeros((m_n, 3))
+    prec = np.zeros(m_n)
+    val = np.zeros(m_n)
+    lam = np.zeros((3, 3))
+    lam[0, 0] = 1.0 / sp2
+    lam[1, 1] = lam[2, 2] = 1.0 / sl2
+    rhs = np.zeros(3)
+    for i in range(m_n):
+        k = m_seg[i]
+        rows[i, 0] = 1.0
+        if has_arm:
+            c = np.cross(arm[k], normal)  # d(distance)/d(theta) = arm x normal
+            rows[i, 1] = c @ e1
+            rows[i, 2] = c @ e2
+        lo, up = m_start[i], m_start[i + 1]
+        best_q, r = lo, dist[k, m_cols[lo]] - h
+        for q in range(lo + 1, up):
+            rq = dist[k, m_cols[q]] - h
+            if abs(rq) < abs(r):
+                best_q, r = q, rq
+        if abs(r) < tau[k] and (not (has_hosts and hosts[m_cols[best_q]]) or abs(r) < tau_host[k]):
+            prec[i] = 1.0 / (s0[k] * s0[k])
+            val[i] = h + r
+            lam += prec[i] * np.outer(rows[i], rows[i])
+            rhs += prec[i] * val[i] * rows[i]
+    mean = np.empty(m_n)
+    var = np.empty(m_n)
+    for sweep in range(2):
+        for i in range(m_n):
+            a = rows[i]
+            lam_i = lam - prec[i] * np.outer(a, a)
+            sol = np.linalg.solve(lam_i, np.stack((rhs - prec[i] * val[i] * a, a), axis=1))
+            mean[i] = a @ sol[:, 0]
+            var[i] = a @ sol[:, 1]
+        if sweep == 1:
+            break
+        # the hypothesis' wide gate let a board's segment beside its wall count as the wall's:
+        # keep only the inliers that the others' prediction also explains, and predict again
+        for i in range(m_n):
+            if prec[i] > 0.0 and abs(val[i] - mean[i]) >= gate * math.sqrt(s0[m_seg[i]] ** 2 + var[i]):
+                a = rows[i]
+                lam -= prec[i] * np.outer(a, a)
+                rhs -= prec[i] * val[i] * a
+                prec[i] = 0.0
+    return mean, var
 
 
 @nb.njit(cache=True)
 def choose_columns(
     start: IntArray, cols: IntArray, keep: BoolArray, dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
-    seg_range: FloatArray, has_range: bool, normals: FloatArray, hosts: BoolArray, has_hosts: bool,
-    rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float, cos_min: float,
-    log_ratio: float, outlier_nats: float, walls_only: bool, two: float,
+    seg_range: FloatArray, has_range: bool, arm: FloatArray, has_arm: bool, normals: FloatArray, hosts: BoolArray,
+    has_hosts: bool, rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float,
+    cos_min: float, log_ratio: float, outlier_nats: float, walls_only: bool, model: bool, two: float,
 ) -> tuple[IntArray, BoolArray]:
     """``parallel_choice.choose`` (which documents it) on candidate lists given as pairs: segment
     ``k``'s candidates are the ``cols[i]``, ``start[k] <= i < start[k + 1]``, where ``keep[i]``.
     ``rel2``, ``host2`` and ``sp2`` are the squares of ``relative_sigma``, ``host_sigma`` and the
     offset prior's sigma, ``log_ratio`` the log of ``ratio``, ``cos_min`` the cosine of
-    ``PARALLEL_DEG``; ``seg_range`` is used with ``has_range``, ``hosts`` with ``has_hosts``.
+    ``PARALLEL_DEG``; ``seg_range`` is used with ``has_range``, ``hosts`` with ``has_hosts``, and
+    ``arm`` (k, 3) (centroid minus scanner, world frame) with ``has_arm``. With ``model`` each
+    segment is judged against what the *other* segments say of the scan's pose error
+    (:func:`_offsets_without_each`; with ``has_arm`` the rotation's lever modelled there instead of
+    added to each segment's sigma); without it, against the scan's common offset from all of them.
     Returns per segment its column (``NONE``, ``HELD``) and whether it may grow the extent."""
     k_n, p_n = start.shape[0] - 1, normals.shape[0]
     column = np.full(k_n, NONE, dtype=np.int64)
     grows = np.zeros(k_n, dtype=np.bool_)
     s_rel = np.empty(k_n)
+    s0 = np.empty(k_n)
     tau = np.empty(k_n)
     tau_host = np.empty(k_n)
     for k in range(k_n):
         lever = (sigma_lever * seg_range[k]) ** 2 if has_range else 0.0
         hlever = (host_lever * seg_range[k]) ** 2 if has_range else 0.0
         s_rel[k] = math.sqrt(sigma_own[k] ** 2 + rel2 + lever)
+        s0[k] = math.sqrt(sigma_own[k] ** 2 + rel2 + (0.0 if has_arm and model else lever))
         tau[k] = gate * s_rel[k]
         tau_host[k] = gate * math.sqrt(sigma_own[k] ** 2 + host2 + hlever)
     seen = np.zeros(p_n, dtype=np.bool_)
@@ -218,15 +297,25 @@ def choose_columns(
                 if column[k] == NONE:
                     column[k], grows[k] = m_cols[m_start[i]], True
             continue
-        delta, support = _common_offset(m_seg[:m_n], m_start[: m_n + 1], m_cols, dist, weight, tau, tau_host, hosts,
-                                        has_hosts, sp2, outlier_nats)
+        delta, support, h = _common_offset(m_seg[:m_n], m_start[: m_n + 1], m_cols, dist, weight, tau, tau_host,
+                                           hosts, has_hosts, sp2, outlier_nats)
+        if model:
+            d_loo, v_loo = _offsets_without_each(m_seg[:m_n], m_start[: m_n + 1], m_cols, dist, h, s0, tau, tau_host,
+                                                 hosts, has_hosts, sp2, arm, has_arm, normals[f],
+                                                 max(sigma_lever, 1e-9) ** 2, gate)
         for i in range(m_n):
             k = m_seg[i]
             lo, c_n = m_start[i], m_start[i + 1] - m_start[i]
+            if model:
+                s_k = math.sqrt(s0[k] * s0[k] + v_loo[i])
+                off_k = d_loo[i]
+            else:
+                s_k, off_k = s_rel[k], delta
+            tau_k = gate * s_k
             o_n = 0
             for q in range(c_n):
-                rho[q] = dist[k, m_cols[lo + q]] - delta
-                if abs(rho[q]) < tau[k]:
+                rho[q] = dist[k, m_cols[lo + q]] - off_k
+                if abs(rho[q]) < tau_k:
                     # stable insertion by increasing |rho|
                     p = o_n
                     while p > 0 and abs(rho[ok[p - 1]]) > abs(rho[q]):
@@ -242,9 +331,9 @@ def choose_columns(
             decided = True
             for p in range(1, o_n):
                 b = ok[p]
-                if abs(rho[b] - rho[a]) < s_rel[k]:
+                if abs(rho[b] - rho[a]) < s_k:
                     continue  # the same surface
-                llr = 0.5 * (math.pow(rho[b], two) - math.pow(rho[a], two)) / math.pow(s_rel[k], two)
+                llr = 0.5 * (math.pow(rho[b], two) - math.pow(rho[a], two)) / math.pow(s_k, two)
                 if llr < log_ratio:
                     decided = False
                     break
@@ -341,23 +430,24 @@ def scan_pairs(
 def decide(
     start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, dist: FloatArray, sig_d2: FloatArray,
     rows: FloatArray, ids: IntArray, same_normal: float, with_choice: bool, veto: bool, sigma_own: FloatArray,
-    weight: FloatArray, seg_range: FloatArray, hosts: BoolArray, has_hosts: bool, rel2: float, host2: float, sp2: float,
-    gate: float, sigma_lever: float, host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float,
-    walls_only: bool, two: float,
+    weight: FloatArray, seg_range: FloatArray, arm: FloatArray, hosts: BoolArray, has_hosts: bool, rel2: float,
+    host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float,
+    walls_only: bool, model: bool, two: float,
 ) -> tuple[IntArray, BoolArray]:
     """The association of one scan's segments from their candidate pairs (:func:`scan_pairs`):
     with the choice (``with_choice``) among the pairs over their extents as the choice takes
     them (``keep``; :func:`choose_columns` with the scalars it documents), its plane ids and
-    grows; as a ``veto``, or without the choice, :func:`nearest_unambiguous` among the pairs over
+    grows (``arm``, each centroid less the scanner's position, for the choice's ``model`` outside
+    the veto); as a ``veto``, or without the choice, :func:`nearest_unambiguous` among the pairs over
     their extents (``near``), kept where the choice agrees. Returns per segment its plane id
     (``NONE``, ``HELD``) and whether it may grow the plane's extent."""
     k_n = start.shape[0] - 1
     normals = np.ascontiguousarray(rows[:, 0:3])
     chosen = np.full(k_n, NONE, dtype=np.int64)
     if with_choice:
-        column, grows = choose_columns(start, cols, keep, dist, sigma_own, weight, seg_range, True, normals, hosts,
-                                       has_hosts, rel2, host2, sp2, gate, sigma_lever, host_lever, cos_min, log_ratio,
-                                       outlier_nats, walls_only, two)
+        column, grows = choose_columns(start, cols, keep, dist, sigma_own, weight, seg_range, True, arm, not veto, normals,
+                                       hosts, has_hosts, rel2, host2, sp2, gate, sigma_lever, host_lever, cos_min, log_ratio,
+                                       outlier_nats, walls_only, model, two)
         for k in range(k_n):
             chosen[k] = ids[column[k]] if column[k] >= 0 else column[k]
             grows[k] = grows[k] and column[k] >= 0

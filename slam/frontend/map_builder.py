@@ -65,6 +65,7 @@ class MapParams:
     link_sigma: float
     child_merge_distance: float  # m, a tied door or board merges with its wall only nearer than this
     child_adopt_cells: int  # cells: a new door or board adopts pooled segments with both ends this near its extent
+    distinct_offset: float  # m: parallel planes one scan's segments took this far apart are two surfaces (0: off)
 
 
 class TieKind(Enum):
@@ -129,6 +130,8 @@ class MapBuilder:
         self._knots = knots
         self._sink = sink
         self._stats = stats
+        # pairs of plane ids that one scan's segments took as two surfaces (``_note_distinct``)
+        self._distinct: set[frozenset[int]] = set()
 
     # ------------------------------------------------------------------ observation
     def observe(self, p: PendingScan, ids: NDArray[np.int64], v_world: FloatArray, e_world: FloatArray,
@@ -146,6 +149,8 @@ class MapBuilder:
         placed, bounds = self._knots.place_segments_flat(segs, np.concatenate((associated, pooled)),
                                                          np.repeat([8, 12], [associated.size, pooled.size]))
         pids = ids[associated].tolist()
+        if self.params.distinct_offset > 0.0:
+            self._note_distinct(set(pids))
         blocks.segments(segs, associated, pids)
         self.pmap.observe_segments(pids, placed, bounds[: associated.size + 1],
                                    np.ones(associated.size, dtype=np.bool_) if grows is None else grows[associated],
@@ -172,6 +177,25 @@ class MapBuilder:
                     origin=T_mid[:3, 3].copy(),
                 )
             )
+
+    def _note_distinct(self, pids: set[int]) -> None:
+        """Record the pairs of ``pids`` (planes one scan's segments were associated with) that face
+        the same way, parallel, with offsets more than ``distinct_offset`` apart: seen side by side
+        from one pose, with the scan's common offset taken out by the association, they are two
+        surfaces (a board and its wall), whatever the drift since either was made; :meth:`merge`
+        then merges them only as a door or board with its wall. (A wall's duplicate made after a
+        loop is seen instead of the old copy, not beside it.)"""
+        if len(pids) < 2:
+            return
+        planes = self.pmap.planes
+        cos_max = np.cos(self.params.merge_angle)
+        ps = sorted(pids)
+        for i, a in enumerate(ps):
+            pa = planes[a]
+            for b in ps[i + 1 :]:
+                pb = planes[b]
+                if float(pa.normal @ pb.normal) >= cos_max and abs(pa.d - pb.d) > self.params.distinct_offset:
+                    self._distinct.add(frozenset((a, b)))
 
     # ------------------------------------------------------------------ creation
     def create_planes(self, now: float, queues: ScanQueues) -> None:
@@ -370,7 +394,9 @@ class MapBuilder:
                     continue
                 # a door or board and its wall (or another child of it): one surface only when nearer
                 # than any door or board
-                if frozenset((a.id, b.id)) in tied and self.pmap.max_distance_over(small.id, big.id) > mp.child_merge_distance:
+                pair = frozenset((a.id, b.id))
+                if (pair in tied or pair in self._distinct) and \
+                        self.pmap.max_distance_over(small.id, big.id) > min(mp.child_merge_distance, tol):
                     continue
                 keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
                 self._sink.link_planes(keep.id, drop.id, mp.link_sigma, mp.link_sigma)

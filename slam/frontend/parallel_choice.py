@@ -62,6 +62,9 @@ class ChoiceParams:
     host_sigma: float
     host_lever: float
     host_test: bool
+    # each segment judged by the other segments of its scan (leave-one-out), the rotation's lever
+    # modelled across them in the map's association (``assoc_kernels._offsets_without_each``)
+    model: bool
 
 
 @dataclass(frozen=True)
@@ -91,7 +94,7 @@ def families(normals: FloatArray, columns: list[int]) -> dict[int, int]:
 
 def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
            normals: FloatArray, params: ChoiceParams, seg_range: FloatArray | None = None,
-           hosts: NDArray[np.bool_] | None = None) -> Choice:
+           hosts: NDArray[np.bool_] | None = None, arm: FloatArray | None = None) -> Choice:
     """The choice for the k segments of one scan: ``candidates[k]`` the columns (planes) passing
     the gates and extents, by increasing Mahalanobis distance; ``dist`` (k, P) the signed
     centroid distances (m), ``sigma_own`` (k,) the centroids' sigmas (m), ``weight`` (k,) the
@@ -99,17 +102,20 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
     (k,) the segments' distances from the scanner (m; a rotation error moves a far segment
     more than the scan's common offset: ``sigma_lever`` times the range). ``hosts`` (P,) marks
     the walls that may carry a door or board not mapped yet: a segment chosen for one of them
-    must also pass the host test (``host_sigma``, ``host_lever``), else it is held back."""
+    must also pass the host test (``host_sigma``, ``host_lever``), else it is held back. ``arm``
+    (k, 3), each centroid less the scanner's position (world frame): the rotation's lever is then
+    modelled across the scan's segments instead of added to each one's sigma."""
     start = np.zeros(len(candidates) + 1, dtype=np.int64)
     start[1:] = np.cumsum([len(c) for c in candidates])
     cols = np.array([j for c in candidates for j in c], dtype=np.int64)
     return choose_pairs(start, cols, np.ones(cols.size, dtype=bool), dist, sigma_own, weight, normals, params,
-                        seg_range, hosts)
+                        seg_range, hosts, arm)
 
 
 def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArray[np.bool_], dist: FloatArray,
                  sigma_own: FloatArray, weight: FloatArray, normals: FloatArray, params: ChoiceParams,
-                 seg_range: FloatArray | None = None, hosts: NDArray[np.bool_] | None = None) -> Choice:
+                 seg_range: FloatArray | None = None, hosts: NDArray[np.bool_] | None = None,
+                 arm: FloatArray | None = None) -> Choice:
     """:func:`choose` with the candidates as pairs: segment ``k``'s are the ``cols[i]`` where
     ``keep[i]``, ``start[k] <= i < start[k + 1]`` (in order). One compiled call
     (``slam.frontend.assoc_kernels.choose_columns``)."""
@@ -118,6 +124,7 @@ def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArra
         start, cols, np.ascontiguousarray(keep, dtype=np.bool_), np.ascontiguousarray(dist, dtype=np.float64),
         np.ascontiguousarray(sigma_own, dtype=np.float64), np.ascontiguousarray(weight, dtype=np.float64),
         np.zeros(k_n) if seg_range is None else np.ascontiguousarray(seg_range, dtype=np.float64), seg_range is not None,
+        np.zeros((k_n, 3)) if arm is None else np.ascontiguousarray(arm, dtype=np.float64).reshape(-1, 3), arm is not None,
         np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3),
         np.zeros(normals.shape[0], dtype=bool) if hosts is None else np.ascontiguousarray(hosts, dtype=np.bool_),
         hosts is not None, *choice_scalars(params),
@@ -125,7 +132,7 @@ def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArra
     return Choice(column, grows)
 
 
-ChoiceScalars = tuple[float, float, float, float, float, float, float, float, float, bool, float]
+ChoiceScalars = tuple[float, float, float, float, float, float, float, float, float, bool, bool, float]
 
 
 @lru_cache(maxsize=16)
@@ -133,10 +140,10 @@ def choice_scalars(params: ChoiceParams | None) -> ChoiceScalars:
     """The numbers of ``params`` as ``assoc_kernels.choose_columns`` takes them after ``hosts``:
     the squares of ``relative_sigma``, ``host_sigma`` and the offset prior's sigma (Python's or
     numpy's scalar ``** 2``: the C library's ``pow``), ``gate``, ``sigma_lever``, ``host_lever``,
-    the cosine of ``PARALLEL_DEG``, the log of ``ratio``, ``OUTLIER_NATS``, ``walls_only`` and
-    the exponent 2 (at run time); zeros without a choice."""
+    the cosine of ``PARALLEL_DEG``, the log of ``ratio``, ``OUTLIER_NATS``, ``walls_only``,
+    ``model`` and the exponent 2 (at run time); zeros without a choice."""
     if params is None:
-        return (0.0,) * 8 + (OUTLIER_NATS, False, 2.0)
+        return (0.0,) * 8 + (OUTLIER_NATS, False, False, 2.0)
     return (params.relative_sigma**2, params.host_sigma**2, max(params.sigma_pose, 1e-6) ** 2, float(params.gate),
             float(params.sigma_lever), float(params.host_lever), float(np.cos(np.radians(PARALLEL_DEG))),
-            float(np.log(params.ratio)), OUTLIER_NATS, bool(params.walls_only), 2.0)
+            float(np.log(params.ratio)), OUTLIER_NATS, bool(params.walls_only), bool(params.model), 2.0)
