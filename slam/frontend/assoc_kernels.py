@@ -117,6 +117,18 @@ def family_labels(normals: FloatArray, used: IntArray, cos_min: float) -> IntArr
 
 
 @nb.njit(cache=True)
+def _nearest(dist: FloatArray, k: int, m_cols: IntArray, lo: int, up: int, h: float) -> tuple[int, float]:
+    """Of segment ``k``'s candidates ``m_cols[lo:up]``, the one nearest to offset ``h`` (the first
+    of equals) and its residual ``dist - h``."""
+    best_q, r = lo, dist[k, m_cols[lo]] - h
+    for q in range(lo + 1, up):
+        rq = dist[k, m_cols[q]] - h
+        if abs(rq) < abs(r):
+            best_q, r = q, rq
+    return best_q, r
+
+
+@nb.njit(cache=True)
 def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: FloatArray, weight: FloatArray,
                    tau: FloatArray, tau_host: FloatArray, hosts: BoolArray, has_hosts: bool, sp2: float,
                    outlier_nats: float) -> tuple[float, int, float]:
@@ -137,12 +149,7 @@ def _common_offset(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, dist: F
         w_in, n_in, acc = 0.0, 0, 0.0
         for i in range(m_n):
             k = m_seg[i]
-            lo, up = m_start[i], m_start[i + 1]
-            best_q, r = lo, dist[k, m_cols[lo]] - h
-            for q in range(lo + 1, up):
-                rq = dist[k, m_cols[q]] - h
-                if abs(rq) < abs(r):
-                    best_q, r = q, rq
+            best_q, r = _nearest(dist, k, m_cols, m_start[i], m_start[i + 1], h)
             if abs(r) < tau[k]:
                 n_in += 1
                 if not (has_hosts and hosts[m_cols[best_q]]) or abs(r) < tau_host[k]:
@@ -195,12 +202,7 @@ def _offsets_without_each(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, 
             c = np.cross(arm[k], normal)  # d(distance)/d(theta) = arm x normal
             rows[i, 1] = c @ e1
             rows[i, 2] = c @ e2
-        lo, up = m_start[i], m_start[i + 1]
-        best_q, r = lo, dist[k, m_cols[lo]] - h
-        for q in range(lo + 1, up):
-            rq = dist[k, m_cols[q]] - h
-            if abs(rq) < abs(r):
-                best_q, r = q, rq
+        best_q, r = _nearest(dist, k, m_cols, m_start[i], m_start[i + 1], h)
         if abs(r) < tau[k] and (not (has_hosts and hosts[m_cols[best_q]]) or abs(r) < tau_host[k]):
             prec[i] = 1.0 / (s0[k] * s0[k])
             val[i] = h + r
