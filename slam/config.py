@@ -197,6 +197,11 @@ class FrontEndConfig(StrictModel):
         "sigma. Off by default (issue 26, session 20): the small room's wall<->door/board confusions 3.38 -> 1.45 %, "
         "but on the demo a board 18 mm proud, now a plane of its own, was merged into its wall by the drift-grown "
         "merge tolerance (1,107 board segments on the wall)")
+    hold_past_child_extent: bool = Field(
+        False, description="with parallel_choice: a segment that runs past a door's or board's extent (the extent "
+        "seen so far) but that the choice puts on the door or board rather than on its wall is held back; off: the "
+        "door or board is no candidate for it and the wall takes it (the small room's door segments seen beyond the "
+        "door's young extent went to the wall)")
     host_sigma: float = Field(
         0.0004, gt=0, description="m, what a wall's own segment misses of its distance to the wall once the scan's "
         "offset is removed, in the host test (office walk: 99 % of wall segments within 1.6 mm up to 2.5 m)")

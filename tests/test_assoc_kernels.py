@@ -430,7 +430,8 @@ def _choice_params(rng: np.random.Generator) -> ChoiceParams:
     return ChoiceParams(relative_sigma=float(rng.uniform(0.0005, 0.003)), gate=4.0, ratio=float(rng.choice([10.0, 100.0])),
                         sigma_pose=float(rng.choice([0.0, 0.004, 0.02])), sigma_lever=float(np.radians(0.01)),
                         walls_only=bool(rng.uniform() < 0.3), veto=False, host_sigma=0.0004,
-                        host_lever=float(np.radians(0.015)), host_test=True, model=False)
+                        host_lever=float(np.radians(0.015)), host_test=True, model=False,
+                        hold_past_child=False)
 
 
 def test_choose_matches_the_reference_on_random_candidates() -> None:

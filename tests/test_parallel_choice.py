@@ -11,7 +11,8 @@ WALL, BOARD, FLOOR = 0, 1, 2
 NORMALS = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 GAP = 0.02
 # the configuration's host-test defaults (slam.config: host_sigma, host_lever_deg, host_test)
-HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False, "model": False}
+HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False, "model": False,
+            "hold_past_child": False}
 
 
 def _params(sigma_pose: float = 0.004) -> ChoiceParams:
@@ -178,3 +179,30 @@ def test_a_board_beside_its_placed_wall_is_not_the_wall_at_range() -> None:
     np.testing.assert_array_equal(ch.column, [WALL, WALL, WALL, NONE])
     # without positions the lever stays in each sigma: the wall takes it as before
     np.testing.assert_array_equal(choose(cands, dist, sig, w, NORMALS, _model_params(), ranges).column, [WALL] * 4)
+
+
+def test_a_door_segment_past_the_doors_extent_is_held_not_given_to_the_wall() -> None:
+    """The small room's door (issue 26, session 20): a door segment 12.5 mm behind the wall and
+    1.5 mm off the door's plane, running past the extent the door's plane has so far. Without the
+    door as a candidate the wall took it (its rotation-widened gate at 3.6 m); as a shadow
+    candidate (``frontend.hold_past_child_extent``) the choice puts it on the door and so holds it
+    back: neither the wall's nor growing the door past what it has seen."""
+    from slam.frontend.parallel_choice import choose_pairs
+
+    door = BOARD  # a column parallel to the wall, 14 mm behind it here
+    dist = np.array([[0.0, -0.014, 0.0], [0.0003, -0.0141, 0.0], [-0.0002, -0.0139, 0.0], [-0.0125, 0.0015, 0.0]])
+    start = np.array([0, 2, 4, 6, 8])
+    cols = np.array([WALL, door] * 4)
+    sig, ranges = np.full(4, 0.0009), np.full(4, 3.6)
+    keep_extent = np.array([True, False] * 4)  # no segment lies within the door's young extent
+    without = choose_pairs(start, cols, keep_extent, dist, sig, np.full(4, 30.0), NORMALS, _office_params(), ranges)
+    np.testing.assert_array_equal(without.column, [WALL, WALL, WALL, WALL])
+    shadow = ~keep_extent
+    held = choose_pairs(start, cols, np.ones(8, dtype=bool), dist, sig, np.full(4, 30.0), NORMALS, _office_params(),
+                        ranges, shadow=shadow)
+    np.testing.assert_array_equal(held.column, [WALL, WALL, WALL, HELD])
+    assert not held.grows[3]
+    # kept as a plain candidate it would be the door's, and grow it
+    kept = choose_pairs(start, cols, np.ones(8, dtype=bool), dist, sig, np.full(4, 30.0), NORMALS, _office_params(),
+                        ranges)
+    assert kept.column[3] == door

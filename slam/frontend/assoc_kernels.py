@@ -232,13 +232,15 @@ def _offsets_without_each(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, 
 
 @nb.njit(cache=True)
 def choose_columns(
-    start: IntArray, cols: IntArray, keep: BoolArray, dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
+    start: IntArray, cols: IntArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
     seg_range: FloatArray, has_range: bool, arm: FloatArray, has_arm: bool, normals: FloatArray, hosts: BoolArray,
     has_hosts: bool, rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float,
     cos_min: float, log_ratio: float, outlier_nats: float, walls_only: bool, model: bool, two: float,
 ) -> tuple[IntArray, BoolArray]:
     """``parallel_choice.choose`` (which documents it) on candidate lists given as pairs: segment
-    ``k``'s candidates are the ``cols[i]``, ``start[k] <= i < start[k + 1]``, where ``keep[i]``.
+    ``k``'s candidates are the ``cols[i]``, ``start[k] <= i < start[k + 1]``, where ``keep[i]``;
+    a candidate chosen where ``shadow[i]`` (a door or board the segment fits, past its extent)
+    holds the segment back instead of giving it to a plane.
     ``rel2``, ``host2`` and ``sp2`` are the squares of ``relative_sigma``, ``host_sigma`` and the
     offset prior's sigma, ``log_ratio`` the log of ``ratio``, ``cos_min`` the cosine of
     ``PARALLEL_DEG``; ``seg_range`` is used with ``has_range``, ``hosts`` with ``has_hosts``, and
@@ -273,6 +275,7 @@ def choose_columns(
     m_seg = np.empty(k_n, dtype=np.int64)
     m_start = np.empty(k_n + 1, dtype=np.int64)
     m_cols = np.empty(n_pairs, dtype=np.int64)
+    m_shadow = np.empty(n_pairs, dtype=np.bool_)
     rho = np.empty(p_n)
     ok = np.empty(p_n, dtype=np.int64)
     for f in used:
@@ -286,6 +289,7 @@ def choose_columns(
             for i in range(start[k], start[k + 1]):
                 if keep[i] and label[cols[i]] == f:
                     m_cols[n] = cols[i]
+                    m_shadow[n] = shadow[i]
                     n += 1
             if n > n0:
                 m_seg[m_n] = k
@@ -341,7 +345,7 @@ def choose_columns(
                     break
             if decided and has_hosts and hosts[m_cols[lo + a]] and abs(rho[a]) >= tau_host[k]:
                 decided = False
-            if not decided:
+            if not decided or m_shadow[lo + a]:
                 column[k] = HELD
                 continue
             column[k] = m_cols[lo + a]
@@ -430,7 +434,7 @@ def scan_pairs(
 
 @nb.njit(cache=True)
 def decide(
-    start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, dist: FloatArray, sig_d2: FloatArray,
+    start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray, sig_d2: FloatArray,
     rows: FloatArray, ids: IntArray, same_normal: float, with_choice: bool, veto: bool, sigma_own: FloatArray,
     weight: FloatArray, seg_range: FloatArray, arm: FloatArray, hosts: BoolArray, has_hosts: bool, rel2: float,
     host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float,
@@ -438,7 +442,7 @@ def decide(
 ) -> tuple[IntArray, BoolArray]:
     """The association of one scan's segments from their candidate pairs (:func:`scan_pairs`):
     with the choice (``with_choice``) among the pairs over their extents as the choice takes
-    them (``keep``; :func:`choose_columns` with the scalars it documents), its plane ids and
+    them (``keep``, ``shadow``; :func:`choose_columns` with the scalars it documents), its plane ids and
     grows (``arm``, each centroid less the scanner's position, for the choice's ``model`` outside
     the veto); as a ``veto``, or without the choice, :func:`nearest_unambiguous` among the pairs over
     their extents (``near``), kept where the choice agrees. Returns per segment its plane id
@@ -447,7 +451,7 @@ def decide(
     normals = np.ascontiguousarray(rows[:, 0:3])
     chosen = np.full(k_n, NONE, dtype=np.int64)
     if with_choice:
-        column, grows = choose_columns(start, cols, keep, dist, sigma_own, weight, seg_range, True, arm, not veto, normals,
+        column, grows = choose_columns(start, cols, keep, shadow, dist, sigma_own, weight, seg_range, True, arm, not veto, normals,
                                        hosts, has_hosts, rel2, host2, sp2, gate, sigma_lever, host_lever, cos_min, log_ratio,
                                        outlier_nats, walls_only, model, two)
         for k in range(k_n):

@@ -186,6 +186,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     pair_dil = pair_dilate.tolist()
     near = np.array([overlaps(i, c, d) for i, c, d in zip(pair_ids, pair_cells, pair_dil, strict=True)], dtype=bool)
     keep = near
+    shadow = np.zeros(near.shape[0], dtype=np.bool_)
     choice = gates.choice
     hosts = _NO_HOSTS
     if choice is not None:
@@ -198,6 +199,11 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
             whole = set(child_rows)
             for i in [i for i, (j, ok) in enumerate(zip(cols.tolist(), near.tolist(), strict=True)) if ok and j in whole]:
                 keep[i] = all(overlaps(pair_ids[i], [c], pair_dil[i]) for c in pair_cells[i])
+            if choice.hold_past_child:
+                # a door's segment running past the door's extent (the extent so far) is still the
+                # door's if it fits it better than its wall: held back, not given to the wall
+                shadow = near & ~keep
+                keep = near
         # the walls that may carry a door or board (not the children themselves, nor floors and
         # ceilings); not in the tracking's veto, whose poses are still the prediction's
         if choice.host_test and not choice.veto:
@@ -208,7 +214,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     # without the choice, the nearest candidate over its extent unless another lies on a different
     # surface (the same surface seen twice, a duplicate awaiting merge, is not ambiguity)
     arm = np.ascontiguousarray(segs.centroid - segs.origin[None, :3])
-    out, grows = ak.decide(start, cols, near, keep, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL, choice is not None,
+    out, grows = ak.decide(start, cols, near, keep, shadow, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL, choice is not None,
                            choice is not None and choice.veto, segs.sigma_centroid, weight, segs.range, arm, hosts,
                            hosts is not _NO_HOSTS, *g[2])
     return Association(out, grows)

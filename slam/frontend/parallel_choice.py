@@ -65,6 +65,9 @@ class ChoiceParams:
     # each segment judged by the other segments of its scan (leave-one-out), the rotation's lever
     # modelled across them in the map's association (``assoc_kernels._offsets_without_each``)
     model: bool
+    # a door's or board's segment past the child's extent that the choice gives to the child is
+    # held back (not given to the wall, its only candidate left otherwise)
+    hold_past_child: bool
 
 
 @dataclass(frozen=True)
@@ -115,13 +118,16 @@ def choose(candidates: list[list[int]], dist: FloatArray, sigma_own: FloatArray,
 def choose_pairs(start: NDArray[np.int64], cols: NDArray[np.int64], keep: NDArray[np.bool_], dist: FloatArray,
                  sigma_own: FloatArray, weight: FloatArray, normals: FloatArray, params: ChoiceParams,
                  seg_range: FloatArray | None = None, hosts: NDArray[np.bool_] | None = None,
-                 arm: FloatArray | None = None) -> Choice:
+                 arm: FloatArray | None = None, shadow: NDArray[np.bool_] | None = None) -> Choice:
     """:func:`choose` with the candidates as pairs: segment ``k``'s are the ``cols[i]`` where
-    ``keep[i]``, ``start[k] <= i < start[k + 1]`` (in order). One compiled call
+    ``keep[i]``, ``start[k] <= i < start[k + 1]`` (in order); a pair chosen where ``shadow[i]``
+    holds its segment back (a door's segment past the door's extent). One compiled call
     (``slam.frontend.assoc_kernels.choose_columns``)."""
     k_n = start.shape[0] - 1
     column, grows = ak.choose_columns(
-        start, cols, np.ascontiguousarray(keep, dtype=np.bool_), np.ascontiguousarray(dist, dtype=np.float64),
+        start, cols, np.ascontiguousarray(keep, dtype=np.bool_),
+        np.zeros(cols.shape[0], dtype=np.bool_) if shadow is None else np.ascontiguousarray(shadow, dtype=np.bool_),
+        np.ascontiguousarray(dist, dtype=np.float64),
         np.ascontiguousarray(sigma_own, dtype=np.float64), np.ascontiguousarray(weight, dtype=np.float64),
         np.zeros(k_n) if seg_range is None else np.ascontiguousarray(seg_range, dtype=np.float64), seg_range is not None,
         np.zeros((k_n, 3)) if arm is None else np.ascontiguousarray(arm, dtype=np.float64).reshape(-1, 3), arm is not None,
