@@ -234,7 +234,7 @@ def initial_motion_params(cfg: SlamConfig) -> InitialMotionParams:
     fe = cfg.frontend
     return InitialMotionParams(window=fe.initial_motion_window, min_speed=fe.initial_motion_min_speed,
                                min_rate=np.radians(fe.initial_motion_min_rate_deg),
-                               reference_sigma=cfg.noise.reference)
+                               reference_sigma=cfg.noise.reference, rest_odometry=fe.initial_motion_rest_odometry)
 
 
 def transient_params(cfg: SlamConfig) -> TransientParams:

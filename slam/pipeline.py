@@ -182,8 +182,9 @@ class SlamRunner:
         self.stats.initial_motion = start.as_dict()
         T0 = self.motion.initial_pose(t0)
         v0 = None
-        if start.moving:
+        if start.increments:  # moving, or at rest with initial_motion_rest_odometry
             self.motion.start_moving(start.increments, start.increment_sigmas)
+        if start.moving:
             v0 = T0[:3, :3] @ start.twist_body[3:]
         self._append_knot(T0, v0)
         self._timer.add("initial_motion", t_start)

@@ -74,7 +74,8 @@ def test_a_walking_start_is_measured_where_the_lines_observe_it() -> None:
 
 
 def test_the_start_is_moving_in_a_room_and_held_along_a_corridor() -> None:
-    params = InitialMotionParams(window=1.0, min_speed=0.05, min_rate=np.radians(3.0), reference_sigma=0.003)
+    params = InitialMotionParams(window=1.0, min_speed=0.05, min_rate=np.radians(3.0), reference_sigma=0.003,
+                                 rest_odometry=False)
     v = np.array([1.0, 0.0])
     room = estimate(_walk(ROOM, v, 1.0), [np.eye(4)], 0.0, 0.1, params)
     assert room.moving and abs(room.twist_body[3] - 1.0) < 0.03 and room.unobserved is None
@@ -86,3 +87,29 @@ def test_the_start_is_moving_in_a_room_and_held_along_a_corridor() -> None:
     corridor = estimate(_walk(CORRIDOR, v, 1.0), [np.eye(4)], 0.0, 0.1, params)
     assert not corridor.moving and corridor.unobserved is not None and abs(corridor.unobserved[0]) > 0.999
     assert corridor.as_dict()["unobserved_direction"] is not None
+
+
+def test_a_start_at_rest_that_sets_off_within_the_window_gets_its_odometry() -> None:
+    """The walker stands for half a second, then sets off at 0.8 m/s (issue 26, session 20: in a
+    room with 1 cm steps the estimate slid 0.57 m along the walk before its end walls became
+    planes). The rest test (first 0.3 s) says rest either way; with ``rest_odometry`` the window's
+    odometry still gives the knots their motion: at rest for 0.5 s, then 8 cm per 0.1 s."""
+    rng = np.random.default_rng(3)
+    v = np.array([0.8, 0.0])
+    scans = []
+    for k in range(int(1.0 / SCAN_PERIOD) + 1):
+        t = k * SCAN_PERIOD
+        if t < 0.5:
+            scans.append(_scan(t, ROOM, np.zeros(2), rng))
+        else:  # at 0.8 m/s from 0.5 s: the walls seen from v t - 0.4 m
+            walls = [(a + np.array([0.4, 0.0]), b + np.array([0.4, 0.0])) for a, b in ROOM]
+            scans.append(_scan(t, walls, v, rng))
+    kw = {"window": 1.0, "min_speed": 0.05, "min_rate": np.radians(3.0), "reference_sigma": 0.003}
+    off = estimate(scans, [np.eye(4)], 0.0, 0.1, InitialMotionParams(**kw, rest_odometry=False))
+    assert not off.moving and off.increments == []
+    on = estimate(scans, [np.eye(4)], 0.0, 0.1, InitialMotionParams(**kw, rest_odometry=True))
+    assert not on.moving and len(on.increments) == 10 and on.increment_sigmas is not None
+    steps = np.array([T[0, 3] for T in on.increments])
+    np.testing.assert_allclose(steps[:4], 0.0, atol=0.005)
+    np.testing.assert_allclose(steps[6:], 0.08, atol=0.01)
+    assert abs(steps.sum() - 0.4) < 0.02

@@ -82,12 +82,17 @@ HOLD_WEIGHT = 1e10  # prior weight (units of the Huber width^2) that keeps an un
 class InitialMotionParams:
     """``window`` s of scans registered (0: the walk starts at rest); the start counts as at
     rest below ``min_speed`` (m/s) and ``min_rate`` (rad/s), stated for a scanner of
-    ``reference_sigma`` (m) range noise and raised in proportion for a noisier one."""
+    ``reference_sigma`` (m) range noise and raised in proportion for a noisier one. With
+    ``rest_odometry`` a start at rest also gets the window's odometry as its knots' motions: the
+    walker who stands for half a second and then sets off moves before the planes that observe
+    the walking direction exist (a far end wall seen by the level scanner alone needs several
+    scans from one pose to become a plane)."""
 
     window: float
     min_speed: float
     min_rate: float
     reference_sigma: float
+    rest_odometry: bool  # a start at rest: the window's odometry still predicts its knots
 
 
 @dataclass(frozen=True, eq=False)
@@ -537,7 +542,15 @@ def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: fl
     se_rate = float(np.sqrt(max(float(fit.cov[2, 2]), 0.0)))
     if (speed < max(k * params.min_speed, SE_SIGMAS * se_speed)
             and rate < max(k * params.min_rate, SE_SIGMAS * se_rate)):
-        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, unobserved=unobserved)
+        if not params.rest_odometry:
+            return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, unobserved=unobserved)
+        odo = odometry(own, T_body_scanner[s], np.zeros(3), noise)
+        increments = knot_increments(t0, dt, float(odo.stamps[-1]), odo.stamps, odo.poses, odo.twists,
+                                     T_body_scanner[s])
+        held = [d for d in odo.unobserved if d.shape[0]]
+        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, increments,
+                             body_sigmas(T_body_scanner[s], np.concatenate(held) if held else None, len(held)),
+                             len(own), unobserved, len(held))
     twist_scan = np.array([0.0, 0.0, xi[2], xi[0], xi[1], 0.0])
     twist_body = adjoint(T_body_scanner[s]) @ twist_scan
     odo = odometry(own, T_body_scanner[s], xi, noise)
