@@ -64,6 +64,9 @@ class HealthSection(StrictModel):
         default=0.5, gt=0, description="deg: ... this far: failed (1 deg / 2 cm on one scanner put the demo walk 18 mm "
         "off; the rig is refused before processing from 3 deg / 5 cm)")
     max_rig_distance: float = Field(default=0.01, gt=0, description="m, likewise")
+    max_unobserved_start_motion: float = Field(
+        default=0.1, gt=0, description="m: without an IMU, motion along a direction no plane has observed since the "
+        "walk's start: failed (the motion model has no speed to carry there)")
     max_unobserved_seconds: float = Field(
         default=3.0, gt=0, description="s unobserved in a row without an IMU: failed. Only planes count: without an "
         "IMU nothing else holds the position along the direction (a 6 s standing-start corridor walk without an IMU "
@@ -142,14 +145,10 @@ def motion_problems(knot_times: FloatArray, T_world_body: FloatArray, cfg: Healt
     return out, m
 
 
-def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
-                     min_angle: float) -> dict[str, float]:
-    """Longest run (s) of windows in which a world translation direction is unobserved by the
-    associated segments' plane normals (seg_normal (S, 3), world frame; NaN rows: unassociated).
-    Returns {direction label: seconds}; the label is the unobserved eigenvector's dominant axis.
-    The windows split [t0, t1] evenly, about ``window`` long (a remainder shorter than half a
-    window joins the last one rather than being judged on its few segments); a run's seconds
-    are the windows' lengths."""
+def _unobserved_windows(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
+                        min_angle: float) -> tuple[FloatArray, list[set[str]]]:
+    """The windows of :func:`unobserved_spans` (their lengths, s) and in each the labels of the
+    translation directions its associated segments' plane normals leave unobserved."""
     n_win = max(1, math.floor((t1 - t0) / window + 0.5))
     edges = np.minimum(t0 + window * np.arange(n_win + 1), t1)
     edges[-1] = max(t1, edges[-2])
@@ -160,8 +159,7 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
     np.add.at(info, idx[ok], np.einsum("si,sj->sij", seg_normal[ok], seg_normal[ok]))
     counts = np.bincount(idx[ok], minlength=n_win).astype(float)
     thresh = math.sin(min_angle) ** 2
-    runs: dict[str, float] = {}
-    current: dict[str, float] = {}
+    out: list[set[str]] = []
     for k in range(n_win):
         labels: set[str] = set()
         if counts[k] > 0:
@@ -171,10 +169,43 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
                     labels.add("xyz"[int(np.argmax(np.abs(V[:, i])))])
         else:
             labels = {"x", "y", "z"}
+        out.append(labels)
+    return width, out
+
+
+def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
+                     min_angle: float) -> dict[str, float]:
+    """Longest run (s) of windows in which a world translation direction is unobserved by the
+    associated segments' plane normals (seg_normal (S, 3), world frame; NaN rows: unassociated).
+    Returns {direction label: seconds}; the label is the unobserved eigenvector's dominant axis.
+    The windows split [t0, t1] evenly, about ``window`` long (a remainder shorter than half a
+    window joins the last one rather than being judged on its few segments); a run's seconds
+    are the windows' lengths."""
+    width, labels = _unobserved_windows(seg_stamp, seg_normal, t0, t1, window, min_angle)
+    runs: dict[str, float] = {}
+    current: dict[str, float] = {}
+    for k, lab_k in enumerate(labels):
         for lab in "xyz":
-            current[lab] = current.get(lab, 0.0) + float(width[k]) if lab in labels else 0.0
+            current[lab] = current.get(lab, 0.0) + float(width[k]) if lab in lab_k else 0.0
             runs[lab] = max(runs.get(lab, 0.0), round(current[lab], 3))
     return {k: v for k, v in runs.items() if v > 0}
+
+
+def unobserved_start(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
+                     min_angle: float) -> dict[str, float]:
+    """Per direction label unobserved from the walk's first window on, how long (s) it stays so
+    (the windows of :func:`unobserved_spans`)."""
+    width, labels = _unobserved_windows(seg_stamp, seg_normal, t0, t1, window, min_angle)
+    out: dict[str, float] = {}
+    for lab in "xyz":
+        sec = 0.0
+        for k, lab_k in enumerate(labels):
+            if lab not in lab_k:
+                break
+            sec += float(width[k])
+        if sec > 0:
+            out[lab] = round(sec, 3)
+    return out
 
 
 def silent_scanners(scanner_names: list[str], seg_scanner: NDArray[np.integer]) -> list[Problem]:
@@ -201,6 +232,31 @@ def rig_problems(mismatches: list[tuple[str, float, float]], cfg: HealthSection)
                     f"{dist:.3f} m: the map is off by about as much (run without --rig to use the recording's, or "
                     "calibrate)", max(math.degrees(angle), 0.0),
                     cfg.max_rig_angle_deg if fail else cfg.warn_rig_angle_deg)]
+
+
+def _set_off_unobserved(knot_times: FloatArray, T_world_body: FloatArray, start_spans: Mapping[str, float],
+                        cfg: HealthSection, found: list[Problem]) -> list[Problem]:
+    """Without an IMU: a failure for each direction that no plane observed from the walk's start
+    (``start_spans``: :func:`unobserved_start`) while the trajectory moved along it by more than
+    ``max_unobserved_start_motion``. Mid-walk the motion model carries the speed it had across a
+    short gap; at the start there is no speed to carry, so any motion along the direction is a
+    guess (a room walked off from a standstill, its end walls not yet planes, slid 0.57 m in 2 s).
+    None where ``found`` already fails that direction."""
+    out: list[Problem] = []
+    failed = {p.code for p in found if p.severity == "failure"}
+    for lab, sec in sorted(start_spans.items()):
+        if f"unobserved_{lab}" in failed:
+            continue
+        axis = "xyz".index(lab)
+        inside = knot_times <= knot_times[0] + sec
+        moved = float(np.ptp(T_world_body[inside, axis, 3]))
+        if moved > cfg.max_unobserved_start_motion:
+            out.append(Problem(f"unobserved_{lab}", "failure",
+                               f"the walk moved {moved:.2f} m along world {lab} in its first {sec:.1f} s, before any plane "
+                               "observed that direction, and there is no IMU: how far it went is a guess of the motion "
+                               "model (start where walls of two directions are in view, or record an IMU)",
+                               moved, cfg.max_unobserved_start_motion))
+    return out
 
 
 def start_problems(start: Mapping[str, Any]) -> list[Problem]:
@@ -292,6 +348,10 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
                 sev = "failure" if (sec >= cfg.max_unobserved_seconds and not with_imu) else "warning"
                 problems.append(Problem(f"unobserved_{lab}", sev, _unobserved_message(lab, sec, with_imu, sev), sec,
                                         cfg.max_unobserved_seconds if sev == "failure" else warn))
+        if not with_imu:
+            problems += _set_off_unobserved(knot_times, T_world_body, unobserved_start(
+                np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]), float(knot_times[-1]),
+                cfg.observed_window, math.radians(cfg.unobserved_min_angle_deg)), cfg, problems)
     if echoes is not None:
         measures["several_echoes_share"] = echoes[1]
         problems = _with_echo_hint(problems, *echoes, cfg)
