@@ -97,7 +97,8 @@ def _rig_variant(kind: str, out: Path, change: dict[str, Any]) -> Path:
     return path
 
 
-def run_condition(c: Condition, world: str, duration: float, seed: int, out: Path, cloud: bool = False) -> dict[str, Any]:
+def run_condition(c: Condition, world: str, duration: float, seed: int, out: Path, cloud: bool = False,
+                  slam_config: Path | None = None) -> dict[str, Any]:
     from simulation.run import SimulationConfig, simulate
     from slam.evaluate import Stats, evaluate
 
@@ -109,9 +110,15 @@ def run_condition(c: Condition, world: str, duration: float, seed: int, out: Pat
     run_rig = str(_rig_variant("perturbed", out, c.rig_change)) if c.run_rig == "perturbed" else c.run_rig
     run_dir = out / f"{c.name}.out"
     cmd = [*EXE, "run", str(sim.bag), "--out", str(run_dir), "--quiet"] + (["--rig", run_rig] if run_rig else [])
-    if not cloud:  # the SLAM alone: no cloud pass, no rerun map
+    if not cloud or slam_config is not None:  # the SLAM alone: no cloud pass, no rerun map
+        import yaml
+
+        base = yaml.safe_load(slam_config.read_text()) if slam_config is not None else None
+        doc: dict[str, Any] = dict(base or {})
+        if not cloud:
+            doc["output"] = {**(doc.get("output") or {}), "cloud": False, "rerun": False}
         config = out / "slam.yaml"
-        config.write_text("output:\n  cloud: false\n  rerun: false\n")
+        config.write_text(yaml.safe_dump(doc))
         cmd += ["--config", str(config)]
     t0 = time.perf_counter()
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -233,6 +240,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "robustness")
     ap.add_argument("--markdown", type=Path, default=None, help="write the table (and the plot beside it)")
     ap.add_argument("--cloud", action="store_true", help="write and evaluate the cloud too (slower)")
+    ap.add_argument("--config", type=Path, default=None, help="a SLAM configuration (YAML) for every run")
     ap.add_argument("--reuse", action="store_true",
                     help="take a case's row from an earlier run's OUT/CASE/row.json when there is one")
     args = ap.parse_args()
@@ -252,7 +260,7 @@ def main() -> int:
             print(f"[{i + 1}/{len(todo)}] {c.name}: reused {saved}", file=sys.stderr, flush=True)
             continue
         print(f"[{i + 1}/{len(todo)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
-        rows.append(run_condition(c, args.world, args.duration, args.seed, args.out / c.name, args.cloud))
+        rows.append(run_condition(c, args.world, args.duration, args.seed, args.out / c.name, args.cloud, args.config))
         r = rows[-1]
         saved.write_text(json.dumps(r, indent=1, default=str))
         print(f"    exit {r['exit']}, verdict {r['verdict']}, ATE {1000 * r.get('ate', float('nan')):.1f} mm, "
