@@ -22,6 +22,7 @@ export's memory does not grow with the walk's length (``slam.cloud_pass``).
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import resource
 import sys
@@ -53,7 +54,7 @@ from slam.result import SlamResult
 from slam.run_folder import RunSummary, write_cloud_outputs, write_tables
 
 # bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
-__all__ = ["bag_time_range", "estimate_noise", "load_imu", "peak_rss_gb", "run_slam"]
+__all__ = ["bag_time_range", "estimate_noise", "load_imu", "peak_rss_gb", "run_slam", "trim_heap"]
 
 IMU_FRAMES = ("", "body", "base_link", "imu")  # frame ids taken as the rig's body frame
 NOISE_READ_SECONDS = 10.0  # s of scans read at most for the noise estimate (a scanner silent at the start)
@@ -155,6 +156,20 @@ def peak_rss_gb() -> float:
     return peak * (1 if sys.platform == "darwin" else 1024) / 1e9
 
 
+def trim_heap() -> bool:
+    """Give the free pages of the C heap back to the system (glibc's ``malloc_trim``); False where
+    there is no glibc (nothing done). Objects freed by Python, numpy or gtsam leave their memory in
+    malloc's free chunks, resident until malloc reuses it: after the estimation, what the final
+    batch and the let-go estimator used."""
+    try:
+        trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True
+
+
 def run_slam(
     bag: str | Path,
     rig: Rig | None,
@@ -199,9 +214,11 @@ def run_slam(
         res = runner.result(batch=cfg.backend.final_batch)
         runner.close()
         # the estimator's graph, blocks and map are not needed by the export (res holds what it
-        # needs): let them go before the cloud pass forks its parts
+        # needs): let them go before the cloud pass forks its parts, and hand malloc's free pages
+        # back (freed, they stay resident and are counted in this process while its parts run)
         del runner
         gc.collect()
+        trim_heap()
         health = run_health(res, cfg, imu is not None, [(m.scanner, m.angle, m.distance) for m in check.mismatches],
                             None if share is None else (cfg.input.echo, share))
         memory = {"peak_rss_gb_after_estimation": peak_rss_gb()}

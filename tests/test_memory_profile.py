@@ -77,6 +77,21 @@ def test_malloc_info_sees_a_large_allocation() -> None:
     assert after["mmapped"] - before["mmapped"] >= a.nbytes
 
 
+def test_trim_heap_gives_freed_heap_pages_back() -> None:
+    from slam.run import trim_heap
+
+    if not mp.malloc_info():
+        pytest.skip("no glibc malloc")
+    me = psutil.Process()
+    blocks = [bytearray(64 << 10) for _ in range(1600)]  # 100 MB in malloc's heap (below its mmap threshold)
+    keep = bytearray(64 << 10)  # above them: free() alone cannot give their pages back
+    del blocks
+    freed = me.memory_info().rss
+    assert trim_heap()
+    assert me.memory_info().rss < freed - 50e6
+    assert len(keep) == 64 << 10
+
+
 def test_sampler_samples_this_process_without_itself(tmp_path: Path) -> None:
     s = mp.Sampler(str(tmp_path / "samples.tsv"), period=0.05)
     try:
