@@ -181,7 +181,11 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
     The windows split [t0, t1] evenly, about ``window`` long (a remainder shorter than half a
     window joins the last one rather than being judged on its few segments); a run's seconds
     are the windows' lengths."""
-    width, labels = _unobserved_windows(seg_stamp, seg_normal, t0, t1, window, min_angle)
+    return _longest_runs(*_unobserved_windows(seg_stamp, seg_normal, t0, t1, window, min_angle))
+
+
+def _longest_runs(width: FloatArray, labels: list[set[str]]) -> dict[str, float]:
+    """:func:`unobserved_spans` from the windows (:func:`_unobserved_windows`)."""
     runs: dict[str, float] = {}
     current: dict[str, float] = {}
     for k, lab_k in enumerate(labels):
@@ -191,11 +195,8 @@ def unobserved_spans(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t
     return {k: v for k, v in runs.items() if v > 0}
 
 
-def unobserved_start(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,
-                     min_angle: float) -> dict[str, float]:
-    """Per direction label unobserved from the walk's first window on, how long (s) it stays so
-    (the windows of :func:`unobserved_spans`)."""
-    width, labels = _unobserved_windows(seg_stamp, seg_normal, t0, t1, window, min_angle)
+def _start_runs(width: FloatArray, labels: list[set[str]]) -> dict[str, float]:
+    """Per direction label unobserved from the walk's first window on, how long (s) it stays so."""
     out: dict[str, float] = {}
     for lab in "xyz":
         sec = 0.0
@@ -237,7 +238,7 @@ def rig_problems(mismatches: list[tuple[str, float, float]], cfg: HealthSection)
 def _set_off_unobserved(knot_times: FloatArray, T_world_body: FloatArray, start_spans: Mapping[str, float],
                         cfg: HealthSection, found: list[Problem]) -> list[Problem]:
     """Without an IMU: a failure for each direction that no plane observed from the walk's start
-    (``start_spans``: :func:`unobserved_start`) while the trajectory moved along it by more than
+    (``start_spans``: :func:`_start_runs`) while the trajectory moved along it by more than
     ``max_unobserved_start_motion``. Mid-walk the motion model carries the speed it had across a
     short gap; at the start there is no speed to carry, so any motion along the direction is a
     guess (a room walked off from a standstill, its end walls not yet planes, slid 0.57 m in 2 s).
@@ -339,8 +340,10 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
         normal = np.full((len(seg_plane_id), 3), np.nan)
         for pid, n in plane_normals.items():
             normal[seg_plane_id == pid] = n
-        spans = unobserved_spans(np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]),
-                                 float(knot_times[-1]), cfg.observed_window, math.radians(cfg.unobserved_min_angle_deg))
+        windows = _unobserved_windows(np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]),
+                                      float(knot_times[-1]), cfg.observed_window,
+                                      math.radians(cfg.unobserved_min_angle_deg))
+        spans = _longest_runs(*windows)
         warn = cfg.warn_unobserved_seconds if with_imu else cfg.warn_unobserved_seconds_no_imu
         for lab, sec in sorted(spans.items()):
             measures[f"unobserved_{lab}_seconds"] = sec
@@ -349,9 +352,7 @@ def assess(knot_times: FloatArray, T_world_body: FloatArray, seg_stamp: FloatArr
                 problems.append(Problem(f"unobserved_{lab}", sev, _unobserved_message(lab, sec, with_imu, sev), sec,
                                         cfg.max_unobserved_seconds if sev == "failure" else warn))
         if not with_imu:
-            problems += _set_off_unobserved(knot_times, T_world_body, unobserved_start(
-                np.asarray(seg_stamp, dtype=np.float64), normal, float(knot_times[0]), float(knot_times[-1]),
-                cfg.observed_window, math.radians(cfg.unobserved_min_angle_deg)), cfg, problems)
+            problems += _set_off_unobserved(knot_times, T_world_body, _start_runs(*windows), cfg, problems)
     if echoes is not None:
         measures["several_echoes_share"] = echoes[1]
         problems = _with_echo_hint(problems, *echoes, cfg)

@@ -176,8 +176,9 @@ def _offsets_without_each(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, 
     placed is then 2 cm off by the wall's own evidence, not within the rotation's 5 mm lever.
     Each inlier (nearest candidate within ``tau``; a host wall's within ``tau_host``) weighs by
     its precision ``1 / s0^2``; an inlier that the others' prediction does not explain within
-    ``gate`` is dropped and the prediction made again. Leaving the member out matters: a segment alone in its family
-    set the offset to its own distance to the board and so looked certain to be the board's."""
+    ``gate`` is dropped and the prediction made again. Leaving the member out matters: a segment
+    alone in its family set the offset to its own distance to the board and so looked certain to
+    be the board's."""
     m_n = m_seg.shape[0]
     # axes across the normal: e1 horizontal where the normal is not vertical
     e1 = np.empty(3)
@@ -208,34 +209,40 @@ def _offsets_without_each(m_seg: IntArray, m_start: IntArray, m_cols: IntArray, 
             val[i] = h + r
             lam += prec[i] * np.outer(rows[i], rows[i])
             rhs += prec[i] * val[i] * rows[i]
+    mean, var = _predict_without_each(rows, prec, val, lam, rhs)
+    # the hypothesis' wide gate let a board's segment beside its wall count as the wall's: keep
+    # only the inliers that the others' prediction also explains, and predict again
+    for i in range(m_n):
+        if prec[i] > 0.0 and abs(val[i] - mean[i]) >= gate * math.sqrt(s0[m_seg[i]] ** 2 + var[i]):
+            lam -= prec[i] * np.outer(rows[i], rows[i])
+            rhs -= prec[i] * val[i] * rows[i]
+            prec[i] = 0.0
+    return _predict_without_each(rows, prec, val, lam, rhs)
+
+
+@nb.njit(cache=True)
+def _predict_without_each(rows: FloatArray, prec: FloatArray, val: FloatArray, lam: FloatArray,
+                          rhs: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per member ``i``, the posterior mean and variance of ``rows[i] . x`` given the information
+    ``lam`` and ``rhs`` of all inliers less member ``i``'s own (precision ``prec[i]``, value
+    ``val[i]``; 0 for a non-inlier)."""
+    m_n = rows.shape[0]
     mean = np.empty(m_n)
     var = np.empty(m_n)
-    for sweep in range(2):
-        for i in range(m_n):
-            a = rows[i]
-            lam_i = lam - prec[i] * np.outer(a, a)
-            sol = np.linalg.solve(lam_i, np.stack((rhs - prec[i] * val[i] * a, a), axis=1))
-            mean[i] = a @ sol[:, 0]
-            var[i] = a @ sol[:, 1]
-        if sweep == 1:
-            break
-        # the hypothesis' wide gate let a board's segment beside its wall count as the wall's:
-        # keep only the inliers that the others' prediction also explains, and predict again
-        for i in range(m_n):
-            if prec[i] > 0.0 and abs(val[i] - mean[i]) >= gate * math.sqrt(s0[m_seg[i]] ** 2 + var[i]):
-                a = rows[i]
-                lam -= prec[i] * np.outer(a, a)
-                rhs -= prec[i] * val[i] * a
-                prec[i] = 0.0
+    for i in range(m_n):
+        a = rows[i]
+        sol = np.linalg.solve(lam - prec[i] * np.outer(a, a), np.stack((rhs - prec[i] * val[i] * a, a), axis=1))
+        mean[i] = a @ sol[:, 0]
+        var[i] = a @ sol[:, 1]
     return mean, var
 
 
 @nb.njit(cache=True)
 def choose_columns(
-    start: IntArray, cols: IntArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray, sigma_own: FloatArray, weight: FloatArray,
-    seg_range: FloatArray, has_range: bool, arm: FloatArray, has_arm: bool, normals: FloatArray, hosts: BoolArray,
-    has_hosts: bool, rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float,
-    cos_min: float, log_ratio: float, outlier_nats: float, walls_only: bool, model: bool, two: float,
+    start: IntArray, cols: IntArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray, sigma_own: FloatArray,
+    weight: FloatArray, seg_range: FloatArray, has_range: bool, arm: FloatArray, has_arm: bool, normals: FloatArray,
+    hosts: BoolArray, has_hosts: bool, rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float,
+    host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float, walls_only: bool, model: bool, two: float,
 ) -> tuple[IntArray, BoolArray]:
     """``parallel_choice.choose`` (which documents it) on candidate lists given as pairs: segment
     ``k``'s candidates are the ``cols[i]``, ``start[k] <= i < start[k + 1]``, where ``keep[i]``;
@@ -434,11 +441,11 @@ def scan_pairs(
 
 @nb.njit(cache=True)
 def decide(
-    start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray, sig_d2: FloatArray,
-    rows: FloatArray, ids: IntArray, same_normal: float, with_choice: bool, veto: bool, sigma_own: FloatArray,
-    weight: FloatArray, seg_range: FloatArray, arm: FloatArray, hosts: BoolArray, has_hosts: bool, rel2: float,
-    host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float, cos_min: float, log_ratio: float, outlier_nats: float,
-    walls_only: bool, model: bool, two: float,
+    start: IntArray, cols: IntArray, near: BoolArray, keep: BoolArray, shadow: BoolArray, dist: FloatArray,
+    sig_d2: FloatArray, rows: FloatArray, ids: IntArray, same_normal: float, with_choice: bool, veto: bool,
+    sigma_own: FloatArray, weight: FloatArray, seg_range: FloatArray, arm: FloatArray, hosts: BoolArray,
+    has_hosts: bool, rel2: float, host2: float, sp2: float, gate: float, sigma_lever: float, host_lever: float,
+    cos_min: float, log_ratio: float, outlier_nats: float, walls_only: bool, model: bool, two: float,
 ) -> tuple[IntArray, BoolArray]:
     """The association of one scan's segments from their candidate pairs (:func:`scan_pairs`):
     with the choice (``with_choice``) among the pairs over their extents as the choice takes
@@ -451,9 +458,9 @@ def decide(
     normals = np.ascontiguousarray(rows[:, 0:3])
     chosen = np.full(k_n, NONE, dtype=np.int64)
     if with_choice:
-        column, grows = choose_columns(start, cols, keep, shadow, dist, sigma_own, weight, seg_range, True, arm, not veto, normals,
-                                       hosts, has_hosts, rel2, host2, sp2, gate, sigma_lever, host_lever, cos_min, log_ratio,
-                                       outlier_nats, walls_only, model, two)
+        column, grows = choose_columns(start, cols, keep, shadow, dist, sigma_own, weight, seg_range, True, arm,
+                                       not veto, normals, hosts, has_hosts, rel2, host2, sp2, gate, sigma_lever,
+                                       host_lever, cos_min, log_ratio, outlier_nats, walls_only, model, two)
         for k in range(k_n):
             chosen[k] = ids[column[k]] if column[k] >= 0 else column[k]
             grows[k] = grows[k] and column[k] >= 0

@@ -214,9 +214,9 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     # without the choice, the nearest candidate over its extent unless another lies on a different
     # surface (the same surface seen twice, a duplicate awaiting merge, is not ambiguity)
     arm = np.ascontiguousarray(segs.centroid - segs.origin[None, :3])
-    out, grows = ak.decide(start, cols, near, keep, shadow, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL, choice is not None,
-                           choice is not None and choice.veto, segs.sigma_centroid, weight, segs.range, arm, hosts,
-                           hosts is not _NO_HOSTS, *g[2])
+    out, grows = ak.decide(start, cols, near, keep, shadow, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL,
+                           choice is not None, choice is not None and choice.veto, segs.sigma_centroid, weight,
+                           segs.range, arm, hosts, hosts is not _NO_HOSTS, *g[2])
     return Association(out, grows)
 
 

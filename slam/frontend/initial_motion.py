@@ -540,23 +540,18 @@ def estimate(scans: list[ScanSegments], T_body_scanner: list[FloatArray], t0: fl
     u = xi[:2] / max(speed, 1e-12)
     se_speed = float(np.sqrt(max(float(u @ fit.cov[:2, :2] @ u), 0.0)))
     se_rate = float(np.sqrt(max(float(fit.cov[2, 2]), 0.0)))
-    if (speed < max(k * params.min_speed, SE_SIGMAS * se_speed)
-            and rate < max(k * params.min_rate, SE_SIGMAS * se_rate)):
-        if not params.rest_odometry:
-            return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, unobserved=unobserved)
-        odo = odometry(own, T_body_scanner[s], np.zeros(3), noise)
-        increments = knot_increments(t0, dt, float(odo.stamps[-1]), odo.stamps, odo.poses, odo.twists,
-                                     T_body_scanner[s])
-        held = [d for d in odo.unobserved if d.shape[0]]
-        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, increments,
-                             body_sigmas(T_body_scanner[s], np.concatenate(held) if held else None, len(held)),
-                             len(own), unobserved, len(held))
+    at_rest = (speed < max(k * params.min_speed, SE_SIGMAS * se_speed)
+               and rate < max(k * params.min_rate, SE_SIGMAS * se_rate))
+    if at_rest and not params.rest_odometry:
+        return InitialMotion(np.zeros(6), False, s, xi, fit.matches, fit.rms, unobserved=unobserved)
+    # moving, or at rest with the window's odometry: from rest (zero twist) or from the start's twist
+    xi0 = np.zeros(3) if at_rest else xi
     twist_scan = np.array([0.0, 0.0, xi[2], xi[0], xi[1], 0.0])
-    twist_body = adjoint(T_body_scanner[s]) @ twist_scan
-    odo = odometry(own, T_body_scanner[s], xi, noise)
+    twist_body = np.zeros(6) if at_rest else adjoint(T_body_scanner[s]) @ twist_scan
+    odo = odometry(own, T_body_scanner[s], xi0, noise)
     increments = knot_increments(t0, dt, float(odo.stamps[-1]), odo.stamps, odo.poses, odo.twists, T_body_scanner[s])
     held = [d for d in odo.unobserved if d.shape[0]]
-    return InitialMotion(twist_body, True, s, xi, fit.matches, fit.rms, increments,
+    return InitialMotion(twist_body, not at_rest, s, xi, fit.matches, fit.rms, increments,
                          body_sigmas(T_body_scanner[s], np.concatenate(held) if held else None, len(held)), len(own),
                          unobserved, len(held))
 
