@@ -126,7 +126,9 @@ def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
                 "assoc_correct_surface": a.fraction_correct_surface_of_associated,
                 "assoc_by_kind": {k: (c / n if n else None) for k, (n, c) in a.by_kind.items()},
                 "confusions": a.confusions_wall_to_child + a.confusions_child_to_wall,
-                "confusion_fraction": a.confusion_fraction if a.n_child_associated else None}
+                "confusion_fraction": a.confusion_fraction if a.n_child_associated else None,
+                "confusions_pure": a.confusions_pure,
+                "confusion_fraction_pure": a.confusion_fraction_pure if a.n_child_associated_pure else None}
     row |= {"ate_max": tr.ate["start_aligned"].max, "trimmed_points": summary["counts"].get("trimmed_points"),
             "cloud_points": summary["counts"].get("cloud_points")}
     if reg.planes is not None:
@@ -265,6 +267,8 @@ def table(rows: list[dict[str, Any]], duration: float) -> str:
             [_fmt((r.get("assoc_by_kind") or {}).get(kind), 100, 2) for r in rows])
     add("wall<->door/board confusions (segments / % of door and board segments)",
         [f"{r.get('confusions', '-')} / {_fmt(r.get('confusion_fraction'), 100, 2)}" for r in rows])
+    add("the same among single-surface segments (purity >= 0.9; segments / %)",
+        [f"{r.get('confusions_pure', '-')} / {_fmt(r.get('confusion_fraction_pure'), 100, 2)}" for r in rows])
     add("door/board extent error, max (mm) / excess, max (mm) / planes",
         [f"{_fmt(r.get('extent_error_max'), 1e3, 0)} / {_fmt(r.get('extent_excess_max'), 1e3, 0)} / "
          f"{r.get('extent_planes', '-')}" for r in rows])

@@ -29,6 +29,11 @@ class SegmenterConfig(StrictModel):
 
     method: str = "ror"
     params: dict[str, Any] = Field(default_factory=lambda: dict(SLAM_SEGMENTER_DEFAULTS["ror"]))
+    split_steps: bool = Field(
+        False, description="split each segment where its points switch between two parallel lines (a door 1 cm "
+        "into its wall, a board proud of it, left in the wall's segment: segmentation.steps)")
+    step_chi2: float = Field(25.0, gt=0, description="least chi-square gain of a split (one degree of freedom)")
+    step_min: float = Field(0.004, ge=0, description="m, least offset between the two parts of a split")
 
     @model_validator(mode="before")
     @classmethod
@@ -105,6 +110,10 @@ class FrontEndConfig(StrictModel):
         "estimate slide 0.57 m along the walking direction in the first 2 s, before the end walls (seen by the level "
         "scanner alone) became planes (issue 26, session 20); on, the demo, the small room and the 2-min office walk "
         "give the same figures as off")
+    rest_observe_every: int = Field(
+        1, ge=1, description="while the IMU says the operator stands still, only every n-th knot's scans observe the "
+        "map (the others are neither associated nor pooled): a standing rig repeats one view, whose systematic "
+        "errors (a segment across a door's edge, a mixed return) do not average out over its repeats; 1 = all")
     transient_check: bool = Field(
         True, description="take planes of things that move (people walking by) out of the map: young planes that "
         "later scans pass through (slam.frontend.transients)")

@@ -407,6 +407,17 @@ class AssociationEval:
     # wall segments on a door's or board's estimated plane, and door or board segments on a wall's
     confusions_wall_to_child: int = 0
     confusions_child_to_wall: int = 0
+    # the same over the segments that lie on one surface (purity >= ``PURE``): a segment the
+    # segmenter ran across a door's or board's edge is on neither face, whichever plane it takes
+    n_child_associated_pure: int = 0
+    confusions_pure: int = 0
+
+    @property
+    def confusion_fraction_pure(self) -> float:
+        """Wall<->door/board confusions over the associated door and board segments, both counted
+        among the single-surface segments only (purity >= ``PURE``)."""
+        n = self.n_child_associated_pure
+        return self.confusions_pure / n if n else float("nan")
 
     @property
     def fraction_correct_surface_of_associated(self) -> float:
@@ -463,11 +474,19 @@ class AssociationEval:
                 "wall_to_child": self.confusions_wall_to_child,
                 "child_to_wall": self.confusions_child_to_wall,
                 "fraction_of_child_segments": self.confusion_fraction if self.n_child_associated else None,
+                "single_surface": {
+                    "definition": f"the same over the segments with purity >= {PURE} (not run across an edge)",
+                    "confusions": self.confusions_pure,
+                    "n_child_associated": self.n_child_associated_pure,
+                    "fraction_of_child_segments": self.confusion_fraction_pure
+                    if self.n_child_associated_pure else None,
+                },
             },
         }
 
 
 KIND_GROUPS = ("wall", "floor/ceiling", "door", "board", "other")
+PURE = 0.9  # a segment with at least this share of its beams on its true plane lies on one surface
 CHILD_GROUPS = ("door", "board")
 
 
@@ -534,7 +553,7 @@ def association_errors(
         correct = assoc & (surf >= 0) & (est_surf == surf)
         n_surface = int(np.count_nonzero(correct))
     by_kind: dict[str, tuple[int, int]] = {}
-    w2c = c2w = 0
+    w2c = c2w = n_child_pure = conf_pure = 0
     if true_kinds is not None:
         def groups(t: IntArray) -> NDArray[np.str_]:
             return np.array([kind_group(true_kinds.get(int(x), "")) if x >= 0 else "" for x in t.tolist()], dtype=object)
@@ -546,8 +565,13 @@ def association_errors(
             by_kind[k] = (int(np.count_nonzero(m)), int(np.count_nonzero(m & correct)))
         child_seg = np.isin(g_seg, CHILD_GROUPS)
         child_est = np.isin(g_est, CHILD_GROUPS)
-        w2c = int(np.count_nonzero(assoc & (g_seg == "wall") & child_est))
-        c2w = int(np.count_nonzero(assoc & child_seg & (g_est == "wall")))
+        w2c_m = assoc & (g_seg == "wall") & child_est
+        c2w_m = assoc & child_seg & (g_est == "wall")
+        w2c = int(np.count_nonzero(w2c_m))
+        c2w = int(np.count_nonzero(c2w_m))
+        pure = segment_purity >= PURE
+        n_child_pure = int(np.count_nonzero(assoc & child_seg & pure))
+        conf_pure = int(np.count_nonzero((w2c_m | c2w_m) & pure))
     return AssociationEval(
         n_segments=len(segments),
         n_associated=int(np.count_nonzero(assoc)),
@@ -561,6 +585,8 @@ def association_errors(
         by_kind=by_kind,
         confusions_wall_to_child=w2c,
         confusions_child_to_wall=c2w,
+        n_child_associated_pure=n_child_pure,
+        confusions_pure=conf_pure,
     )
 
 

@@ -108,6 +108,7 @@ class SlamRunner:
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
                                      self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
+        self._rest_run = 0  # knots at rest in a row up to the newest (the IMU's zero-velocity test)
         # the first scans, held (and no knot processed) until the start's motion is known
         self._start_scans: list[ScanSegments] | None = None
 
@@ -117,8 +118,22 @@ class SlamRunner:
         motion model adds about it."""
         k = self.knots.append(T, v)
         self.backend.add_pose(self.knots.time(k), T, velocity_world=self.motion.velocity(self.knots, k))
-        self.stats.zero_velocity_updates += self.motion.add_factors(self.knots, k)
+        zupt = self.motion.add_factors(self.knots, k)
+        self.stats.zero_velocity_updates += zupt
+        self._rest_run = self._rest_run + 1 if (zupt or self._still(k)) else 0
         return k
+
+    def _still(self, k: int) -> bool:
+        """Whether the tracked poses say the rig stood still over the half second up to knot ``k``
+        (less than 1 cm and 0.5 deg from the knot half a second before)."""
+        j = k - max(1, round(0.5 / self.dt))
+        if j < 0:
+            return False
+        A, B = self.knots.T[j], self.knots.T[k]
+        if float(np.linalg.norm(B[:3, 3] - A[:3, 3])) > 0.01:
+            return False
+        c = (float(np.trace(A[:3, :3].T @ B[:3, :3])) - 1.0) / 2.0
+        return c > np.cos(np.radians(0.5))
 
     # ------------------------------------------------------------------ input
     def add_scan(self, line: Scanline) -> None:
@@ -223,8 +238,12 @@ class SlamRunner:
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
+        every = self.cfg.frontend.rest_observe_every
+        idle = every > 1 and self._rest_run > 1 and self._rest_run % every != 0
         for p, summary in zip(ready, self.associator.summaries(ready), strict=True):
             a = self.associator.associate(p, self.gates, summary)
+            if idle:  # a standing rig's repeated view: neither associated nor pooled
+                a = replace(a, ids=np.full_like(a.ids, -2), grows=np.zeros_like(a.grows))
             ids = np.maximum(a.ids, -1)  # held back (-2) or not: unassociated
             p.plane_ids = ids
             segs = p.segs

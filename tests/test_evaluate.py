@@ -448,6 +448,17 @@ def test_association_per_kind_confusions_and_coplanar_surfaces() -> None:
     assert a.confusion_fraction == pytest.approx(2 / 4)
     js = a.to_json()
     assert js["confusions"]["wall_to_child"] == 1 and js["by_kind"]["board"]["n_correct"] == 3
+    # all on one surface: the single-surface figures are the same
+    assert (a.confusions_pure, a.n_child_associated_pure) == (2, 4)
+    # the board segment on the wall's plane ran across the board's edge (purity 0.6): among the
+    # single-surface segments one confusion is left, of three board segments
+    purity = np.ones(n)
+    purity[5] = 0.6
+    b = association_errors(seg, seg_true, purity, {t.id: t.kind for t in true}, coplanar_surfaces(true))
+    assert (b.confusions_wall_to_child, b.confusions_child_to_wall) == (1, 1)
+    assert (b.confusions_pure, b.n_child_associated_pure) == (1, 3)
+    assert b.confusion_fraction_pure == pytest.approx(1 / 3)
+    assert b.to_json()["confusions"]["single_surface"]["confusions"] == 1
 
 
 def test_extent_errors_of_a_board_against_its_face() -> None:

@@ -18,6 +18,7 @@ import numpy as np
 
 from common.rig import Rig
 from segmentation import Scanline
+from segmentation.steps import split_at_steps
 from slam import params
 from slam.config import SlamConfig
 from slam.frontend.edges import (
@@ -100,6 +101,10 @@ class ScanPreparer:
             return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0)
         try:
             seg = self.segmenters[s].segment(line)
+            sc = self.cfg.segmenter
+            if sc.split_steps:
+                seg = split_at_steps(line, seg, self._range_sigma[s], sc.step_chi2, sc.step_min,
+                                     max(2, int(getattr(self.segmenters[s].params, "min_len", 10))))
         except ValueError:
             return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0)
         t_seg = time.perf_counter()
