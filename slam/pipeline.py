@@ -244,6 +244,7 @@ class SlamRunner:
             a = self.associator.associate(p, self.gates, summary)
             if idle:  # a standing rig's repeated view: neither associated nor pooled
                 a = replace(a, ids=np.full_like(a.ids, -2), grows=np.zeros_like(a.grows))
+                self.stats.rest_idle_scans += 1
             ids = np.maximum(a.ids, -1)  # held back (-2) or not: unassociated
             p.plane_ids = ids
             segs = p.segs

@@ -52,6 +52,7 @@ class RunStats:
     isam2_fallbacks: int = 0
     imu_used: int = 0
     zero_velocity_updates: int = 0
+    rest_idle_scans: int = 0  # a standing rig's repeated views left out (frontend.rest_observe_every)
     edges_created: int = 0
     edges_merged: int = 0
     edge_observations: int = 0

@@ -143,6 +143,7 @@ class RunCounts:
     isam2_fallbacks: int
     imu_used: int
     zero_velocity_updates: int
+    rest_idle_scans: int
     cloud_points: int
 
     @classmethod

@@ -245,6 +245,25 @@ def test_imu_observes_the_corridor_direction(corridor_imu: SimulationResult, rig
     assert [p["code"] for p in without["health"]["problems"]] == ["unobserved_x"], without["health"]
 
 
+def test_a_standing_rig_observes_one_knot_in_n(corridor_imu: SimulationResult, rig: Any, tmp_path: Path) -> None:
+    """frontend.rest_observe_every: while the rig stands (the first second of the corridor walk),
+    only every n-th knot's scans observe the map; the others are neither associated nor pooled,
+    and the walk after the standstill is estimated as well as with every scan."""
+    full = run_slam(corridor_imu.bag, rig, _fast(), tmp_path / "all", progress=False)
+    cfg = _fast(SlamConfig.model_validate({"frontend": {"rest_observe_every": 5}}))
+    thin = run_slam(corridor_imu.bag, rig, cfg, tmp_path / "thin", progress=False)
+    assert full["counts"]["rest_idle_scans"] == 0
+    assert thin["counts"]["rest_idle_scans"] >= 10  # of about 40 scans while standing still
+    left_out = thin["counts"]["segments"] - thin["counts"]["segments_associated"]
+    assert left_out > full["counts"]["segments"] - full["counts"]["segments_associated"]
+    # the idle scans' segments are in segments.npz, not associated
+    rows = np.load(tmp_path / "thin" / "segments.npz")
+    assert (rows["plane_id"] >= 0).sum() == thin["counts"]["segments_associated"]
+    err_full, walked = _final_along_error(tmp_path / "all", corridor_imu.gt)
+    err_thin, _ = _final_along_error(tmp_path / "thin", corridor_imu.gt)
+    assert err_thin < max(2.0 * err_full, 0.05), (err_thin, err_full, walked)
+
+
 def test_the_gyro_deskew_fits_the_points_to_their_planes_better(corridor_imu: SimulationResult, rig: Any,
                                                                  tmp_path: Path) -> None:
     """The same IMU walk with and without the gyro's rotation between knots (``slam.trajectory.deskew``):
