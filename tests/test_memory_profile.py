@@ -78,7 +78,7 @@ def test_malloc_info_sees_a_large_allocation() -> None:
 
 
 def test_trim_heap_gives_freed_heap_pages_back() -> None:
-    from slam.run import trim_heap
+    from slam.heap import trim_heap
 
     if not mp.malloc_info():
         pytest.skip("no glibc malloc")
