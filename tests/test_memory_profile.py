@@ -110,3 +110,23 @@ def test_sampler_samples_this_process_without_itself(tmp_path: Path) -> None:
     assert series[-1, 4] == 1 + len(others)
     if not others:
         assert np.all(series[:, 4] == 1) and np.all(series[:, 3] == series[:, 2])
+
+
+def test_section_counts_of_a_sectioned_batch_only() -> None:
+    class Sections:
+        peak_kept_bytes, peak_separator_bytes, sections_built, sections_solved = 5_000, 700, 3, 6
+
+        def __init__(self, needed: bool) -> None:
+            self._needed = needed
+
+        def needed(self) -> bool:
+            return self._needed
+
+        def plan(self) -> list[tuple[int, int]]:
+            return [(0, 10), (10, 20), (20, 25)]
+
+    assert mp.section_counts(types.SimpleNamespace()) == {}  # a back end without sections
+    assert mp.section_counts(types.SimpleNamespace(sections=Sections(False))) == {}  # solved whole
+    out = mp.section_counts(types.SimpleNamespace(sections=Sections(True)))
+    assert out == {"sections": 3, "section_kept_peak_bytes": 5_000, "separator_peak_bytes": 700,
+                   "sections_built": 3, "sections_solved": 6}
