@@ -152,6 +152,7 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
     bound = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=budget))
     s_bound = bound.batch_optimize(graduated=False)
     assert 0 < bound.sections.peak_kept_bytes <= budget
+    assert 0 < free.sections.largest_net_bytes <= everything
     assert s_bound.final_error == s_free.final_error and np.array_equal(bound.poses(), free.poses())
     # the eliminations come first: a budget for exactly all of them keeps them all and no factors
     values = gtsam.Values(bound.graph.values)

@@ -105,10 +105,11 @@ class SectionedBatch:
         self._cache_bytes = 0
         self._nets_bytes = 0  # the eliminations kept by the latest reduce
         self._caching = False  # only within optimize(): the observations change between solves
-        # the most kept at once (eliminations and factors, estimated) and the largest separator
-        # system (its factors' matrices), for the statistics and the tests
+        # the most kept at once (eliminations and factors, estimated), the largest separator
+        # system (its factors' matrices) and section elimination, for the statistics and the tests
         self.peak_kept_bytes = 0
         self.peak_separator_bytes = 0
+        self.largest_net_bytes = 0  # the largest section's elimination (kept or not)
 
     def needed(self) -> bool:
         """Whether the walk is longer than one section."""
@@ -219,6 +220,7 @@ class SectionedBatch:
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     n_bytes = _net_bytes(bn)
+                    self.largest_net_bytes = max(self.largest_net_bytes, n_bytes)
                     fits = self._room_for_net(n_bytes)
                     nets.append(bn if fits else None)
                     self._nets_bytes += n_bytes if fits else 0
