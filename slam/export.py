@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -85,7 +86,9 @@ def read_trajectory_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
     if not p.is_file():
         raise OutputFileError(f"{p}: no such file")
     try:
-        rows = np.loadtxt(p, dtype=np.float64, comments="#", ndmin=2)
+        with warnings.catch_warnings():  # an empty file: reported below, not as a warning
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            rows = np.loadtxt(p, dtype=np.float64, comments="#", ndmin=2)
     except ValueError as e:
         raise OutputFileError(f"{p}: not a TUM trajectory ({' '.join(str(e).split())[:200]})") from None
     if rows.shape[0] == 0:
