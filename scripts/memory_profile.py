@@ -156,7 +156,23 @@ def gtsam_counts(runner: Any) -> dict[str, int]:
         "knots": len(be.graph.times),
         "planes": len(getattr(store, "by_plane", None) or getattr(store, "plane_blocks", {})),
         "marginals_kept": int(getattr(be, "_marginals", None) is not None),  # the whole graph's, C++
+        **section_counts(be),
     }
+
+
+def section_counts(backend: Any) -> dict[str, int]:
+    """A sectioned final batch's figures so far (``slam.backend.sections``; none before it existed
+    or for a walk solved whole): its sections, what it kept at most between passes (eliminations
+    and cached factors, estimated bytes), its largest separator system (bytes of its factors'
+    matrices) and section elimination (kept or not), the sections built and eliminated."""
+    sec = getattr(backend, "sections", None)
+    if sec is None or not hasattr(sec, "peak_kept_bytes") or not sec.needed():
+        return {}
+    return {"sections": len(sec.plan()), "section_kept_peak_bytes": int(sec.peak_kept_bytes),
+            "separator_peak_bytes": int(sec.peak_separator_bytes),
+            "largest_elimination_bytes": int(getattr(sec, "largest_net_bytes", 0)),
+            "sections_built": int(sec.sections_built),
+            "sections_solved": int(sec.sections_solved)}
 
 
 def rss_bytes(pid: int | str = "self") -> int:

@@ -361,15 +361,15 @@ class BackEndConfig(StrictModel):
     final_batch: bool = True
     batch_iterations: int = Field(10, ge=1)
     batch_section_seconds: float = Field(
-        900.0, gt=0, description="s: a longer walk's final batch is solved in time-ordered sections of at most this "
+        300.0, gt=0, description="s: a longer walk's final batch is solved in time-ordered sections of at most this "
         "length, each section's own variables eliminated in turn onto the planes and the cut knots (the same steps "
         "as a whole-graph batch), so that its memory is one section's (slam/backend/sections.py); a shorter walk is "
         "solved whole")
     batch_cache_mb: float = Field(
-        1024.0, ge=0, description="MB a sectioned final batch may keep from one pass over the sections to the "
-        "next: first each section's elimination (for the back-substitution; about 8 kB per knot), then the "
-        "sections' factors (about 12 kB per knot); what does not fit is eliminated or built again (slower, no "
-        "memory). The batch's memory stops growing with the walk once this is full")
+        512.0, ge=0, description="MB a sectioned final batch may keep from one pass over the sections to the "
+        "next, all together: first each section's elimination (for the back-substitution; about 8 kB per knot), "
+        "then the sections' factors (about 12 kB per knot); what does not fit is eliminated or built again (slower, "
+        "no memory). The batch's memory stops growing with the walk once this is full")
     fold_links: Literal["step", "end"] = Field(
         "step", description="when two planes the front end found to be one surface (a wall walked past again) "
         "become one variable in the back end: 'step' at the next window step (the window then holds one plane "

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -75,26 +76,58 @@ MAX_COORDINATE = 1e7  # m: a trajectory or cloud beyond this (UTM's range) is no
 
 def read_trajectory_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
     """Read a TUM file; return times (N,) and ``T_world_body`` (N,4,4). Non-finite values and
-    positions beyond :data:`MAX_COORDINATE` are an ``OutputFileError`` naming the file."""
-    from evo.tools import file_interface
-    from evo.tools.file_interface import FileInterfaceException
+    positions beyond :data:`MAX_COORDINATE` are an ``OutputFileError`` naming the file.
 
+    The rows are parsed into one array (numpy's text reader; ``#`` starts a comment) and the
+    rotations built from the quaternions all at once, as evo's ``quaternion_matrix`` builds each
+    (normalised, outer product): an hour's ground truth at 200 Hz (720,000 rows) takes 0.13 GB
+    instead of the ~1 GB of evo's reader (a list of strings per row, a 4x4 array per pose)."""
     p = Path(path)
     if not p.is_file():
         raise OutputFileError(f"{p}: no such file")
     try:
-        traj = file_interface.read_tum_trajectory_file(str(p))
-    except FileInterfaceException as e:
-        raise OutputFileError(f"{p}: {e}") from None
-    times = np.asarray(traj.timestamps, dtype=np.float64)
-    T = np.asarray(traj.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
-    if times.shape[0] == 0:
+        with warnings.catch_warnings():  # an empty file: reported below, not as a warning
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            rows = np.loadtxt(p, dtype=np.float64, comments="#", ndmin=2)
+    except ValueError as e:
+        raise OutputFileError(f"{p}: not a TUM trajectory ({' '.join(str(e).split())[:200]})") from None
+    if rows.shape[0] == 0:
         raise OutputFileError(f"{p}: empty trajectory")
-    if not (np.all(np.isfinite(times)) and np.all(np.isfinite(T))):
+    if rows.shape[1] != 8:
+        raise OutputFileError(f"{p}: expected 8 columns (t x y z qx qy qz qw), got {rows.shape[1]}")
+    times = np.ascontiguousarray(rows[:, 0])
+    if not np.all(np.isfinite(rows)):
         raise OutputFileError(f"{p}: non-finite times or poses")
+    T = np.zeros((rows.shape[0], 4, 4))
+    T[:, :3, :3] = quaternion_matrices(rows[:, [7, 4, 5, 6]])
+    T[:, :3, 3] = rows[:, 1:4]
+    T[:, 3, 3] = 1.0
     if np.abs(T[:, :3, 3]).max() > MAX_COORDINATE:
         raise OutputFileError(f"{p}: positions beyond {MAX_COORDINATE:g} m")
     return times, T
+
+
+def quaternion_matrices(wxyz: FloatArray) -> FloatArray:
+    """Rotation matrices (N,3,3) of quaternions (N,4) ``w x y z``, not necessarily of unit norm:
+    evo's (and Gohlke's) ``quaternion_matrix`` for many at once (to the last bit or two); a
+    quaternion whose squared norm is below 4 machine epsilons gives the identity, as there."""
+    q = np.array(wxyz, dtype=np.float64)
+    n = np.einsum("ij,ij->i", q, q)
+    small = n < np.finfo(float).eps * 4.0
+    q *= np.sqrt(2.0 / np.where(small, 1.0, n))[:, None]
+    w, x, y, z = q.T
+    R = np.empty((q.shape[0], 3, 3))
+    R[:, 0, 0] = 1.0 - y * y - z * z
+    R[:, 0, 1] = x * y - z * w
+    R[:, 0, 2] = x * z + y * w
+    R[:, 1, 0] = x * y + z * w
+    R[:, 1, 1] = 1.0 - x * x - z * z
+    R[:, 1, 2] = y * z - x * w
+    R[:, 2, 0] = x * z - y * w
+    R[:, 2, 1] = y * z + x * w
+    R[:, 2, 2] = 1.0 - x * x - y * y
+    R[small] = np.eye(3)
+    return R
 
 
 # ---------------------------------------------------------------------------------- planes

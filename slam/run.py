@@ -22,7 +22,6 @@ export's memory does not grow with the walk's length (``slam.cloud_pass``).
 
 from __future__ import annotations
 
-import ctypes
 import gc
 import resource
 import sys
@@ -41,6 +40,7 @@ from slam import params
 from slam.config import SlamConfig
 from slam.export import write_summary_json
 from slam.health import Health, assess, rig_problems, silent_scanners, start_problems
+from slam.heap import trim_heap
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.echoes import several_echoes_share
@@ -156,20 +156,6 @@ def peak_rss_gb() -> float:
     return peak * (1 if sys.platform == "darwin" else 1024) / 1e9
 
 
-def trim_heap() -> bool:
-    """Give the free pages of the C heap back to the system (glibc's ``malloc_trim``); False where
-    there is no glibc (nothing done). Objects freed by Python, numpy or gtsam leave their memory in
-    malloc's free chunks, resident until malloc reuses it: after the estimation, what the final
-    batch and the let-go estimator used."""
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return False
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    trim(0)
-    return True
-
-
 def run_slam(
     bag: str | Path,
     rig: Rig | None,
@@ -236,6 +222,11 @@ def run_slam(
             summary = RunSummary.of(bag, rig, cfg, res, cloud.points, memory, time.perf_counter() - t_wall,
                                     t_range, health, check.notes, noise, pace).to_dict()
             write_summary_json(tmp / "summary.json", summary)
+    # the result, the cloud view and the scans' index are done with: what they held goes back to
+    # the system before the caller goes on (an evaluation in the same process)
+    del res, cloud, scans
+    gc.collect()
+    trim_heap()
     return summary
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import gtsam
 import numpy as np
 import pytest
 from backend_defaults import backend_defaults
@@ -16,6 +17,7 @@ from slam.backend import Backend, StepReport
 from slam.backend.graph import top_knot
 from slam.backend.id_lists import IdLists
 from slam.backend.incremental import Isam2Solver
+from slam.backend.knots import is_imu_keys
 
 
 def _random_backend(seed: int, knots: int = 12, planes: int = 5, blocks: int = 80, solver: str = "window") -> Backend:
@@ -188,3 +190,38 @@ def test_motion_factors_left_behind_are_released_and_rebuilt_the_same() -> None:
     be.blocks.planes.at(None)
     assert after == before
     assert all(be.graph.records[f].factor is None for f in released)  # built for the graph, not kept
+
+
+def test_imu_and_bias_factors_left_behind_are_released_and_rebuilt_bit_for_bit() -> None:
+    rng = np.random.default_rng(9)
+    be = Backend(backend_defaults(imu=True))
+    T = np.eye(4)
+    for i in range(16):
+        T = T.copy()
+        T[:3, 3] += rng.normal(size=3) * 0.05
+        be.add_pose(0.05 * i + 0.001 * i * i, T)
+    for i in range(15):
+        m = int(rng.integers(3, 12))
+        be.add_imu(i, rng.normal(size=(m, 3)) + np.array([0.0, 0.0, 9.81]), rng.normal(size=(m, 3)) * 0.1,
+                   rng.uniform(0.002, 0.008, m))
+    kept = {f: r.factor for f, r in be.graph.records.items() if r.rebuildable}
+    imu = [f for f, fac in kept.items() if isinstance(fac, gtsam.ImuFactor)]
+    bias = [f for f, fac in kept.items() if isinstance(fac, gtsam.BetweenFactorConstantBias)]
+    assert len(imu) == 15 and len(bias) == 15 and all(is_imu_keys(be.graph.records[f].keys) for f in imu)
+    values = be.graph.values
+    errors = {f: fac.error(values) for f, fac in kept.items()}
+    jacobians = {f: fac.linearize(values).jacobian() for f, fac in kept.items()}
+    stats = be.residual_statistics()
+    be.blocks.hold_before(10)
+    released = {f for f in kept if be.graph.records[f].factor is None}
+    assert {top_knot(be.graph.records[f].keys) for f in released & set(imu)} == set(range(1, 10))  # intervals 0..8
+    assert {top_knot(be.graph.records[f].keys) for f in released & set(bias)} == set(range(1, 10))
+    for f in kept:  # built again (IMU: from the samples and the bias): the same factor to the last bit
+        again = be.graph.factor(f)
+        assert type(again) is type(kept[f]) and again.error(values) == errors[f]
+        A, b = again.linearize(values).jacobian()
+        assert np.array_equal(A, jacobians[f][0]) and np.array_equal(b, jacobians[f][1])
+    assert be.residual_statistics() == stats  # released IMU factors still counted
+    assert all(be.graph.records[f].factor is None for f in released)  # built for the question, not kept
+    with pytest.raises(KeyError, match="interval 15"):
+        be.knots.imu_samples.of(15)

@@ -13,6 +13,7 @@ from common.atomic import OutputFileError, atomic_path
 from slam.export import (
     PlaneRecord,
     make_segment_table,
+    quaternion_matrices,
     read_cloud_ply,
     read_planes_json,
     read_segments_npz,
@@ -59,6 +60,33 @@ def test_trajectory_bad_shapes(tmp_path: Path) -> None:
     (tmp_path / "bad.tum").write_text("1 2 3\n")
     with pytest.raises(OutputFileError, match=r"bad\.tum"):
         read_trajectory_tum(tmp_path / "bad.tum")
+
+
+def test_trajectory_reader_is_evos(tmp_path: Path) -> None:
+    from evo.tools import file_interface
+
+    path = write_trajectory_tum(tmp_path / "trajectory.tum", 1.7e9 + np.arange(200) * 0.005, _poses(200, seed=4))
+    path.write_text("# t x y z qx qy qz qw\n" + path.read_text())  # a comment line, as TUM allows
+    times, T = read_trajectory_tum(path)
+    ref = file_interface.read_tum_trajectory_file(str(path))
+    assert np.array_equal(times, np.asarray(ref.timestamps))
+    np.testing.assert_allclose(T, np.asarray(ref.poses_se3), rtol=0, atol=4e-15)
+    bad = {"seven.tum": ("1 2 3 4 0 0 0\n", r"seven\.tum.*8 columns"), "empty.tum": ("# nothing\n", r"empty\.tum")}
+    for name, (text, message) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(OutputFileError, match=message):
+            read_trajectory_tum(tmp_path / name)
+
+
+def test_quaternion_matrices_are_evos() -> None:
+    from evo.core.transformations import quaternion_matrix
+
+    q = np.random.default_rng(2).normal(0, 1, (50, 4))  # not of unit norm
+    q[7] = 0.0  # no rotation: the identity
+    R = quaternion_matrices(q)
+    for qi, Ri in zip(q, R, strict=True):
+        np.testing.assert_allclose(Ri, quaternion_matrix(qi)[:3, :3], rtol=0, atol=4e-15)
+    assert np.array_equal(R[7], np.eye(3))
 
 
 def test_planes_round_trip_and_ground_truth_format(tmp_path: Path) -> None:

@@ -78,7 +78,7 @@ def test_malloc_info_sees_a_large_allocation() -> None:
 
 
 def test_trim_heap_gives_freed_heap_pages_back() -> None:
-    from slam.run import trim_heap
+    from slam.heap import trim_heap
 
     if not mp.malloc_info():
         pytest.skip("no glibc malloc")
@@ -110,3 +110,24 @@ def test_sampler_samples_this_process_without_itself(tmp_path: Path) -> None:
     assert series[-1, 4] == 1 + len(others)
     if not others:
         assert np.all(series[:, 4] == 1) and np.all(series[:, 3] == series[:, 2])
+
+
+def test_section_counts_of_a_sectioned_batch_only() -> None:
+    class Sections:
+        peak_kept_bytes, peak_separator_bytes, sections_built, sections_solved = 5_000, 700, 3, 6
+        largest_net_bytes = 900
+
+        def __init__(self, needed: bool) -> None:
+            self._needed = needed
+
+        def needed(self) -> bool:
+            return self._needed
+
+        def plan(self) -> list[tuple[int, int]]:
+            return [(0, 10), (10, 20), (20, 25)]
+
+    assert mp.section_counts(types.SimpleNamespace()) == {}  # a back end without sections
+    assert mp.section_counts(types.SimpleNamespace(sections=Sections(False))) == {}  # solved whole
+    out = mp.section_counts(types.SimpleNamespace(sections=Sections(True)))
+    assert out == {"sections": 3, "section_kept_peak_bytes": 5_000, "separator_peak_bytes": 700,
+                   "largest_elimination_bytes": 900, "sections_built": 3, "sections_solved": 6}

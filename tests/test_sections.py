@@ -141,3 +141,27 @@ def test_sectioned_plane_covariances_are_the_whole_graphs(scene: Scene) -> None:
     for j in range(6):
         c_w, c_s = whole.plane_covariance(j), cut.plane_covariance(j)
         assert np.allclose(c_s, c_w, rtol=1e-5, atol=1e-14), j
+
+
+def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> None:
+    free = _build(scene, replace(backend_defaults(), batch_section_knots=20))
+    s_free = free.batch_optimize(graduated=False)
+    everything = free.sections.peak_kept_bytes  # all eliminations and all factors
+    assert everything > 0 and free.sections.peak_separator_bytes > 0
+    budget = everything // 2
+    bound = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=budget))
+    s_bound = bound.batch_optimize(graduated=False)
+    assert 0 < bound.sections.peak_kept_bytes <= budget
+    assert 0 < free.sections.largest_net_bytes <= everything
+    assert s_bound.final_error == s_free.final_error and np.array_equal(bound.poses(), free.poses())
+    # the eliminations come first: a budget for exactly all of them keeps them all and no factors
+    values = gtsam.Values(bound.graph.values)
+    kernel = bound.config.kernel
+    nets = bound.sections.reduce(values, kernel, DAMPING, keep=True).nets
+    assert nets is not None and all(n is not None for n in nets)
+    all_nets = sum(_net_bytes(n) for n in nets if n is not None)
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=all_nets))
+    tight.sections._caching = True  # as within a solve
+    kept = tight.sections.reduce(values, kernel, DAMPING, keep=True)
+    assert kept.nets is not None and all(n is not None for n in kept.nets)
+    assert tight.sections._cache_bytes == 0 and tight.sections.peak_kept_bytes <= all_nets

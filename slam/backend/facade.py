@@ -36,7 +36,7 @@ from slam.backend.config import BackendConfig, OptimizeSummary, StepReport
 from slam.backend.factors import RobustKernel, robust_weights
 from slam.backend.graph import FactorGraph
 from slam.backend.incremental import IncrementalSolver, make_incremental
-from slam.backend.knots import Knots
+from slam.backend.knots import Knots, is_imu_keys
 from slam.backend.sections import SectionedBatch
 from slam.backend.ties import PlaneTies
 from slam.trajectory.interpolation import interpolate_trajectory
@@ -302,9 +302,12 @@ class Backend:
             "rms_whitened": float(np.sqrt(np.mean(e**2))) if e.size else 0.0,
             "outlier_fraction": float(np.mean(w < 0.5)) if e.size else 0.0,
         }
-        imu = [r.factor for r in self.graph.records.values() if isinstance(r.factor, gtsam.ImuFactor)]
+        # the IMU factors, those the window has let go built again one at a time
+        imu = [fid for fid, r in self.graph.records.items()
+               if isinstance(r.factor, gtsam.ImuFactor) or (r.factor is None and is_imu_keys(r.keys))]
         if imu:
-            chi2 = sum(2.0 * f.error(self.graph.values) for f in imu)  # error() is half the whitened square
+            values = self.graph.values
+            chi2 = sum(2.0 * self.graph.factor(fid).error(values) for fid in imu)  # error(): half the whitened square
             out["imu_factors"] = float(len(imu))
             out["imu_rms_whitened"] = float(np.sqrt(chi2 / (9.0 * len(imu))))
         return out

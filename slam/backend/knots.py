@@ -6,6 +6,11 @@ when floor/ceiling priors define the vertical: ``datum="position_yaw"``), a weak
 first interval's motion (without an IMU), a constant-velocity prior on every three consecutive
 knots (:mod:`slam.motion`), and with an IMU the bias random walk of each interval plus priors on
 the first velocity and bias; the ImuFactor of an interval comes with :meth:`Knots.add_imu`.
+
+The constant-velocity, bias random-walk and IMU factors are rebuildable: once the window has left
+their knots they are let go (:meth:`FactorGraph.release`) and built again, the same, when a batch
+needs them; an ImuFactor from its interval's samples and the bias it was preintegrated at
+(:class:`ImuSamples`: 56 B per sample, ~0.6 kB per knot at 200 Hz, instead of the factor's ~2.5 kB).
 """
 
 from __future__ import annotations
@@ -30,6 +35,43 @@ from slam.trajectory.interpolation import se3_exp, se3_log
 FloatArray = NDArray[np.float64]
 
 
+class ImuSamples:
+    """Each IMU interval's samples (specific force, angular rate, dt: 7 floats a sample) and the
+    bias its preintegration was linearised at, in growing arrays indexed by the interval's first
+    knot, so that its ImuFactor can be built again bit for bit (:meth:`Knots.imu_factor`)."""
+
+    def __init__(self) -> None:
+        self.rows = np.empty((0, 7))
+        self.n_rows = 0
+        self.first = np.zeros(0, dtype=np.int64)  # per interval: its first row (-1: no samples)
+        self.count = np.zeros(0, dtype=np.int64)
+        self.bias = np.zeros((0, 6))  # per interval: the preintegration's bias (accelerometer, gyroscope)
+
+    def add(self, interval: int, samples: FloatArray, bias: FloatArray) -> None:
+        """The samples (M, 7) of ``interval`` and its bias (6,)."""
+        m = samples.shape[0]
+        if self.n_rows + m > self.rows.shape[0]:
+            grown = np.empty((max(2 * self.rows.shape[0], self.n_rows + m, 1024), 7))
+            grown[:self.n_rows] = self.rows[:self.n_rows]
+            self.rows = grown
+        if interval >= self.first.shape[0]:
+            size = max(2 * self.first.shape[0], interval + 1, 256)
+            self.first = np.concatenate((self.first, np.full(size - self.first.shape[0], -1, dtype=np.int64)))
+            self.count = np.concatenate((self.count, np.zeros(size - self.count.shape[0], dtype=np.int64)))
+            self.bias = np.concatenate((self.bias, np.zeros((size - self.bias.shape[0], 6))))
+        self.rows[self.n_rows:self.n_rows + m] = samples
+        self.first[interval], self.count[interval] = self.n_rows, m
+        self.bias[interval] = bias
+        self.n_rows += m
+
+    def of(self, interval: int) -> tuple[FloatArray, FloatArray]:
+        """The interval's samples (M, 7) and bias (6,)."""
+        if interval >= self.first.shape[0] or self.first[interval] < 0:
+            raise KeyError(f"no IMU samples for interval {interval}")
+        a = int(self.first[interval])
+        return self.rows[a:a + int(self.count[interval])], self.bias[interval]
+
+
 class Knots:
     """Knot variables of a :class:`FactorGraph` and their priors, motion and IMU factors."""
 
@@ -37,7 +79,8 @@ class Knots:
         self.graph = graph
         self.config = config
         self._imu_intervals: set[int] = set()
-        graph.rebuild = self._motion_factor
+        self.imu_samples = ImuSamples()
+        graph.rebuild = self._rebuild
 
     def add_pose(self, time: float, T_world_body: ArrayLike, velocity_world: ArrayLike | None) -> int:
         """See :meth:`Backend.add_pose`."""
@@ -87,7 +130,7 @@ class Knots:
             add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array([sa] * 3 + [sg] * 3))))
         else:
-            add(bias_random_walk_factor(B(i - 1), B(i), times[i] - times[i - 1], imu))
+            add(bias_random_walk_factor(B(i - 1), B(i), times[i] - times[i - 1], imu), rebuildable=True)
 
     def add_velocity_prior(self, knot: int, velocity_world: ArrayLike, sigma: float) -> None:
         """See :meth:`Backend.add_velocity_prior`."""
@@ -103,9 +146,21 @@ class Knots:
         if i in self._imu_intervals:
             raise ValueError(f"knot: interval {i} already has IMU data")
         bias = self.graph.values.atConstantBias(B(i))
-        pim = preintegrate(imu.params(), bias, accel_imu, gyro_imu, dt)
+        pim = preintegrate(imu.params(), bias, accel_imu, gyro_imu, dt)  # checks the samples
+        samples = np.column_stack((np.asarray(accel_imu, dtype=float), np.asarray(gyro_imu, dtype=float),
+                                   np.asarray(dt, dtype=float)))
+        self.imu_samples.add(i, samples, np.asarray(bias.vector(), dtype=float))
         self._imu_intervals.add(i)
-        self.graph.add_factor(gtsam.ImuFactor(X(i), V(i), X(i + 1), V(i + 1), B(i), pim))
+        self.graph.add_factor(gtsam.ImuFactor(X(i), V(i), X(i + 1), V(i + 1), B(i), pim), rebuildable=True)
+
+    def imu_factor(self, interval: int) -> gtsam.ImuFactor:
+        """The ImuFactor of ``interval`` as :meth:`add_imu` made it (from its samples and bias)."""
+        imu = self._need_imu("imu_factor")
+        samples, b = self.imu_samples.of(interval)
+        pim = preintegrate(imu.params(), gtsam.imuBias.ConstantBias(b[:3], b[3:]), samples[:, 0:3],
+                           samples[:, 3:6], samples[:, 6])
+        i = interval
+        return gtsam.ImuFactor(X(i), V(i), X(i + 1), V(i + 1), B(i), pim)
 
     def _need_imu(self, what: str) -> ImuConfig:
         if self.config.imu is None:
@@ -113,6 +168,18 @@ class Knots:
         return self.config.imu
 
     # ----------------------------------------------------------------- estimates
+    def _rebuild(self, keys: tuple[int, ...]) -> gtsam.NonlinearFactor:
+        """A released factor built again from its keys: an ImuFactor on (X(i), V(i), X(i+1), V(i+1),
+        B(i)), the bias random walk on (B(i-1), B(i)), else the constant-velocity factor on (X(i-2),
+        X(i-1), X(i))."""
+        if is_imu_keys(keys):
+            return self.imu_factor(gtsam.Symbol(keys[0]).index())
+        if len(keys) == 2:  # (B(i-1), B(i)): the bias random walk
+            i = gtsam.Symbol(keys[1]).index()
+            times = self.graph.times
+            return bias_random_walk_factor(B(i - 1), B(i), times[i] - times[i - 1], self._need_imu("bias random walk"))
+        return self._motion_factor(keys)
+
     def _motion_factor(self, keys: tuple[int, ...]) -> gtsam.NonlinearFactor:
         """The constant-velocity factor on ``keys`` (X(i-2), X(i-1), X(i)) as :meth:`add_pose` made it."""
         i = gtsam.Symbol(keys[2]).index()
@@ -157,3 +224,8 @@ class Knots:
         xi = se3_log(np.linalg.inv(T_prev) @ T_last)
         a = (float(time) - times[-1]) / (times[-1] - times[-2])
         return np.asarray(T_last @ se3_exp(a * xi))
+
+
+def is_imu_keys(keys: tuple[int, ...]) -> bool:
+    """Whether ``keys`` are an ImuFactor's (X, V, X, V, B)."""
+    return len(keys) == 5 and [chr(gtsam.Symbol(k).chr()) for k in keys] == ["x", "v", "x", "v", "b"]

@@ -55,6 +55,7 @@ from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
 from slam.backend.graph import FactorGraph, copy_value, top_knot
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
+from slam.heap import trim_heap
 
 FloatArray = NDArray[np.float64]
 # a cached interval factor's points (body point, fraction, sigma, plane index, their copies in the
@@ -100,10 +101,15 @@ class SectionedBatch:
         self.sections_built = 0  # sections' factors built (the rest came from the cache)
         # the sections' factors kept through one solve (same kernel, same observations), the
         # bytes they are estimated to hold
-        self._cache: dict[tuple[int, int, str, float], gtsam.NonlinearFactorGraph] = {}
+        self._cache: dict[tuple[int, int, str, float], tuple[gtsam.NonlinearFactorGraph, int]] = {}
         self._cache_bytes = 0
         self._nets_bytes = 0  # the eliminations kept by the latest reduce
         self._caching = False  # only within optimize(): the observations change between solves
+        # the most kept at once (eliminations and factors, estimated), the largest separator
+        # system (its factors' matrices) and section elimination, for the statistics and the tests
+        self.peak_kept_bytes = 0
+        self.peak_separator_bytes = 0
+        self.largest_net_bytes = 0  # the largest section's elimination (kept or not)
 
     def needed(self) -> bool:
         """Whether the walk is longer than one section."""
@@ -119,17 +125,30 @@ class SectionedBatch:
         key = (a, b, kernel.name, float(kernel.threshold))
         hit = self._cache.get(key)
         if hit is not None:
-            return hit
+            return hit[0]
         graph, n_bytes = self._build(a, b, kernel)
         if self._caching and self._cache_bytes + n_bytes + self._nets_bytes <= self.config.batch_cache_bytes:
-            self._cache[key] = graph
+            self._cache[key] = (graph, n_bytes)
             self._cache_bytes += n_bytes
+            self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
         return graph
 
     def clear_cache(self) -> None:
         """Let go of the cached factors (the observations or the kernel changed, or the solve ended)."""
         self._cache.clear()
         self._cache_bytes = 0
+
+    def _room_for_net(self, n_bytes: int) -> bool:
+        """Whether an elimination of ``n_bytes`` fits the budget beside the eliminations kept so
+        far in this pass; cached factors are let go (the latest cached first) to make room, as a
+        kept elimination saves more work per byte than a section's factors."""
+        budget = self.config.batch_cache_bytes
+        if self._nets_bytes + n_bytes > budget:
+            return False
+        while self._cache and self._nets_bytes + self._cache_bytes + n_bytes > budget:
+            _, (_, freed) = self._cache.popitem()
+            self._cache_bytes -= freed
+        return self._nets_bytes + self._cache_bytes + n_bytes <= budget
 
     def _build(self, a: int, b: int, kernel: RobustKernel) -> tuple[gtsam.NonlinearFactorGraph, int]:
         """The factors of the section ``[a, b)`` built afresh, and the bytes they are estimated to
@@ -201,9 +220,11 @@ class SectionedBatch:
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     n_bytes = _net_bytes(bn)
-                    fits = self._nets_bytes + n_bytes <= self.config.batch_cache_bytes
+                    self.largest_net_bytes = max(self.largest_net_bytes, n_bytes)
+                    fits = self._room_for_net(n_bytes)
                     nets.append(bn if fits else None)
                     self._nets_bytes += n_bytes if fits else 0
+                    self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
                 del lin, rest, bn
             planes = self.plane_factors()
             if planes.size():
@@ -213,6 +234,7 @@ class SectionedBatch:
                 sep_keys.update(int(k) for k in lin.keyVector())
         if damping > 0.0:
             out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping, cache=False))
+        self.peak_separator_bytes = max(self.peak_separator_bytes, _graph_bytes(out))
         return Reduced(out, err, nets)
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
@@ -281,6 +303,7 @@ class SectionedBatch:
             finally:
                 self._caching = False
                 self.clear_cache()
+                trim_heap()  # what the solve let go, back to the system before the next stage
             iterations += its
             e0 = first if e0 != e0 else e0
         self.graph.restructure()
@@ -355,6 +378,12 @@ class SectionedBatch:
         matrix is dense (each section's reduced factor spans all its planes), so it is inverted
         once, by Cholesky, for all planes; if it is singular, each plane's marginal is asked of
         gtsam in turn and a plane the system leaves indeterminate is left out."""
+        try:
+            return self._plane_covariances()
+        finally:
+            trim_heap()
+
+    def _plane_covariances(self) -> dict[int, FloatArray]:
         values = self.graph.values
         red = self.reduce(values, self.config.kernel, 0.0)
         keys = sorted(int(k) for k in red.graph.keyVector())
@@ -407,6 +436,12 @@ def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:
 def _net_bytes(bn: gtsam.GaussianBayesNet) -> int:
     """Bytes of a Bayes net's conditionals' matrices ([R S d] of each)."""
     return 8 * sum(int(c.rows()) * int(c.cols()) for c in (bn.at(i) for i in range(bn.size())))
+
+
+def _graph_bytes(graph: gtsam.GaussianFactorGraph) -> int:
+    """Bytes of a linear graph's Jacobian factors' augmented matrices (other factors not counted)."""
+    factors = (graph.at(i) for i in range(graph.size()))
+    return 8 * sum(int(f.rows()) * int(f.cols()) for f in factors if isinstance(f, gtsam.JacobianFactor))
 
 
 def _zeros(keys: list[int], dims: dict[int, int]) -> gtsam.VectorValues:
