@@ -111,8 +111,8 @@ class FrontEndConfig(StrictModel):
         "scanner alone) became planes (issue 26, session 20); on, the demo, the small room and the 2-min office walk "
         "give the same figures as off")
     rest_observe_every: int = Field(
-        1, ge=1, description="while the IMU says the operator stands still, only every n-th knot's scans observe the "
-        "map (the others are neither associated nor pooled): a standing rig repeats one view, whose systematic "
+        1, ge=1, description="while the operator stands still (the IMU's zero-velocity test, or the tracked poses "
+        "within 1 cm and 0.5 deg over 0.5 s), only every n-th knot's scans observe the map (the others are neither associated nor pooled): a standing rig repeats one view, whose systematic "
         "errors (a segment across a door's edge, a mixed return) do not average out over its repeats; 1 = all")
     transient_check: bool = Field(
         True, description="take planes of things that move (people walking by) out of the map: young planes that "

@@ -108,7 +108,9 @@ class SlamRunner:
         self.tracker = WindowTracker(self.params.tracking, self.params.tracking_gates, self.knots, self.pmap,
                                      self.queues, self.associator, self.edges, self.motion, children)
         self._since_update = 0
-        self._rest_run = 0  # knots at rest in a row up to the newest (the IMU's zero-velocity test)
+        # knots at rest in a row up to the newest (the IMU's zero-velocity test or the tracked poses;
+        # counted for frontend.rest_observe_every only)
+        self._rest_run = 0
         # the first scans, held (and no knot processed) until the start's motion is known
         self._start_scans: list[ScanSegments] | None = None
 
@@ -120,7 +122,8 @@ class SlamRunner:
         self.backend.add_pose(self.knots.time(k), T, velocity_world=self.motion.velocity(self.knots, k))
         zupt = self.motion.add_factors(self.knots, k)
         self.stats.zero_velocity_updates += zupt
-        self._rest_run = self._rest_run + 1 if (zupt or self._still(k)) else 0
+        if self.cfg.frontend.rest_observe_every > 1:
+            self._rest_run = self._rest_run + 1 if (zupt or self._still(k)) else 0
         return k
 
     def _still(self, k: int) -> bool:
@@ -238,8 +241,7 @@ class SlamRunner:
         blocks = ObservationBlocks(self.knots, self.stats)
         now = self.knots.time(self.knots.n - 1)
         hosts = self.maps.ties.children()
-        every = self.cfg.frontend.rest_observe_every
-        idle = every > 1 and self._rest_run > 1 and self._rest_run % every != 0
+        idle = self._rest_run > 1 and self._rest_run % self.cfg.frontend.rest_observe_every != 0
         for p, summary in zip(ready, self.associator.summaries(ready), strict=True):
             a = self.associator.associate(p, self.gates, summary)
             if idle:  # a standing rig's repeated view: neither associated nor pooled

@@ -13,7 +13,6 @@ from common.atomic import OutputFileError, atomic_path
 from slam.export import (
     PlaneRecord,
     make_segment_table,
-    quaternion_matrices,
     read_cloud_ply,
     read_planes_json,
     read_segments_npz,
@@ -78,12 +77,15 @@ def test_trajectory_reader_is_evos(tmp_path: Path) -> None:
             read_trajectory_tum(tmp_path / name)
 
 
-def test_quaternion_matrices_are_evos() -> None:
+def test_trajectory_rotations_are_evos(tmp_path: Path) -> None:
     from evo.core.transformations import quaternion_matrix
 
-    q = np.random.default_rng(2).normal(0, 1, (50, 4))  # not of unit norm
+    q = np.random.default_rng(2).normal(0, 1, (50, 4))  # w x y z, not of unit norm
     q[7] = 0.0  # no rotation: the identity
-    R = quaternion_matrices(q)
+    rows = np.column_stack((np.arange(50.0), np.zeros((50, 3)), q[:, 1:], q[:, :1]))
+    np.savetxt(tmp_path / "q.tum", rows)
+    _, T = read_trajectory_tum(tmp_path / "q.tum")
+    R = T[:, :3, :3]
     for qi, Ri in zip(q, R, strict=True):
         np.testing.assert_allclose(Ri, quaternion_matrix(qi)[:3, :3], rtol=0, atol=4e-15)
     assert np.array_equal(R[7], np.eye(3))

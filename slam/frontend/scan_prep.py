@@ -101,12 +101,12 @@ class ScanPreparer:
             return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0)
         try:
             seg = self.segmenters[s].segment(line)
-            sc = self.cfg.segmenter
-            if sc.split_steps:
-                seg = split_at_steps(line, seg, self._range_sigma[s], sc.step_chi2, sc.step_min,
-                                     max(2, int(getattr(self.segmenters[s].params, "min_len", 10))))
         except ValueError:
             return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0)
+        sc = self.cfg.segmenter
+        if sc.split_steps:
+            seg = split_at_steps(line, seg, self._range_sigma[s], sc.step_chi2, sc.step_min,
+                                 max(2, self.segmenters[s].params.min_len))
         t_seg = time.perf_counter()
         segs = scan_segments(line, seg, self._T_body_scanner[s], s, scan_index, self._range_sigma[s],
                              self.cfg.frontend.model_sigma)
