@@ -341,7 +341,7 @@ class BackEndConfig(StrictModel):
     lm_relative_tolerance: float = Field(1e-4, gt=0, description="a batch stage stops below this relative error decrease")
     robust_schedule: tuple[float, ...] = Field(
         (30.0, 10.0, 3.0), description="kernel-width multipliers of the graduated stages before the nominal one")
-    update_every: int = Field(20, ge=1, description="knots between back-end updates (window solves or iSAM2 steps)")
+    update_every: int = Field(40, ge=1, description="knots between back-end updates (window solves or iSAM2 steps; 40: every 2 s at 20 Hz, docs/speed.md session 22)")
     pipelined: bool | None = Field(
         False, description="experimental (off: on the 10-minute office walk with an IMU it diverged, see "
         "docs/speed.md): run the back end in its own forked process, in parallel with the front end, which then "
