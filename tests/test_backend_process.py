@@ -150,6 +150,45 @@ def test_imu_factors_count_as_in_the_back_end() -> None:
         proxy.close()
 
 
+def test_knots_added_after_a_step_take_its_velocity_change() -> None:
+    """The front end integrates the IMU on from the newest velocity it has: knots added after a
+    step get the velocity the step gave its last knot plus the front end's change since (rotated
+    like the poses), not only the rotation. A front end whose velocities are 1 m/s off for a
+    standing rig (the IMU and a zero-velocity prior say 0) gets them back near 0: without the
+    step's change, the front end's velocity was never corrected one update late (issue 23: the
+    10-minute walk with its IMU diverged)."""
+    be, proxy, knots = _pair(backend_defaults(imu=True), dt=0.05)
+    try:
+        _both(be, proxy, "add_plane", 0, np.array([0.0, 0.0, 1.0]), 1.0, horizontal=True)
+        accel = np.tile([0.0, 0.0, 9.81], (10, 1))  # standing still, level
+        pts = np.array([[1.0, 0.0, -1.0], [0.0, 1.0, -1.0], [-1.0, 0.5, -1.0]])
+        wrong = np.array([1.0, 0.0, 0.0])
+
+        def knot(i: int) -> None:
+            knots.append(np.eye(4), wrong + 0.01 * i)  # the front end's velocities: off, and changing
+            _both(be, proxy, "add_pose", 0.05 * i, np.eye(4), velocity_world=knots.V[i].copy())
+            if i:
+                _both(be, proxy, "add_imu", i - 1, accel, np.zeros((10, 3)), np.full(10, 0.005))
+                _both(be, proxy, "add_observations", i - 1, 0, pts, None, np.full(3, 0.01))
+            _both(be, proxy, "add_velocity_prior", i, np.zeros(3), 0.01)
+
+        for i in range(4):
+            knot(i)
+        be.step()
+        assert not proxy.step().solved  # sent; its result comes with the next step
+        v3 = be.velocity(3)
+        assert np.linalg.norm(v3) < 0.05
+        for i in range(4, 6):
+            knot(i)
+        assert proxy.step().solved  # the first step's result, one update late
+        np.testing.assert_array_equal(proxy.velocity(3), v3)
+        R = (proxy.pose(5) @ np.linalg.inv(knots.T[5]))[:3, :3]
+        np.testing.assert_allclose(proxy.velocity(5), v3 + R @ (knots.V[5] - knots.V[3]), atol=1e-12)
+        assert np.linalg.norm(proxy.velocity(5)) < 0.1, proxy.velocity(5)
+    finally:
+        proxy.close()
+
+
 def test_a_failing_worker_raises_in_the_parent() -> None:
     """A call the back end refuses, an id the counters got wrong and a killed worker each end in a
     one-line RuntimeError in the parent, not a hang."""
