@@ -268,12 +268,22 @@ walk:
 """
 
 
-@pytest.fixture(scope="module")
-def box_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
-    folder = tmp_path_factory.mktemp("box_walk")
+def _box_walk(tmp_path_factory: pytest.TempPathFactory, imu: bool) -> SimulationResult:
+    """6 s through the box (with an IMU, or none)."""
+    folder = tmp_path_factory.mktemp("box_imu_walk" if imu else "box_walk")
     world = folder / "box.yaml"
     world.write_text(BOX_WORLD)
-    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", progress=False)
+    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", imu=imu, progress=False)
+
+
+@pytest.fixture(scope="module")
+def box_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _box_walk(tmp_path_factory, imu=False)
+
+
+@pytest.fixture(scope="module")
+def box_imu_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _box_walk(tmp_path_factory, imu=True)
 
 
 def _runner(bag: Path, pipelined: bool) -> SlamRunner:
@@ -311,14 +321,6 @@ def test_a_pipelined_walk_is_deterministic_and_close_to_the_synchronous_one(box_
     gap = np.linalg.norm(a.T_world_body[:, :3, 3] - sync.T_world_body[:, :3, 3], axis=1)
     assert gap.max() < 0.005, f"{1000 * gap.max():.2f} mm from the synchronous run"
     assert len(a.plane_ids) == len(sync.plane_ids)
-
-
-@pytest.fixture(scope="module")
-def box_imu_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
-    folder = tmp_path_factory.mktemp("box_imu_walk")
-    world = folder / "box.yaml"
-    world.write_text(BOX_WORLD)
-    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", imu=True, progress=False)
 
 
 def test_a_pipelined_imu_walk_keeps_the_front_ends_velocities(box_imu_walk: SimulationResult,
