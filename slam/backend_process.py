@@ -13,7 +13,11 @@ step's report), puts it into a local mirror that answers ``pose``/``velocity``/`
 until the next result, then sends step ``u + 1`` and returns step ``u``'s report. Knots (and
 planes) added after step ``u`` was sent are answered with the front end's own values moved by
 the rigid correction that step ``u`` gave the last knot it saw
-(``T_new = T_est(k_u) T_front(k_u)^-1 T_front``), so that the trajectory stays continuous. The
+(``T_new = T_est(k_u) T_front(k_u)^-1 T_front``), so that the trajectory stays continuous; their
+velocities (with an IMU) likewise take the step's last velocity plus the front end's change since,
+rotated (``v_new = v_est(k_u) + R_C (v_front - v_front(k_u))``): the front end integrates the IMU
+on from its newest velocity, which must carry what the back end estimated (rotated alone, it would
+be the IMU's dead reckoning since the start of the walk, 0.1 m/s off within seconds). The
 front end thus runs one update behind the back end, whatever the timing: the same input gives
 the same output. :meth:`BackendProcess.collect` waits for the outstanding step (the end of the
 walk); every other query (the final batch, trims, covariances, statistics) is a synchronous call
@@ -212,6 +216,9 @@ class BackendProcess:
         self._ready: StepResult | None = None  # its result, when it arrived during a synchronous call
         self._mirror: StepResult | None = None
         self._C = np.eye(4)  # the correction of the knots and planes added after the mirror's step
+        # and of those knots' velocities: what the step changed in its last knot's velocity, beyond
+        # the rotation of _C (the front end integrates the IMU on from that velocity)
+        self._dv = np.zeros(3)
         self._planes_added: dict[int, tuple[FloatArray, float]] = {}  # since the mirror's step was sent
         self._planes_sent: dict[int, tuple[FloatArray, float]] = {}  # since the outstanding step was sent
         ctx = mp.get_context("fork")
@@ -363,8 +370,11 @@ class BackendProcess:
         front end added since the step was sent."""
         k = res.n_knots - 1
         self._C = np.eye(4)
+        self._dv = np.zeros(3)
         if 0 <= k < self._knots.n and res.n_knots > res.first:
             self._C = res.poses[k - res.first] @ np.linalg.inv(self._knots.T[k])
+            if res.velocities is not None:
+                self._dv = res.velocities[k - res.first] - self._C[:3, :3] @ self._knots.V[k]
         self._planes_added = dict(self._planes_sent)
         self._mirror = res
 
@@ -400,13 +410,15 @@ class BackendProcess:
         return m.poses[k - m.first].copy()
 
     def velocity(self, knot: int) -> FloatArray:
-        """World velocity (3,) of a knot as of the last applied step (see :meth:`pose`)."""
+        """World velocity (3,) of a knot as of the last applied step; knots added since: the
+        step's last velocity plus the front end's change since, rotated like the poses (see the
+        module doc)."""
         m = self._need_mirror("velocity")
         k = int(knot)
         if m.velocities is None:
             raise ValueError("velocity: the back end was configured without an IMU (config.imu)")
         if k >= m.n_knots:
-            out: FloatArray = self._C[:3, :3] @ self._knots.V[k]
+            out: FloatArray = self._C[:3, :3] @ self._knots.V[k] + self._dv
             return out
         if k < m.first:
             raise ValueError(f"knot: {k} is older than the knots a step brings back (from {m.first})")

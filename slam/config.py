@@ -343,8 +343,8 @@ class BackEndConfig(StrictModel):
         (30.0, 10.0, 3.0), description="kernel-width multipliers of the graduated stages before the nominal one")
     update_every: int = Field(40, ge=1, description="knots between back-end updates (window solves or iSAM2 steps; 40: every 2 s at 20 Hz, docs/speed.md session 22)")
     pipelined: bool | None = Field(
-        False, description="experimental (off: on the 10-minute office walk with an IMU it diverged, see "
-        "docs/speed.md): run the back end in its own forked process, in parallel with the front end, which then "
+        False, description="experimental (off: on the 10-minute office walk with an IMU it is less accurate and "
+        "slower than in process, see docs/speed.md): run the back end in its own forked process, in parallel with the front end, which then "
         "works one update behind it (its estimates arrive one update later; deterministic: the same input gives the "
         "same output). None: on where a process can be forked (not inside a daemon pool worker), off otherwise; "
         "false: the back end in the front end's process")

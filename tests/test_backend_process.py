@@ -150,6 +150,45 @@ def test_imu_factors_count_as_in_the_back_end() -> None:
         proxy.close()
 
 
+def test_knots_added_after_a_step_take_its_velocity_change() -> None:
+    """The front end integrates the IMU on from the newest velocity it has: knots added after a
+    step get the velocity the step gave its last knot plus the front end's change since (rotated
+    like the poses), not only the rotation. A front end whose velocities are 1 m/s off for a
+    standing rig (the IMU and a zero-velocity prior say 0) gets them back near 0: without the
+    step's change, the front end's velocity was never corrected one update late (issue 23: the
+    10-minute walk with its IMU diverged)."""
+    be, proxy, knots = _pair(backend_defaults(imu=True), dt=0.05)
+    try:
+        _both(be, proxy, "add_plane", 0, np.array([0.0, 0.0, 1.0]), 1.0, horizontal=True)
+        accel = np.tile([0.0, 0.0, 9.81], (10, 1))  # standing still, level
+        pts = np.array([[1.0, 0.0, -1.0], [0.0, 1.0, -1.0], [-1.0, 0.5, -1.0]])
+        wrong = np.array([1.0, 0.0, 0.0])
+
+        def knot(i: int) -> None:
+            knots.append(np.eye(4), wrong + 0.01 * i)  # the front end's velocities: off, and changing
+            _both(be, proxy, "add_pose", 0.05 * i, np.eye(4), velocity_world=knots.V[i].copy())
+            if i:
+                _both(be, proxy, "add_imu", i - 1, accel, np.zeros((10, 3)), np.full(10, 0.005))
+                _both(be, proxy, "add_observations", i - 1, 0, pts, None, np.full(3, 0.01))
+            _both(be, proxy, "add_velocity_prior", i, np.zeros(3), 0.01)
+
+        for i in range(4):
+            knot(i)
+        be.step()
+        assert not proxy.step().solved  # sent; its result comes with the next step
+        v3 = be.velocity(3)
+        assert np.linalg.norm(v3) < 0.05
+        for i in range(4, 6):
+            knot(i)
+        assert proxy.step().solved  # the first step's result, one update late
+        np.testing.assert_array_equal(proxy.velocity(3), v3)
+        R = (proxy.pose(5) @ np.linalg.inv(knots.T[5]))[:3, :3]
+        np.testing.assert_allclose(proxy.velocity(5), v3 + R @ (knots.V[5] - knots.V[3]), atol=1e-12)
+        assert np.linalg.norm(proxy.velocity(5)) < 0.1, proxy.velocity(5)
+    finally:
+        proxy.close()
+
+
 def test_a_failing_worker_raises_in_the_parent() -> None:
     """A call the back end refuses, an id the counters got wrong and a killed worker each end in a
     one-line RuntimeError in the parent, not a hang."""
@@ -229,26 +268,47 @@ walk:
 """
 
 
-@pytest.fixture(scope="module")
-def box_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
-    folder = tmp_path_factory.mktemp("box_walk")
+def _box_walk(tmp_path_factory: pytest.TempPathFactory, imu: bool) -> SimulationResult:
+    """6 s through the box (with an IMU, or none)."""
+    folder = tmp_path_factory.mktemp("box_imu_walk" if imu else "box_walk")
     world = folder / "box.yaml"
     world.write_text(BOX_WORLD)
-    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", progress=False)
+    return simulate(world, "itc_backpack", duration=6.0, seed=3, out=folder / "box.bag", imu=imu, progress=False)
 
 
-def _run(bag: Path, pipelined: bool) -> SlamResult:
+@pytest.fixture(scope="module")
+def box_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _box_walk(tmp_path_factory, imu=False)
+
+
+@pytest.fixture(scope="module")
+def box_imu_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    return _box_walk(tmp_path_factory, imu=True)
+
+
+def _runner(bag: Path, pipelined: bool) -> SlamRunner:
+    """A runner over the whole bag (with its IMU, if it has one), finished."""
     from common.rig import resolve_rig
-    from slam.io.bag import read_scans
+    from slam.io.bag import read_scans, time_range
+    from slam.run import load_imu
 
     rig = resolve_rig("itc_backpack")
     cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined}})
-    runner = SlamRunner(rig, cfg)
+    imu = load_imu(bag, cfg, *time_range(bag), rig=rig)
+    runner = SlamRunner(rig, cfg, imu)
     assert isinstance(runner.backend, BackendProcess) == pipelined
     for line in read_scans(bag, rig=rig):
         runner.add_scan(line)
     runner.finish()
-    return runner.result()
+    return runner
+
+
+def _run(bag: Path, pipelined: bool) -> SlamResult:
+    runner = _runner(bag, pipelined)
+    try:
+        return runner.result()
+    finally:
+        runner.close()
 
 
 def test_a_pipelined_walk_is_deterministic_and_close_to_the_synchronous_one(box_walk: SimulationResult) -> None:
@@ -261,3 +321,35 @@ def test_a_pipelined_walk_is_deterministic_and_close_to_the_synchronous_one(box_
     gap = np.linalg.norm(a.T_world_body[:, :3, 3] - sync.T_world_body[:, :3, 3], axis=1)
     assert gap.max() < 0.005, f"{1000 * gap.max():.2f} mm from the synchronous run"
     assert len(a.plane_ids) == len(sync.plane_ids)
+
+
+def test_a_pipelined_imu_walk_keeps_the_front_ends_velocities(box_imu_walk: SimulationResult,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """With an IMU the front end predicts every knot from its newest velocity: one update behind
+    the back end, that velocity still follows the back end's estimates (the newest knot's after
+    each update, against the final ones: within a few cm/s, as in sync), and the trajectory stays
+    near the synchronous one. Before the fix (the knots after a step only rotated), the pipelined
+    front end's velocities were the IMU's dead reckoning since the start (issue 23)."""
+    newest: list[tuple[int, np.ndarray]] = []
+    after = SlamRunner._after_update
+
+    def record(self: SlamRunner) -> None:
+        after(self)
+        newest.append((self.knots.n - 1, self.knots.V[self.knots.n - 1].copy()))
+
+    monkeypatch.setattr(SlamRunner, "_after_update", record)
+    errors = {}
+    results = {}
+    for pipelined in (False, True):
+        newest.clear()
+        runner = _runner(box_imu_walk.bag, pipelined)
+        try:
+            results[pipelined] = runner.result()
+            final = runner.backend.velocities()
+        finally:
+            runner.close()
+        assert len(newest) >= 5
+        errors[pipelined] = max(float(np.linalg.norm(v - final[k])) for k, v in newest)
+    assert errors[True] < max(0.03, 3.0 * errors[False]), errors
+    gap = np.linalg.norm(results[True].T_world_body[:, :3, 3] - results[False].T_world_body[:, :3, 3], axis=1)
+    assert gap.max() < 0.01, f"{1000 * gap.max():.2f} mm from the synchronous run"
