@@ -365,6 +365,10 @@ class BackEndConfig(StrictModel):
         "length, each section's own variables eliminated in turn onto the planes and the cut knots (the same steps "
         "as a whole-graph batch), so that its memory is one section's (slam/backend/sections.py); a shorter walk is "
         "solved whole")
+    batch_whole_seconds: float = Field(
+        900.0, ge=0, description="s: a walk up to this long has its final batch solved whole all the same (the "
+        "sectioned solve costs a third more CPU: 10-minute office walk 71 against 46 s; whole, its memory grows "
+        "about 56 MB per data minute, docs/memory.md)")
     batch_cache_mb: float = Field(
         512.0, ge=0, description="MB a sectioned final batch may keep from one pass over the sections to the "
         "next, all together: first each section's elimination (for the back-substitution; about 8 kB per knot), "

@@ -315,6 +315,7 @@ def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
         batch_section_knots=max(1, round(be.batch_section_seconds * cfg.trajectory.knot_rate)),
         batch_cache_bytes=round(be.batch_cache_mb * 1e6),
         fold_links_in_window=be.fold_links == "step" and be.solver == "window",
+        batch_whole_knots=round(be.batch_whole_seconds * cfg.trajectory.knot_rate),
     )
 
 

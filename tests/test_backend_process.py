@@ -293,7 +293,8 @@ def _runner(bag: Path, pipelined: bool) -> SlamRunner:
     from slam.run import load_imu
 
     rig = resolve_rig("itc_backpack")
-    cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined}})
+    # an update every second (not the default's two): enough of them on the short walks
+    cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined, "update_every": 20}})
     imu = load_imu(bag, cfg, *time_range(bag), rig=rig)
     runner = SlamRunner(rig, cfg, imu)
     assert isinstance(runner.backend, BackendProcess) == pipelined

@@ -96,7 +96,7 @@ def _walk(scene: Scene, spill_rows: int | None, section_knots: int) -> Backend:
     two planes and a removal of held blocks midway, then the final batch (in sections of
     ``section_knots``) and a trim."""
     rng = np.random.default_rng(7)
-    be = Backend(replace(backend_defaults(), window_knots=6, batch_section_knots=section_knots))
+    be = Backend(replace(backend_defaults(), window_knots=6, batch_section_knots=section_knots, batch_whole_knots=0))
     be.blocks.cols.spill_rows = spill_rows
     for j, (n, d) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
         be.add_plane(j, n + rng.normal(0.0, 0.01, 3), d + rng.normal(0.0, 0.02), horizontal=j < 2)

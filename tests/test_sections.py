@@ -15,6 +15,7 @@ from box_scene import Scene, make_scene, perturb_pose
 from slam.backend import Backend, BackendConfig
 from slam.backend.sections import _net_bytes, plan_sections, separator_knots
 from slam.backend.solver import DAMPING, damping_rows
+from slam.config import SlamConfig
 
 DEG = np.pi / 180.0
 
@@ -48,7 +49,7 @@ def test_plan_cuts_every_knot_once(n: int, size: int) -> None:
 
 
 def test_interiors_are_touched_by_their_section_alone(scene: Scene) -> None:
-    be = _build(scene, replace(backend_defaults(), batch_section_knots=17))
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=17, batch_whole_knots=0))
     assert be.sections.needed()
     plan = be.sections.plan()
     sep = separator_knots(plan)
@@ -63,8 +64,20 @@ def test_interiors_are_touched_by_their_section_alone(scene: Scene) -> None:
             assert t == s or not interior & other
 
 
+def test_a_walk_up_to_batch_whole_knots_is_solved_whole(scene: Scene) -> None:
+    n = len(_build(scene, replace(backend_defaults(), batch_section_knots=17, batch_whole_knots=0)).graph.times)
+    assert n > 17
+    for whole, needed in ((n - 1, True), (n, False), (n + 100, False)):
+        be = _build(scene, replace(backend_defaults(), batch_section_knots=17, batch_whole_knots=whole))
+        assert be.sections.needed() == needed
+    assert backend_defaults().batch_whole_knots == round(SlamConfig().backend.batch_whole_seconds
+                                                         * SlamConfig().trajectory.knot_rate)
+    with pytest.raises(ValueError, match="batch_whole_knots"):
+        replace(backend_defaults(), batch_whole_knots=-1)
+
+
 def test_streamed_error_is_the_whole_graphs(scene: Scene) -> None:
-    be = _build(scene, replace(backend_defaults(), batch_section_knots=17))
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=17, batch_whole_knots=0))
     whole = be.batch.error()
     assert whole > 0.0
     assert be.sections.total_error() == pytest.approx(whole, rel=1e-12)
@@ -72,7 +85,7 @@ def test_streamed_error_is_the_whole_graphs(scene: Scene) -> None:
 
 
 def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
-    be = _build(scene, replace(backend_defaults(), batch_section_knots=23))
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0))
     values = gtsam.Values(be.graph.values)
     red = be.sections.reduce(values, be.config.kernel, DAMPING)
     delta = be.sections.back_substitute(values, be.config.kernel, DAMPING, red.graph.optimize())
@@ -98,7 +111,7 @@ def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
         assert np.array_equal(again.at(k), delta.at(k)), gtsam.DefaultKeyFormatter(k)
     # a memory budget for one section's elimination: the others are eliminated again, same step
     first = _net_bytes(kept.nets[0])
-    tight = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_cache_bytes=first))
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0, batch_cache_bytes=first))
     some = tight.sections.reduce(values, be.config.kernel, DAMPING, keep=True)
     assert some.nets is not None and some.nets[0] is not None and all(n is None for n in some.nets[1:])
     solved = tight.sections.sections_solved
@@ -112,7 +125,7 @@ def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None
     whole = _build(scene, backend_defaults())
     assert not whole.sections.needed()
     s_whole = whole.batch_optimize(graduated=False)
-    cut = _build(scene, replace(backend_defaults(), batch_section_knots=20))
+    cut = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0))
     s_cut = cut.batch_optimize(graduated=False)
     n_sections = len(cut.sections.plan())
     # one elimination per section and iteration (the kept ones back-substituted), one more at the start
@@ -127,7 +140,7 @@ def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None
     # each section's factors were built once and kept through the solve; without the cache they
     # are built at every elimination and error, to the same estimate bit for bit
     assert cut.sections.sections_built == n_sections
-    bare = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=0))
+    bare = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0, batch_cache_bytes=0))
     s_bare = bare.batch_optimize(graduated=False)
     assert bare.sections.sections_built >= bare.sections.sections_solved > n_sections
     assert s_bare.final_error == s_cut.final_error and np.array_equal(bare.poses(), cut.poses())
@@ -136,7 +149,7 @@ def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None
 def test_sectioned_plane_covariances_are_the_whole_graphs(scene: Scene) -> None:
     whole = _build(scene, backend_defaults())
     whole.batch_optimize(graduated=False)
-    cut = _build(scene, replace(backend_defaults(), batch_section_knots=40))
+    cut = _build(scene, replace(backend_defaults(), batch_section_knots=40, batch_whole_knots=0))
     cut.batch_optimize(graduated=False)
     for j in range(6):
         c_w, c_s = whole.plane_covariance(j), cut.plane_covariance(j)
@@ -144,12 +157,12 @@ def test_sectioned_plane_covariances_are_the_whole_graphs(scene: Scene) -> None:
 
 
 def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> None:
-    free = _build(scene, replace(backend_defaults(), batch_section_knots=20))
+    free = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0))
     s_free = free.batch_optimize(graduated=False)
     everything = free.sections.peak_kept_bytes  # all eliminations and all factors
     assert everything > 0 and free.sections.peak_separator_bytes > 0
     budget = everything // 2
-    bound = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=budget))
+    bound = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0, batch_cache_bytes=budget))
     s_bound = bound.batch_optimize(graduated=False)
     assert 0 < bound.sections.peak_kept_bytes <= budget
     assert 0 < free.sections.largest_net_bytes <= everything
@@ -160,7 +173,7 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
     nets = bound.sections.reduce(values, kernel, DAMPING, keep=True).nets
     assert nets is not None and all(n is not None for n in nets)
     all_nets = sum(_net_bytes(n) for n in nets if n is not None)
-    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_cache_bytes=all_nets))
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0, batch_cache_bytes=all_nets))
     tight.sections._caching = True  # as within a solve
     kept = tight.sections.reduce(values, kernel, DAMPING, keep=True)
     assert kept.nets is not None and all(n is not None for n in kept.nets)

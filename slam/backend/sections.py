@@ -112,8 +112,8 @@ class SectionedBatch:
         self.largest_net_bytes = 0  # the largest section's elimination (kept or not)
 
     def needed(self) -> bool:
-        """Whether the walk is longer than one section."""
-        return len(self.graph.times) > self.config.batch_section_knots
+        """Whether the walk is longer than one section (and than a walk solved whole)."""
+        return len(self.graph.times) > max(self.config.batch_section_knots, self.config.batch_whole_knots)
 
     def plan(self) -> list[tuple[int, int]]:
         return plan_sections(len(self.graph.times), self.config.batch_section_knots)
