@@ -27,6 +27,7 @@ from common.rig import Rig
 from segmentation import Scanline
 from slam.export import CloudPlyWriter, cloud_ply_writer
 from slam.frontend.transients import TRANSIENT
+from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
 from slam.prefetch import can_fork_reader, get_from_children
@@ -41,7 +42,10 @@ _EXPORT_BATCH = 1 << 18  # cloud points placed and written at a time (~10 MB of 
 
 class _CloudBatch:
     """Scans' points (body frame) gathered until there are enough to place together; then placed
-    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written."""
+    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written; after each
+    batch the heap is trimmed when the process's resident memory has crept up (``HeapKeeper``:
+    the pass's allocations, taken from an inherited, trimmed heap's free chunks, would otherwise
+    make it grow with the walk)."""
 
     def __init__(self, res: SlamResult, writer: CloudPlyWriter) -> None:
         self._kt, self._T = res.knot_times, res.T_world_body
@@ -51,6 +55,7 @@ class _CloudBatch:
         self._ends: list[int] = []  # the batch's segments' first and last point indices
         self.n = 0  # points in the batch
         self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
+        self._heap = HeapKeeper()
 
     def add(self, points_body: FloatArray, scanner: int, times: FloatArray, plane_id: NDArray[np.int32],
             ends: list[int], intensity: NDArray[np.float32] | None = None) -> None:
@@ -77,6 +82,8 @@ class _CloudBatch:
         self._writer.write(pw, sc, tm, pid, np.concatenate(self._intensity) if self._writer.intensity else None)
         self.endpoints_world.append(pw[np.asarray(self._ends, dtype=np.int64)])
         self._cols, self._ends, self._intensity, self.n = [], [], [], 0
+        del pb, sc, tm, pid, pw
+        self._heap.check()
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@ slam.rerun_map): the same numbers as holding it whole."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import slam.cloud_pass
+import slam.heap
 import slam.run
 from common.atomic import OutputFileError
 from common.rig import resolve_rig
@@ -291,6 +293,30 @@ def test_a_cloud_cut_by_stamp_windows_is_the_same_file(walk: SimulationResult, e
     np.testing.assert_array_equal(one.endpoints_world, cut.endpoints_world)
     np.testing.assert_array_equal(one.stamp, cut.stamp)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ply", "one.ply"]
+
+
+def test_the_cloud_pass_keeps_its_heap_from_creeping_up(walk: SimulationResult, estimate: SlamResult,
+                                                       tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After every batch the pass looks at its resident memory and trims the heap once it rose by
+    the keeper's slack (a long walk's pass would otherwise grow through an inherited heap's free
+    chunks); the file is the same."""
+    n_plain, _ = _streamed(walk, estimate, tmp_path / "plain.ply")
+    looks: list[int] = []
+    trims: list[int] = []
+
+    class Keeper(slam.heap.HeapKeeper):
+        def __init__(self) -> None:  # 1 MB more at every look, trimmed after 4 MB
+            super().__init__(slack=4 << 20, rss=lambda: looks.append(1) or len(looks) << 20,
+                             trim=lambda: trims.append(len(looks)) is None)
+
+    monkeypatch.setattr(slam.cloud_pass, "_EXPORT_BATCH", 5000)
+    monkeypatch.setattr(slam.cloud_pass, "HeapKeeper", Keeper)
+    n, _ = _streamed(walk, estimate, tmp_path / "kept.ply")
+    assert n == n_plain and n >= 50_000
+    assert (tmp_path / "kept.ply").read_bytes() == (tmp_path / "plain.ply").read_bytes()
+    # a look after each batch (of at least 5,000 points), trimmed at the sixth look and every sixth after (over 4 MB above the last)
+    assert len(looks) >= 10 and len(trims) >= 2
+    assert trims[0] == 6 and all(b - a == 6 for a, b in itertools.pairwise(trims))
 
 
 def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> None:
