@@ -211,7 +211,7 @@ def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult,
     try:
         with BagSource(bag) as source, rows_path.open("wb") as f:
             writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
-            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo), part, rig, res, writer)))
+            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo, record=False), part, rig, res, writer)))
     except BaseException as e:  # raised in the parent
         q.put((i, e))
 
@@ -269,7 +269,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
             desc = "cloud" if len(parts) == 1 else f"cloud (part 1 of {len(parts)})"
             total = None if first.hi is None else first.hi - first.lo
             with tqdm(total=total, desc=desc, disable=not progress, leave=False) as bar:
-                found = [cloud_part(source.scans(rig=rig, window=first.window, echo=echo), first, rig, res, writer, bar)]
+                scans = source.scans(rig=rig, window=first.window, echo=echo, record=False)  # no per-scan index
+                found = [cloud_part(scans, first, rig, res, writer, bar)]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
             for i in range(1, len(parts)):
                 writer.append_rows(row_files[i - 1], others[i].count)
