@@ -27,6 +27,7 @@ from common.rig import Rig
 from segmentation import Scanline
 from slam.export import CloudPlyWriter, cloud_ply_writer
 from slam.frontend.transients import TRANSIENT
+from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
 from slam.prefetch import can_fork_reader, get_from_children
@@ -41,7 +42,10 @@ _EXPORT_BATCH = 1 << 18  # cloud points placed and written at a time (~10 MB of 
 
 class _CloudBatch:
     """Scans' points (body frame) gathered until there are enough to place together; then placed
-    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written."""
+    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written; after each
+    batch the heap is trimmed when the process's resident memory has crept up (``HeapKeeper``:
+    the pass's allocations, taken from an inherited, trimmed heap's free chunks, would otherwise
+    make it grow with the walk)."""
 
     def __init__(self, res: SlamResult, writer: CloudPlyWriter) -> None:
         self._kt, self._T = res.knot_times, res.T_world_body
@@ -51,6 +55,7 @@ class _CloudBatch:
         self._ends: list[int] = []  # the batch's segments' first and last point indices
         self.n = 0  # points in the batch
         self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
+        self._heap = HeapKeeper()
 
     def add(self, points_body: FloatArray, scanner: int, times: FloatArray, plane_id: NDArray[np.int32],
             ends: list[int], intensity: NDArray[np.float32] | None = None) -> None:
@@ -77,6 +82,8 @@ class _CloudBatch:
         self._writer.write(pw, sc, tm, pid, np.concatenate(self._intensity) if self._writer.intensity else None)
         self.endpoints_world.append(pw[np.asarray(self._ends, dtype=np.int64)])
         self._cols, self._ends, self._intensity, self.n = [], [], [], 0
+        del pb, sc, tm, pid, pw
+        self._heap.check()
 
 
 @dataclass(frozen=True)
@@ -204,7 +211,7 @@ def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult,
     try:
         with BagSource(bag) as source, rows_path.open("wb") as f:
             writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
-            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo), part, rig, res, writer)))
+            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo, record=False), part, rig, res, writer)))
     except BaseException as e:  # raised in the parent
         q.put((i, e))
 
@@ -262,7 +269,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
             desc = "cloud" if len(parts) == 1 else f"cloud (part 1 of {len(parts)})"
             total = None if first.hi is None else first.hi - first.lo
             with tqdm(total=total, desc=desc, disable=not progress, leave=False) as bar:
-                found = [cloud_part(source.scans(rig=rig, window=first.window, echo=echo), first, rig, res, writer, bar)]
+                scans = source.scans(rig=rig, window=first.window, echo=echo, record=False)  # no per-scan index
+                found = [cloud_part(scans, first, rig, res, writer, bar)]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
             for i in range(1, len(parts)):
                 writer.append_rows(row_files[i - 1], others[i].count)

@@ -3,6 +3,7 @@ slam.rerun_map): the same numbers as holding it whole."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import slam.cloud_pass
+import slam.heap
 import slam.run
 from common.atomic import OutputFileError
 from common.rig import resolve_rig
@@ -291,6 +293,52 @@ def test_a_cloud_cut_by_stamp_windows_is_the_same_file(walk: SimulationResult, e
     np.testing.assert_array_equal(one.endpoints_world, cut.endpoints_world)
     np.testing.assert_array_equal(one.stamp, cut.stamp)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ply", "one.ply"]
+
+
+def test_the_cloud_pass_keeps_its_heap_from_creeping_up(walk: SimulationResult, estimate: SlamResult,
+                                                       tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After every batch the pass looks at its resident memory and trims the heap once it rose by
+    the keeper's slack (a long walk's pass would otherwise grow through an inherited heap's free
+    chunks); the file is the same."""
+    n_plain, _ = _streamed(walk, estimate, tmp_path / "plain.ply")
+    looks: list[int] = []
+    trims: list[int] = []
+
+    class Keeper(slam.heap.HeapKeeper):
+        def __init__(self) -> None:  # 1 MB more at every look, trimmed after 4 MB
+            super().__init__(slack=4 << 20, rss=lambda: looks.append(1) or len(looks) << 20,
+                             trim=lambda: trims.append(len(looks)) is None)
+
+    monkeypatch.setattr(slam.cloud_pass, "_EXPORT_BATCH", 5000)
+    monkeypatch.setattr(slam.cloud_pass, "HeapKeeper", Keeper)
+    n, _ = _streamed(walk, estimate, tmp_path / "kept.ply")
+    assert n == n_plain and n >= 50_000
+    assert (tmp_path / "kept.ply").read_bytes() == (tmp_path / "plain.ply").read_bytes()
+    # a look after each batch (of at least 5,000 points), trimmed at the sixth look and every sixth after (over 4 MB above the last)
+    assert len(looks) >= 10 and len(trims) >= 2
+    assert trims[0] == 6 and all(b - a == 6 for a, b in itertools.pairwise(trims))
+
+
+def test_the_cloud_pass_keeps_nothing_per_scan_in_its_stream(walk: SimulationResult, estimate: SlamResult,
+                                                             tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pass's scan streams record no stamp or scanner id per scan (an hour's 432,000 scans:
+    ~17 MB of Python floats and list slots, for nothing), but still their lag and last stamp."""
+    streams: list[Any] = []
+    plain = BagSource.scans
+
+    def scans(self: BagSource, *args: Any, **kwargs: Any) -> Any:
+        streams.append(plain(self, *args, **kwargs))
+        return streams[-1]
+
+    whole = read_scans(walk.bag, rig=resolve_rig("itc_backpack"))
+    for _ in whole:
+        pass
+    monkeypatch.setattr(BagSource, "scans", scans)
+    n, _ = _streamed(walk, estimate, tmp_path / "cloud.ply", whole.index)
+    assert n > 0 and len(streams) == 1 and len(whole.index) > 100
+    index = streams[0].index
+    assert index.stamps == [] and index.scanner_ids == []
+    assert index.last_stamp == whole.index.stamps[-1] and index.lag_ns == whole.index.lag_ns
 
 
 def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> None:

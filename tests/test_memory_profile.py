@@ -131,3 +131,25 @@ def test_section_counts_of_a_sectioned_batch_only() -> None:
     out = mp.section_counts(types.SimpleNamespace(sections=Sections(True)))
     assert out == {"sections": 3, "section_kept_peak_bytes": 5_000, "separator_peak_bytes": 700,
                    "largest_elimination_bytes": 900, "sections_built": 3, "sections_solved": 6}
+
+
+def test_heap_keeper_trims_once_resident_memory_crept_up_by_its_slack() -> None:
+    from slam.heap import HeapKeeper
+
+    rss = [100]
+    trims: list[int] = []
+
+    def trim() -> bool:
+        trims.append(rss[0])
+        rss[0] -= 30  # what the trim gave back
+        return True
+
+    keeper = HeapKeeper(slack=50, rss=lambda: rss[0], trim=trim)
+    for _ in range(12):
+        rss[0] += 10
+        keeper.check()
+    # 100 -> 160 (over 100 + 50): trimmed to 130; 130 -> 190: trimmed to 160
+    assert trims == [160, 190] and keeper.trims == 2 and rss[0] == 160
+    unknown = HeapKeeper(slack=0, rss=lambda: None, trim=trim)
+    unknown.check()
+    assert keeper.trims == 2 and len(trims) == 2

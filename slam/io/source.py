@@ -89,14 +89,16 @@ class ImuSeries:
 
 @dataclass
 class StreamIndex:
-    """What a :class:`ScanStream` yielded, in its order: each scan's stamp (s) and scanner id;
-    ``lag_ns``, the (least, greatest) log time minus header stamp (ns) over every scan
-    message read (None before the first); ``intensities``, whether any scan carried them."""
+    """What a :class:`ScanStream` yielded, in its order: each scan's stamp (s) and scanner id
+    (left empty by a stream that does not ``record`` them); ``lag_ns``, the (least, greatest)
+    log time minus header stamp (ns) over every scan message read (None before the first);
+    ``intensities``, whether any scan carried them; ``last_stamp``, the latest scan's stamp."""
 
     stamps: list[float] = field(default_factory=list)
     scanner_ids: list[str] = field(default_factory=list)
     lag_ns: tuple[int, int] | None = None
     intensities: bool = False
+    last_stamp: float | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -320,6 +322,7 @@ class BagSource:
         window: StampWindow | None = None,
         owned: bool = False,
         echo: Echo = "first",
+        record: bool = True,
     ) -> ScanStream:
         """The ``sensor_msgs/LaserScan`` (and ``MultiEchoLaserScan``: the ``echo`` of each beam,
         see :func:`single_echo`; a SLAM run passes its ``input.echo``) messages as Scanlines (with
@@ -334,14 +337,16 @@ class BagSource:
         them when that is in stamp order. ``owned``: the stream closes this source when it is
         closed or exhausted. A stream of a rig's scans (``rig`` given: a SLAM run) is an
         ``InputError`` where its stamps jump ahead by more than :data:`MAX_SCAN_GAP` s (broken
-        header stamps, such as zero or far-future ones: the trajectory would span them)."""
+        header stamps, such as zero or far-future ones: the trajectory would span them).
+        ``record``: the stream's ``index`` keeps every scan's stamp and scanner id (else not: a
+        pass that does not need them, such as the cloud pass, keeps nothing per scan)."""
         plan = self.scan_plan(topics, rig)
         if echo not in ECHOES:
             raise ValueError(f"echo must be one of {', '.join(ECHOES)}, got {echo!r}")
         if reorder_window < 0:
             raise ValueError(f"reorder_window must be >= 0, got {reorder_window}")
         return ScanStream(self, plan, int(reorder_window * 1e9), window, owned, echo,
-                          MAX_SCAN_GAP if rig is not None else None)
+                          MAX_SCAN_GAP if rig is not None else None, record)
 
     def imu(self, topic: str = "/imu") -> ImuSeries:
         """All ``sensor_msgs/Imu`` messages of ``topic`` as arrays, in log order."""
@@ -420,12 +425,12 @@ class ScanStream:
     records what it yielded (:class:`StreamIndex`)."""
 
     def __init__(self, source: BagSource, plan: dict[str, str | None], reorder_ns: int, window: StampWindow | None,
-                 owned: bool, echo: Echo = "first", max_gap: float | None = None) -> None:
+                 owned: bool, echo: Echo = "first", max_gap: float | None = None, record: bool = True) -> None:
         self.source = source
         self.index = StreamIndex()
         self._owned = owned
         # the generator holds no reference to this stream, so that dropping it closes the bag at once
-        self._lines = _merged(source, self.index, plan, reorder_ns, window, echo, max_gap)
+        self._lines = _merged(source, self.index, plan, reorder_ns, window, echo, max_gap, record)
 
     def __iter__(self) -> ScanStream:
         return self
@@ -477,10 +482,11 @@ def single_echo(msg: Any, echo: Echo) -> SimpleNamespace:
 
 def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reorder_ns: int,
             window: StampWindow | None, echo: Echo = "first",
-            max_gap: float | None = None) -> Generator[Scanline, None, None]:
+            max_gap: float | None = None, record: bool = True) -> Generator[Scanline, None, None]:
     """The scans of ``plan``'s topics (within ``window``) merged into stamp order through the
-    reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index``; with ``max_gap``,
-    stamps that jump ahead by more than that (s) are an InputError."""
+    reorder buffer (see :meth:`BagSource.scans`), each recorded in ``index`` (its stamp and
+    scanner id only with ``record``); with ``max_gap``, stamps that jump ahead by more than that
+    (s) are an InputError."""
     heap: list[tuple[int, int, Scanline]] = []
     counter = itertools.count()
     start, stop = window.log_range_ns() if window is not None else (None, None)
@@ -501,18 +507,22 @@ def _merged(src: BagSource, index: StreamIndex, plan: dict[str, str | None], reo
                 raise input_error(src.path, f"bad LaserScan at log time {t_ns * 1e-9:.9f} s: {e}", conn.topic) from None
             heapq.heappush(heap, (s_ns, next(counter), line))
         while heap and heap[0][0] < t_ns - reorder_ns:
-            yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path)
+            yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path, record)
     while heap:
-        yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path)
+        yield _recorded(index, heapq.heappop(heap)[2], max_gap, src.path, record)
 
 
-def _recorded(index: StreamIndex, line: Scanline, max_gap: float | None = None, path: Path | None = None) -> Scanline:
-    if max_gap is not None and index.stamps and line.stamp - index.stamps[-1] > max_gap:
-        raise input_error(path or "", f"scan stamps jump by {line.stamp - index.stamps[-1]:.6g} s (from "
-                          f"{index.stamps[-1]:.6f} to {line.stamp:.6f} s, scanner {line.scanner_id}): more than "
+def _recorded(index: StreamIndex, line: Scanline, max_gap: float | None = None, path: Path | None = None,
+              record: bool = True) -> Scanline:
+    last = index.last_stamp
+    if max_gap is not None and last is not None and line.stamp - last > max_gap:
+        raise input_error(path or "", f"scan stamps jump by {line.stamp - last:.6g} s (from "
+                          f"{last:.6f} to {line.stamp:.6f} s, scanner {line.scanner_id}): more than "
                           f"{max_gap:g} s without a scan; broken header stamps")
-    index.stamps.append(line.stamp)
-    index.scanner_ids.append(line.scanner_id)
+    if record:
+        index.stamps.append(line.stamp)
+        index.scanner_ids.append(line.scanner_id)
+    index.last_stamp = line.stamp
     index.intensities = index.intensities or line.intensities is not None
     return line
 
