@@ -82,7 +82,7 @@ class BackendConfig:
     batch_section_knots: int
     batch_cache_bytes: int
     fold_links_in_window: bool
-    batch_whole_knots: int = 0
+    batch_whole_knots: int
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
