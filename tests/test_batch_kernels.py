@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from segmentation import Scanline
+from segmentation.base import build_segmentation
 from slam.frontend import batch_kernels as bk
+from slam.frontend.observations import scan_segments, scan_segments_numpy
 from slam.frontend.planemap import PlaneMap, plane_basis
 
 FloatArray = NDArray[np.float64]
@@ -213,3 +217,46 @@ def test_near_test_decides_as_the_2d_tree_query() -> None:
         got = np.array([bk._near_any(su, sv, float(a), float(b), near) for a, b in q])
         np.testing.assert_array_equal(got, want)
     assert not bk._near_any(np.empty(0), np.empty(0), 0.0, 0.0, near)
+
+
+def _random_segmentation(rng: np.random.Generator, n_segments: int) -> tuple[Scanline, Any]:
+    """A noisy scan with dropped beams and ``n_segments`` random runs of its valid returns (gaps
+    between them, single returns included), fitted by the segmenters' own code."""
+    n_beams = int(rng.integers(3, 1100))
+    angles = np.linspace(-2.35, 2.35, n_beams)
+    ranges = rng.uniform(0.5, 8.0, n_beams) * (1.0 + rng.normal(0.0, 0.01, n_beams))
+    ranges[rng.uniform(size=n_beams) < rng.uniform(0.0, 0.3)] = np.nan
+    times = 100.0 + rng.uniform(0.0, 0.04) * np.arange(n_beams) / n_beams
+    line = Scanline.from_ranges(ranges, angles, times)
+    m = line.n_valid
+    k = min(n_segments, m // 2)
+    cuts = np.sort(rng.choice(m, size=2 * k, replace=False)).reshape(-1, 2) if k else np.zeros((0, 2), np.int64)
+    first, last = cuts[:, 0].astype(np.int64), cuts[:, 1].astype(np.int64)
+    point_labels = np.full(m, -1, dtype=np.int64)
+    for j, (a, b) in enumerate(zip(first, last, strict=True)):
+        point_labels[a : b + 1] = j
+    return line, build_segmentation(line, point_labels, first, last, np.full(m, 0.003), "test", {})
+
+
+def test_lift_segments_matches_the_numpy_scan_segments() -> None:
+    """``scan_segments`` (one compiled pass) gives ``scan_segments_numpy``'s arrays byte for byte:
+    random scans, segmentations, rig poses and noise; no segment, one return and 2-point runs."""
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        line, seg = _random_segmentation(rng, int(rng.integers(0, 30)))
+        if trial % 50 == 0:  # one labelled return: numpy's one-row product, kept
+            labels = np.full_like(seg.labels, -1)
+            labels[line.valid_index[0]] = 0
+            seg = replace(seg, labels=labels, first_beam=seg.first_beam[:1], last_beam=seg.first_beam[:1],
+                          centroid=seg.centroid[:1], direction=seg.direction[:1], rms=seg.rms[:1])
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = q, rng.normal(0.0, 0.5, 3)
+        args = (line, seg, T, 1, trial, float(rng.uniform(0.001, 0.03)), float(rng.choice([0.0, 0.002])))
+        want, got = scan_segments_numpy(*args), scan_segments(*args)
+        for f in fields(want):
+            a, b = getattr(want, f.name), getattr(got, f.name)
+            if isinstance(a, np.ndarray):
+                assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f.name
+            else:
+                assert a == b, f.name

@@ -14,11 +14,24 @@ from numpy.typing import NDArray
 from slam.config import SlamConfig
 from slam.frontend import edge_kernels as ek
 from slam.frontend.edge_finder import BreakFinder, _bracket_end, wall_test
-from slam.frontend.edges import Break, EdgeMap, EdgeParams, along_wall, break_pairs, segment_end
+from slam.frontend.edges import (
+    Break,
+    EdgeMap,
+    EdgeParams,
+    along_wall,
+    break_pairs,
+    next_to_segment,
+    recess_beyond,
+    segment_end,
+    segment_owner,
+    segment_returns,
+    steps_within,
+)
 from slam.frontend.knots import KnotMirror
 from slam.frontend.observations import ScanSegments
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import KIND_WALL, PlaneMap
+from slam.frontend.scan_prep import scan_edge_tests
 from slam.params import edge_params
 
 # the compiled finder and the per-pair reference agree to rounding (fused multiply-adds differ by CPU)
@@ -265,3 +278,107 @@ def test_cluster_remembering_failed_groups_matches_clustering_afresh() -> None:
         assert [id(b) for b in em.pending] == [id(b) for b in left]
         n_found += len(found)
     assert n_found > 3
+
+
+def _reference_scan_edge_tests(segs: ScanSegments, ep: EdgeParams, range_sigma: float) -> dict[tuple[int, int], Any]:
+    """``frontend.scan_prep.scan_edge_tests`` as it was before the kernel: segment by segment."""
+    out: dict[tuple[int, int], Any] = {}
+    owner = segment_owner(segs)
+    W = ep.inline_window
+    for j in range(segs.n_segments):
+        n = int(segs.n_points[j])
+        c2, u2 = segs.line_centroid[j], segs.line_direction[j]
+        if n >= ep.min_segment_points:
+            for direction in (1, -1):
+                k_end = segment_end(segs, j, direction)
+                if not next_to_segment(owner, k_end, direction):
+                    out[(j, direction)] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
+                                                        segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
+        if ep.inline and n >= 2 * W:
+            _, xy = segment_returns(segs, j)
+            out[(j, 0)] = steps_within(xy, c2, u2, range_sigma, W, ep.min_step, ep.max_step, ep.inline_z)
+    return out
+
+
+def _room_scan(rng: np.random.Generator, n_segments: int, sigma: float) -> ScanSegments:
+    """A scan of a room (walls at random distances, doors and posters 2-50 mm behind or proud,
+    range noise ``sigma``, dropped beams) cut into ``n_segments`` random beam ranges (gaps,
+    neighbours, the scan's ends), each with its returns' fitted line, sometimes perturbed."""
+    n_beams = int(rng.integers(200, 1100))
+    angles = np.linspace(-2.35, 2.35, n_beams)
+    wall = np.repeat(rng.uniform(1.0, 6.0, 6), -(-n_beams // 6))[:n_beams]
+    depth = np.zeros(n_beams)
+    for _ in range(int(rng.integers(2, 8))):
+        a = int(rng.integers(0, n_beams - 10))
+        depth[a : a + int(rng.integers(3, 150))] = rng.choice([-1.0, 1.0]) * rng.uniform(0.002, 0.05)
+    ranges = (wall + depth) / np.maximum(np.abs(np.cos(angles / 3.0)), 0.3) + rng.normal(0.0, sigma, n_beams)
+    valid = rng.uniform(size=n_beams) > rng.uniform(0.0, 0.2)
+    cuts = np.sort(rng.choice(np.arange(0, n_beams), size=2 * n_segments, replace=False)).reshape(-1, 2)
+    cuts[:, 1] -= rng.integers(0, 2, n_segments) * (cuts[:, 1] > cuts[:, 0])  # some neighbours touch
+    first, last = cuts[:, 0].astype(np.int64), cuts[:, 1].astype(np.int64)
+    centroid, direction, n_points = np.zeros((n_segments, 2)), np.zeros((n_segments, 2)), np.zeros(n_segments, np.int64)
+    for j in range(n_segments):
+        b = np.arange(first[j], last[j] + 1)
+        b = b[valid[b]]
+        xy = np.column_stack((ranges[b] * np.cos(angles[b]), ranges[b] * np.sin(angles[b])))
+        if b.size >= 2:
+            centroid[j] = xy.mean(axis=0)
+            direction[j] = np.linalg.svd(xy - centroid[j])[2][0]
+        else:
+            centroid[j], direction[j] = rng.normal(0.0, 3.0, 2), (1.0, 0.0)
+        if rng.uniform() < 0.2:
+            centroid[j] += rng.normal(0.0, 0.01, 2)
+        n_points[j] = b.size if rng.uniform() < 0.9 else int(rng.integers(0, 200))
+    k = n_segments
+    return ScanSegments(
+        scanner=0, scan_index=0, stamp=0.0, first_beam=first, last_beam=last, n_points=n_points,
+        offsets=np.zeros(k + 1, np.int64), points_body=np.zeros((0, 3)), times=np.zeros(0),
+        virtual_scanner=np.zeros((k, 2, 3)), virtual_body=np.zeros((k, 2, 3)), virtual_times=np.zeros((k, 2)),
+        virtual_sigma=np.zeros(k), rms=np.zeros(k), line_centroid=centroid, line_direction=direction,
+        beam_angles=angles, beam_ranges=ranges, beam_valid=valid)
+
+
+def test_pairwise_sum_is_numpys_sum() -> None:
+    rng = np.random.default_rng(5)
+    for n in range(0, 400):
+        a = rng.normal(0.0, 1.0, n + 7) * rng.uniform(1e-3, 1e3)
+        lo = int(rng.integers(0, 8))
+        assert ek._pairwise_sum(a, lo, lo + n) == np.sum(a[lo : lo + n])
+
+
+@pytest.mark.parametrize("window", [5, 8, 25])
+def test_scan_edge_tests_kernel_matches_the_per_segment_code(window: int) -> None:
+    """The compiled pass over a scan's segments gives the per-segment functions' dict exactly
+    (same keys, same ints, same floats), on noisy rooms with doors and posters, random
+    segmentations and parameters; a gap within rounding of ``max_gap`` goes to the reference."""
+    rng = np.random.default_rng(window)
+    base = edge_params(SlamConfig())
+    n_steps = n_recess = n_exact_gap = 0
+    for trial in range(150):
+        sigma = float(rng.choice([0.001, 0.003, 0.01]))
+        segs = _room_scan(rng, int(rng.integers(1, 25)), sigma)
+        ep = replace(base, inline_window=window, inline=bool(rng.uniform() < 0.9),
+                     min_segment_points=int(rng.integers(2, 20)), min_step=float(rng.uniform(0.001, 0.006)),
+                     max_step=float(rng.uniform(0.02, 0.06)), max_gap=float(rng.uniform(0.03, 0.3)),
+                     inline_z=float(rng.uniform(2.0, 6.0)))
+        if trial % 5 == 0:  # max_gap exactly Python's hypot of a tested end's gap: the kernel defers
+            owner, a, r, ok = segment_owner(segs), segs.beam_angles, segs.beam_ranges, segs.beam_valid
+            ends = [int(k) for j, k in enumerate(segs.last_beam) if segs.n_points[j] >= ep.min_segment_points
+                    and not next_to_segment(owner, int(k), 1) and k + 1 < a.size and ok[k + 1]]
+            if ends:
+                k = ends[0]
+                gap = math.hypot(r[k + 1] * math.cos(a[k + 1]) - r[k] * math.cos(a[k]),
+                                 r[k + 1] * math.sin(a[k + 1]) - r[k] * math.sin(a[k]))
+                ep = replace(ep, max_gap=gap)
+                status = ek.scan_edge_tests(
+                    segs.first_beam, segs.last_beam, segs.n_points, a, r, ok, np.cos(a), np.sin(a), segs.line_centroid,
+                    segs.line_direction, ep.min_segment_points, ep.inline, ep.inline_window, ep.min_step, ep.max_step,
+                    ep.max_gap, sigma, ep.inline_z)[0]
+                n_exact_gap += int(np.any(status == 2))
+        want = _reference_scan_edge_tests(segs, ep, sigma)
+        got = scan_edge_tests(segs, ep, sigma)
+        assert list(got) == list(want)
+        assert repr(got) == repr(want)  # exact floats, Python ints and floats
+        n_steps += sum(len(v) for key, v in want.items() if key[1] == 0)
+        n_recess += sum(v is not None for key, v in want.items() if key[1] != 0)
+    assert n_steps > 20 and n_recess > 20 and n_exact_gap >= 5

@@ -16,6 +16,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend.batch_kernels import _fma
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
@@ -245,3 +247,234 @@ def along_offsets(n_e: FloatArray, x_world: FloatArray) -> FloatArray:
     for i in range(x_world.shape[0]):
         out[i] = _dot3(n_e[i], x_world[i])
     return out
+
+
+@nb.njit(cache=True)
+def _pairwise_sum(a: FloatArray, lo: int, hi: int) -> float:
+    """``np.sum(a[lo:hi])`` bit for bit: numpy's pairwise sum (eight partial sums, blocks of 128)."""
+    n = hi - lo
+    if n < 8:
+        res = 0.0
+        for i in range(lo, hi):
+            res += a[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+        r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+        i = 8
+        while i < n - (n % 8):
+            b = lo + i
+            r0 += a[b]
+            r1 += a[b + 1]
+            r2 += a[b + 2]
+            r3 += a[b + 3]
+            r4 += a[b + 4]
+            r5 += a[b + 5]
+            r6 += a[b + 6]
+            r7 += a[b + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += a[lo + i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise_sum(a, lo, lo + n2) + _pairwise_sum(a, lo + n2, hi)
+
+
+@nb.njit(cache=True)
+def _recess_beyond(k_end: int, step: int, angles: FloatArray, ranges: FloatArray, valid: BoolArray,
+                   cx: float, cy: float, ux: float, uy: float, min_step: float, max_step: float,
+                   max_gap: float, n_beams: int, min_returns: int) -> tuple[int, int, int, float]:
+    """``frontend.edges.recess_beyond``: (status, first, last, median); status 0: None, 1: found,
+    2: the gap to the first return lies within rounding of ``max_gap`` (``math.hypot`` here is not
+    Python's, so the caller decides that end with the reference code)."""
+    nx, ny = -uy, ux
+    away = 1.0 if nx * cx + ny * cy > 0.0 else -1.0
+    r_end, a_end = ranges[k_end], angles[k_end]
+    lx, ly = r_end * math.cos(a_end), r_end * math.sin(a_end)
+    depths = np.empty(n_beams)
+    beams = np.empty(n_beams, dtype=np.int64)
+    m = 0
+    first = -1
+    for i in range(1, n_beams + 1):
+        j = k_end + i * step
+        if not 0 <= j < angles.shape[0]:
+            break
+        if not valid[j]:
+            continue
+        r_j, a_j = ranges[j], angles[j]
+        qx, qy = r_j * math.cos(a_j), r_j * math.sin(a_j)
+        if first < 0:
+            gap = math.hypot(qx - lx, qy - ly)
+            if abs(gap - max_gap) <= 1e-9 * max_gap:
+                return 2, 0, 0, 0.0
+            if gap > max_gap:
+                return 0, 0, 0, 0.0
+            first = j
+        depths[m] = away * (nx * (qx - cx) + ny * (qy - cy))
+        beams[m] = j
+        m += 1
+    if first < 0 or m < min_returns:
+        return 0, 0, 0, 0.0
+    n_inside = 0
+    last = -1
+    for i in range(m):
+        if min_step <= depths[i] <= max_step:
+            n_inside += 1
+            last = beams[i]
+    s = np.sort(depths[:m])
+    median = s[m // 2] if m % 2 == 1 else (s[m // 2 - 1] + s[m // 2]) / 2
+    if n_inside < min_returns or not min_step <= median <= max_step:
+        return 0, 0, 0, 0.0
+    return 1, first, last, median
+
+
+@nb.njit(cache=True)
+def _refine_split(r: FloatArray, k0: int, window: int) -> tuple[int, float]:
+    """``frontend.edges._refine_split``, operation for operation."""
+    n_r = r.shape[0]
+    lo, hi = max(0, k0 + 1 - 2 * window), min(n_r, k0 + 1 + 2 * window)
+    n = hi - lo
+    c = np.empty(n)
+    acc = 0.0
+    for i in range(n):
+        acc = r[lo + i] if i == 0 else acc + r[lo + i]
+        c[i] = acc
+    best, best_i = 0.0, -1
+    for i in range(n - 1):
+        n_left = i + 1
+        mean_left = c[i] / n_left
+        mean_right = (c[n - 1] - c[i]) / (n - n_left)
+        d = mean_right - mean_left
+        split = lo + n_left - 1
+        near = abs(split - k0) <= window and split + 1 >= window // 2 and n_r - split - 1 >= window // 2
+        g = (n_left * (n - n_left)) / n * (d * d) if near else -1.0
+        if best_i < 0 or g > best or (np.isnan(g) and not np.isnan(best)):
+            best, best_i = g, i
+        if np.isnan(g):
+            break
+    k = lo + best_i
+    w_lo, w_hi = max(0, k + 1 - window), min(n_r, k + 1 + window)
+    after = _pairwise_sum(r, k + 1, w_hi) / (w_hi - k - 1)
+    before = _pairwise_sum(r, w_lo, k + 1) / (k + 1 - w_lo)
+    return k, after - before
+
+
+@nb.njit(cache=True)
+def _steps_within(x: FloatArray, y: FloatArray, cx: float, cy: float, ux: float, uy: float, sigma: float,
+                  window: int, min_step: float, max_step: float, min_z: float) -> tuple[IntArray, FloatArray]:
+    """``frontend.edges.steps_within`` of the returns ``x``, ``y`` (unsorted: the caller sorts)."""
+    n = x.shape[0]
+    nx, ny = -uy, ux
+    r = np.empty(n)
+    for i in range(n):
+        # (points - centroid) @ normal as OpenBLAS's gemv rounds it: one fused multiply-add
+        r[i] = _fma(x[i] - cx, nx, (y[i] - cy) * ny)  # type: ignore[call-arg]
+    c = np.empty(n + 1)
+    c[0] = 0.0
+    acc = 0.0
+    for i in range(n):
+        acc = r[i] if i == 0 else acc + r[i]
+        c[i + 1] = acc
+    n_k = n - 2 * window + 1
+    scale = sigma * math.sqrt(2.0 / window)
+    z = np.empty(n_k)
+    ok = np.empty(n_k, dtype=np.bool_)
+    for i in range(n_k):
+        k = window - 1 + i
+        before = (c[k + 1] - c[k + 1 - window]) / window
+        after = (c[k + 1 + window] - c[k + 1]) / window
+        depth = after - before
+        z[i] = abs(depth) / scale
+        ok[i] = abs(depth) >= min_step and abs(depth) <= max_step
+    order = np.argsort(-z, kind="mergesort")
+    taken = np.zeros(n_k, dtype=np.bool_)
+    idx = np.empty(n_k, dtype=np.int64)
+    off = np.empty(n_k)
+    m = 0
+    for i in order:
+        if z[i] < min_z:
+            break
+        if taken[i]:
+            continue
+        taken[max(0, i - window) : i + window + 1] = True
+        if ok[i]:
+            idx[m], off[m] = _refine_split(r, window - 1 + i, window)
+            m += 1
+    return idx[:m], off[:m]
+
+
+@nb.njit(cache=True)
+def scan_edge_tests(first_beam: IntArray, last_beam: IntArray, n_points: IntArray, angles: FloatArray,
+                    ranges: FloatArray, valid: BoolArray, cos_a: FloatArray, sin_a: FloatArray,
+                    centroid: FloatArray, direction: FloatArray, min_segment_points: int, inline: bool,
+                    window: int, min_step: float, max_step: float, max_gap: float, sigma: float,
+                    min_z: float) -> tuple[IntArray, IntArray, FloatArray, BoolArray, IntArray, IntArray, FloatArray]:
+    """``frontend.scan_prep.scan_edge_tests`` of all k segments of a scan at once (``cos_a``,
+    ``sin_a``: numpy's ``np.cos`` / ``np.sin`` of ``angles``).
+
+    Returns ``status`` (k, 2) per segment and direction (column 0: +1, column 1: -1): -1 no test
+    (short segment, or another segment next to that end), 0 None, 1 a recess (``ends`` (k, 2, 2):
+    first and last beam, ``median`` (k, 2)), 2 decide with the reference code; ``inline`` (k,)
+    whether the segment has the steps test, its steps rows ``start[j]`` to ``start[j + 1] - 1``
+    of ``step_index`` and ``step_offset`` (unsorted)."""
+    k = first_beam.shape[0]
+    n_beams = angles.shape[0]
+    owner = np.full(n_beams, -1, dtype=np.int64)
+    for j in range(k):
+        owner[first_beam[j] : last_beam[j] + 1] = j
+    status = np.full((k, 2), -1, dtype=np.int64)
+    ends = np.zeros((k, 2, 2), dtype=np.int64)
+    median = np.zeros((k, 2))
+    has_inline = np.zeros(k, dtype=np.bool_)
+    start = np.zeros(k + 1, dtype=np.int64)
+    step_index = np.empty(0, dtype=np.int64)
+    step_offset = np.empty(0)
+    for j in range(k):
+        n = n_points[j]
+        cx, cy = centroid[j, 0], centroid[j, 1]
+        ux, uy = direction[j, 0], direction[j, 1]
+        if n >= min_segment_points:
+            for col in range(2):
+                d = 1 if col == 0 else -1
+                k_end = last_beam[j] if d == 1 else first_beam[j]
+                a, b = k_end + d, k_end + 3 * d
+                near = False
+                for q in range(max(0, min(a, b)), min(max(a, b) + 1, n_beams)):
+                    if owner[q] >= 0:
+                        near = True
+                        break
+                if near:
+                    continue
+                st, f, la, med = _recess_beyond(k_end, d, angles, ranges, valid, cx, cy, ux, uy, min_step,
+                                                max_step, max_gap, 8, 3)
+                status[j, col] = st
+                ends[j, col, 0] = f
+                ends[j, col, 1] = la
+                median[j, col] = med
+        start[j + 1] = start[j]
+        if inline and n >= 2 * window:
+            has_inline[j] = True
+            lo, hi = first_beam[j], last_beam[j] + 1
+            m = 0
+            for q in range(lo, hi):
+                if valid[q]:
+                    m += 1
+            if m < 2 * window:
+                continue
+            x = np.empty(m)
+            y = np.empty(m)
+            m = 0
+            for q in range(lo, hi):
+                if valid[q]:
+                    x[m] = ranges[q] * cos_a[q]
+                    y[m] = ranges[q] * sin_a[q]
+                    m += 1
+            idx, off = _steps_within(x, y, cx, cy, ux, uy, sigma, window, min_step, max_step, min_z)
+            if idx.shape[0]:
+                step_index = np.concatenate((step_index, idx))
+                step_offset = np.concatenate((step_offset, off))
+                start[j + 1] = start[j] + idx.shape[0]
+    return status, ends, median, has_inline, start, step_index, step_offset

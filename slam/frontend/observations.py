@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from segmentation import Scanline, Segmentation
+from slam.frontend.batch_kernels import lift_segments
 
 FloatArray = NDArray[np.float64]
 
@@ -89,7 +90,33 @@ def scan_segments(
     ``model_sigma`` (m) is added in quadrature to each virtual point's noise: errors that do not
     average out over a segment's points (the trajectory between knots, calibration, surface
     flatness). Without it a long segment's virtual points claim a fraction of a millimetre.
+    One compiled pass (``frontend.batch_kernels.lift_segments``), bit for bit :func:`scan_segments_numpy`.
     """
+    k = seg.n_segments
+    c2 = np.asarray(seg.centroid, dtype=np.float64)  # (k, 2) scanner frame
+    u2 = np.asarray(seg.direction, dtype=np.float64)  # (k, 2)
+    R = np.ascontiguousarray(T_body_scanner[:3, :3], dtype=np.float64)
+    t = np.ascontiguousarray(T_body_scanner[:3, 3], dtype=np.float64)
+    counts, offsets, pts_body, tms, v_scanner, v_body, v_times, v_sigma = lift_segments(
+        np.asarray(seg.labels, dtype=np.int64), np.asarray(line.valid_index, dtype=np.int64), line.points_xy,
+        line.times, k, R, t, c2, u2, point_sigma**2, model_sigma**2)
+    if pts_body.shape[0] == 1:  # numpy's product of one row is no gemm: its own code
+        return scan_segments_numpy(line, seg, T_body_scanner, scanner, scan_index, point_sigma, model_sigma)
+    return _assemble(line, seg, scanner, scan_index, counts, offsets, pts_body, tms, v_scanner, v_body, v_times,
+                     v_sigma, c2, u2)
+
+
+def scan_segments_numpy(
+    line: Scanline,
+    seg: Segmentation,
+    T_body_scanner: FloatArray,
+    scanner: int,
+    scan_index: int,
+    point_sigma: float,
+    model_sigma: float = 0.0,
+) -> ScanSegments:
+    """:func:`scan_segments` in numpy, the code the compiled pass (``frontend.batch_kernels.lift_segments``)
+    reproduces bit for bit (tests/test_batch_kernels.py); it serves a scan with one labelled return."""
     k = seg.n_segments
     labels_valid = seg.labels[line.valid_index]
     keep = labels_valid >= 0
@@ -120,6 +147,14 @@ def scan_segments(
     v_body = v_scanner @ R.T + t
     v_times = np.stack((t_mean - beta * h, t_mean + beta * h), axis=1)
     v_sigma = np.sqrt(point_sigma**2 / (np.maximum(n, 2.0) / 2.0) + model_sigma**2)
+    return _assemble(line, seg, scanner, scan_index, counts, offsets, pts_body, tms, v_scanner, v_body, v_times,
+                     v_sigma, c2, u2)
+
+
+def _assemble(line: Scanline, seg: Segmentation, scanner: int, scan_index: int, counts: NDArray[np.int64],
+              offsets: NDArray[np.int64], pts_body: FloatArray, tms: FloatArray, v_scanner: FloatArray,
+              v_body: FloatArray, v_times: FloatArray, v_sigma: FloatArray, c2: FloatArray,
+              u2: FloatArray) -> ScanSegments:
     return ScanSegments(
         scanner=scanner,
         scan_index=scan_index,

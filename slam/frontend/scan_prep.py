@@ -21,15 +21,8 @@ from segmentation import Scanline
 from segmentation.steps import split_at_steps
 from slam import params
 from slam.config import SlamConfig
-from slam.frontend.edges import (
-    EdgeParams,
-    next_to_segment,
-    recess_beyond,
-    segment_end,
-    segment_owner,
-    segment_returns,
-    steps_within,
-)
+from slam.frontend import edge_kernels
+from slam.frontend.edges import EdgeParams, recess_beyond, segment_end
 from slam.frontend.observations import ScanSegments, scan_segments
 from slam.imu_feed import ImuSamples
 from slam.trajectory.deskew import DeskewTable, deskew_table
@@ -125,24 +118,33 @@ def scan_edge_tests(segs: ScanSegments, ep: EdgeParams, range_sigma: float) -> d
     """The door-edge tests that depend on the scan alone, for every segment that may turn out to be
     a wall's (the front end asks them of wall segments only, once it knows which those are):
     ``(j, +-1)``: ``frontend.edges.recess_beyond`` past the segment's end in that direction, where
-    no other segment starts within three beams; ``(j, 0)``: ``frontend.edges.steps_within``, with
-    ``inline``. Segments shorter than the front end's limits are left out: the front end takes
-    a missing test for a failed one."""
+    no other segment starts within three beams (``frontend.edges.next_to_segment``); ``(j, 0)``:
+    ``frontend.edges.steps_within`` of ``frontend.edges.segment_returns``, with ``inline``.
+    Segments shorter than the front end's limits are left out: the front end takes a missing test
+    for a failed one. One compiled pass over the segments (``frontend.edge_kernels.scan_edge_tests``,
+    bit for bit the per-segment functions: tests/test_edge_kernels.py)."""
+    status, ends, median, has_inline, start, step_index, step_offset = edge_kernels.scan_edge_tests(
+        segs.first_beam, segs.last_beam, segs.n_points, segs.beam_angles, segs.beam_ranges, segs.beam_valid,
+        np.cos(segs.beam_angles), np.sin(segs.beam_angles), segs.line_centroid, segs.line_direction,
+        ep.min_segment_points, ep.inline, ep.inline_window, ep.min_step, ep.max_step, ep.max_gap, range_sigma,
+        ep.inline_z)
+    st, en, med, inl = status.tolist(), ends.tolist(), median.tolist(), has_inline.tolist()
+    bounds, idx, off = start.tolist(), step_index.tolist(), step_offset.tolist()
     out: dict[tuple[int, int], Any] = {}
-    owner = segment_owner(segs)
-    W = ep.inline_window
     for j in range(segs.n_segments):
-        n = int(segs.n_points[j])
-        c2, u2 = segs.line_centroid[j], segs.line_direction[j]
-        if n >= ep.min_segment_points:
-            for direction in (1, -1):
-                k_end = segment_end(segs, j, direction)
-                if not next_to_segment(owner, k_end, direction):
-                    out[(j, direction)] = recess_beyond(k_end, direction, segs.beam_angles, segs.beam_ranges,
-                                                        segs.beam_valid, c2, u2, ep.min_step, ep.max_step, ep.max_gap)
-        if ep.inline and n >= 2 * W:
-            _, xy = segment_returns(segs, j)
-            out[(j, 0)] = steps_within(xy, c2, u2, range_sigma, W, ep.min_step, ep.max_step, ep.inline_z)
+        for col, direction in ((0, 1), (1, -1)):
+            s = st[j][col]
+            if s == 1:
+                out[(j, direction)] = (en[j][col][0], en[j][col][1], med[j][col])
+            elif s == 0:
+                out[(j, direction)] = None
+            elif s == 2:  # the gap lies within rounding of max_gap: Python's math.hypot decides
+                out[(j, direction)] = recess_beyond(
+                    segment_end(segs, j, direction), direction, segs.beam_angles, segs.beam_ranges,
+                    segs.beam_valid, segs.line_centroid[j], segs.line_direction[j], ep.min_step, ep.max_step,
+                    ep.max_gap)
+        if inl[j]:
+            out[(j, 0)] = sorted(zip(idx[bounds[j] : bounds[j + 1]], off[bounds[j] : bounds[j + 1]], strict=True))
     return out
 
 
