@@ -4,8 +4,10 @@
 use. A forked worker process owns the real ``Backend``; every mutating call is forwarded to it in
 order (batched, arguments copied at the call), so the worker's graph sees exactly the calls the
 in-process back end would. Calls that return ids (knots, factor and block ids) answer at once
-from the same deterministic counters (:class:`FactorIds`); the worker checks every id it makes
-against the one given and fails loudly when they differ.
+from the same deterministic counters (:class:`FactorIds`, which also follow the folds of linked
+planes at a step, ``config.fold_links_in_window``: a fold merges what the links sent before the
+step tie, known here when it is sent); the worker checks every id it makes against the one given
+and fails loudly when they differ.
 
 ``step()`` is pipelined: update ``u`` sends the step and returns at once; update ``u + 1`` first
 waits for step ``u``'s result (the recent knots' poses, velocities and bias, every plane, the
@@ -34,13 +36,14 @@ import multiprocessing as mp
 import os
 import queue as queue_mod
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slam.backend import Backend, BackendConfig, OptimizeSummary, RobustKernel, StepReport
+from slam.backend.ties import link_roots
 from slam.frontend.knots import KnotMirror
 from slam.prefetch import can_fork_reader, get_from_children
 
@@ -68,12 +71,23 @@ class FactorIds:
     """The back end's id counters, kept without the graph: knots are numbered in order; factor
     ids (observation blocks included) come from one counter that every added factor advances
     (:mod:`slam.backend.graph`). Counts follow :mod:`slam.backend.knots` and
-    :mod:`slam.backend.ties`; the worker checks every id against the real back end's."""
+    :mod:`slam.backend.ties`; the worker checks every id against the real back end's.
+
+    The planes' ties are kept as :class:`slam.backend.ties.PlaneTies` keeps them, as ids only
+    (which planes have a floor or wall prior, the links not folded yet, the orientation ties, the
+    planes folded into others), so that the ids also follow the folds of
+    ``config.fold_links_in_window``: a fold gives the surviving plane a prior and re-keys the
+    dropped plane's ties (new factors), and a tie or link asked for later between planes that
+    became one answers as the back end does."""
 
     def __init__(self, config: BackendConfig) -> None:
         self.config = config
         self.knots = 0
         self.next_factor = 0
+        self.priors: set[int] = set()  # planes with a horizontality or verticality prior
+        self.links: list[tuple[int, int]] = []  # (keep, drop), not folded yet
+        self.ties: list[tuple[int, int, int, bool]] = []  # (host, plane, factor id, perpendicular?)
+        self.folded: dict[int, int] = {}  # plane id -> the plane it was folded into
 
     def _factors(self, n: int) -> int:
         first = self.next_factor
@@ -96,13 +110,81 @@ class FactorIds:
         self.knots += 1
         return i
 
-    def add_plane(self, horizontal: bool, vertical: bool) -> None:
+    def add_plane(self, plane_id: int, horizontal: bool, vertical: bool) -> None:
         """A plane: its horizontality or verticality prior."""
-        self._factors(1 if horizontal or vertical else 0)
+        if horizontal or vertical:
+            self.priors.add(int(plane_id))
+            self._factors(1)
 
     def one(self) -> int:
-        """One factor (an observation block, a tie, a link, an IMU factor, a velocity prior)."""
+        """One factor (an observation block, an IMU factor, a velocity prior)."""
         return self._factors(1)
+
+    def resolve(self, plane_id: int) -> int:
+        """The plane that ``plane_id`` is now (followed through the folds)."""
+        j = int(plane_id)
+        while j in self.folded:
+            j = self.folded[j]
+        return j
+
+    def tie(self, host_id: int, plane_id: int, perpendicular: bool) -> int:
+        """A parallel or perpendicular tie's id (that of the pair's tie, if it has one already)."""
+        a, b = self.resolve(host_id), self.resolve(plane_id)
+        if a == b:
+            what = "perpendicular" if perpendicular else "parallel"
+            raise ValueError(f"add_{what}: cannot tie plane {a} to itself")
+        same = next((t for t in self.ties if {t[0], t[1]} == {a, b} and t[3] == perpendicular), None)
+        if same is not None:
+            return same[2]
+        fid = self.one()
+        self.ties.append((a, b, fid, perpendicular))
+        return fid
+
+    def link(self, keep_id: int, drop_id: int) -> int:
+        """An equality link's id (-1: the two planes are one already)."""
+        if int(keep_id) == int(drop_id):
+            raise ValueError(f"link_planes: cannot link plane {int(keep_id)} with itself")
+        keep, drop = self.resolve(keep_id), self.resolve(drop_id)
+        if keep == drop:
+            return -1
+        self.links.append((keep, drop))
+        return self.one()
+
+    def remove_plane(self, plane_id: int) -> None:
+        """A plane removed: its prior and ties go."""
+        j = self.resolve(plane_id)
+        self.priors.discard(j)
+        self.ties = [t for t in self.ties if j not in t[:2]]
+
+    def fold_links(self) -> dict[int, int]:
+        """The links folded into merges (as :meth:`slam.backend.ties.PlaneTies.fold_links`):
+        dropped id -> surviving id."""
+        out = link_roots(self.links)
+        self.links = []
+        for drop, keep in out.items():
+            if drop in self.priors:  # the prior moves over (a new factor) unless keep has one
+                self.priors.discard(drop)
+                if keep not in self.priors:
+                    self.priors.add(keep)
+                    self.one()
+            self._rekey_ties(drop, keep)
+            self.folded[drop] = keep
+        return out
+
+    def _rekey_ties(self, drop: int, keep: int) -> None:
+        """:meth:`slam.backend.ties.PlaneTies._rekey_parallels`: the dropped plane's ties made
+        again on ``keep`` (new ids), once per pair."""
+        pairs = {(frozenset(t[:2]), t[3]) for t in self.ties if drop not in t[:2]}
+        out = []
+        for a, b, fid, perp in self.ties:
+            if drop not in (a, b):
+                out.append((a, b, fid, perp))
+                continue
+            na, nb = (keep if a == drop else a), (keep if b == drop else b)
+            if na != nb and (frozenset((na, nb)), perp) not in pairs:
+                pairs.add((frozenset((na, nb)), perp))
+                out.append((na, nb, self.one(), perp))
+        self.ties = out
 
 
 @dataclass
@@ -205,8 +287,6 @@ class BackendProcess:
     many of the newest knots a step's result carries."""
 
     def __init__(self, config: BackendConfig, knots: KnotMirror, recent_knots: int) -> None:
-        # the worker's ids must follow FactorIds' counting: links stay links until fold_links
-        config = replace(config, fold_links_in_window=False)
         self.config = config
         self._knots = knots
         self._recent = recent_knots
@@ -293,7 +373,7 @@ class BackendProcess:
     def add_plane(self, plane_id: int, normal_world: ArrayLike, offset: float, horizontal: bool = False,
                   vertical: bool = False, anchor: ArrayLike | None = None) -> None:
         if self._ids is not None:
-            self._ids.add_plane(horizontal, vertical)
+            self._ids.add_plane(plane_id, horizontal, vertical)
         n = np.asarray(normal_world, dtype=float).reshape(3)
         self._planes_sent[int(plane_id)] = (n / np.linalg.norm(n), float(offset))
         self._forward("add_plane", (plane_id, normal_world, offset),
@@ -311,17 +391,30 @@ class BackendProcess:
                          sigmas: ArrayLike) -> int:
         return self._with_id("add_observations", knot, plane_id, points, alphas, sigmas)
 
+    def _tie(self, name: str, host_id: int, plane_id: int, sigma_angle: float) -> int:
+        if self._ids is None:
+            return int(self._changed_remotely(name, host_id, plane_id, sigma_angle))
+        fid = self._ids.tie(host_id, plane_id, name == "add_perpendicular")
+        self._forward(name, (host_id, plane_id, sigma_angle), None, fid)
+        return fid
+
     def add_parallel(self, host_id: int, plane_id: int, sigma_angle: float) -> int:
-        return self._with_id("add_parallel", host_id, plane_id, sigma_angle)
+        return self._tie("add_parallel", host_id, plane_id, sigma_angle)
 
     def add_perpendicular(self, host_id: int, plane_id: int, sigma_angle: float) -> int:
-        return self._with_id("add_perpendicular", host_id, plane_id, sigma_angle)
+        return self._tie("add_perpendicular", host_id, plane_id, sigma_angle)
 
     def link_planes(self, keep_id: int, drop_id: int, sigma_angle: float, sigma_offset: float) -> int:
-        return self._with_id("link_planes", keep_id, drop_id, sigma_angle, sigma_offset)
+        if self._ids is None:
+            return int(self._changed_remotely("link_planes", keep_id, drop_id, sigma_angle, sigma_offset))
+        fid = self._ids.link(keep_id, drop_id)
+        self._forward("link_planes", (keep_id, drop_id, sigma_angle, sigma_offset), None, fid)
+        return fid
 
     def remove_plane(self, plane_id: int) -> None:
         self._planes_sent.pop(int(plane_id), None)
+        if self._ids is not None:
+            self._ids.remove_plane(plane_id)
         self._forward("remove_plane", (plane_id,))
 
     def remove_observations(self, block_id: int) -> None:
@@ -343,6 +436,8 @@ class BackendProcess:
         """Apply the outstanding step's result (if any), send a new step, and return the applied
         step's report (not solved when there was none): the front end runs one update behind."""
         report = self.collect() if self._outstanding else StepReport(False, 0, 0)
+        if self._ids is not None and self.config.fold_links_in_window and self._ids.links:
+            self._ids.fold_links()  # as the worker's step will first (Backend.step)
         self._flush()
         self._calls.put((_STEP, max(0, self._knots.n - self._recent)))
         self._outstanding = True
@@ -435,9 +530,12 @@ class BackendProcess:
 
     def plane(self, plane_id: int) -> tuple[FloatArray, float]:
         """Unit normal (3,) and offset of a plane (world) as of the last applied step; a plane
-        added since: its initial values, corrected like the knots."""
+        added since: its initial values, corrected like the knots; a plane folded into another
+        (``config.fold_links_in_window``): that plane's."""
         m = self._need_mirror("plane")
         j = int(plane_id)
+        if j not in m.planes and j not in self._planes_added and self._ids is not None:
+            j = self._ids.resolve(j)  # folded into another plane (config.fold_links_in_window)
         if j in m.planes:
             n, d = m.planes[j]
             return n.copy(), d

@@ -378,7 +378,7 @@ class BackEndConfig(StrictModel):
         "step", description="when two planes the front end found to be one surface (a wall walked past again) "
         "become one variable in the back end: 'step' at the next window step (the window then holds one plane "
         "per surface, and its cost does not grow with the times a wall is revisited), 'end' before the final "
-        "batch (until then tied by an equality factor). With solver isam2 or a pipelined back end: 'end'")
+        "batch (until then tied by an equality factor). With solver isam2: 'end'")
     final_trim_sigmas: float = Field(
         3.0, ge=0, description="after the final batch, detach the points farther from their plane than this many "
         "sigmas and final_trim_distance, then solve again (0: off)")

@@ -30,9 +30,9 @@ pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="no fork here")
 DEG = np.pi / 180.0
 
 
-def _pair(config: BackendConfig, dt: float = 1.0 / 40.0) -> tuple[Backend, BackendProcess, KnotMirror]:
+def _pair(config: BackendConfig, dt: float = 1.0 / 40.0, fold: bool = False) -> tuple[Backend, BackendProcess, KnotMirror]:
     knots = KnotMirror(dt)
-    config = replace(config, fold_links_in_window=False)  # as the proxy's worker runs
+    config = replace(config, fold_links_in_window=fold)
     return Backend(config), BackendProcess(config, knots, recent_knots=20), knots
 
 
@@ -54,6 +54,26 @@ def _planes(scene: Scene, rng: np.random.Generator) -> list[tuple[int, np.ndarra
     return out
 
 
+def _blocks_by_knot(scene: Scene) -> dict[int, list[dict]]:
+    by_knot: dict[int, list[dict]] = {}
+    for b in scene.blocks:
+        by_knot.setdefault(b["knot"], []).append(b)
+    return by_knot
+
+
+def _knot(be: Backend, proxy: BackendProcess, knots: KnotMirror, scene: Scene, rng: np.random.Generator,
+          by_knot: dict[int, list[dict]], i: int) -> list[dict]:
+    """Knot ``i`` of the scene on both (its pose perturbed) and the blocks of the interval before
+    it; returns those blocks."""
+    T = scene.knot_poses[0] if i == 0 else perturb_pose(scene.knot_poses[i], rng, 0.01, 0.3 * DEG)
+    knots.append(T)
+    assert _both(be, proxy, "add_pose", scene.knot_times[i], T) == i
+    blocks = by_knot.get(i - 1, [])
+    for b in blocks:
+        _both(be, proxy, "add_observations", b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    return blocks
+
+
 def test_the_proxy_gives_the_back_ends_ids_and_replays_to_the_same_estimates() -> None:
     """Knots, blocks, ties and links get the in-process ids; steps applied at the same points give
     the same estimates, bit for bit, and so does the final batch."""
@@ -65,17 +85,10 @@ def test_the_proxy_gives_the_back_ends_ids_and_replays_to_the_same_estimates() -
             _both(be, proxy, "add_plane", j, n, d, horizontal=hor, vertical=ver, anchor=scene.planes[j, :3] * 0.5)
         wall = next(j for j in range(6) if abs(scene.planes[j, 2]) < 0.1)
         n_w, d_w = scene.planes[wall, :3], float(scene.planes[wall, 3])
-        by_knot: dict[int, list[dict]] = {}
-        for b in scene.blocks:
-            by_knot.setdefault(b["knot"], []).append(b)
+        by_knot = _blocks_by_knot(scene)
         steps = 0
-        for i, t in enumerate(scene.knot_times):
-            T = scene.knot_poses[0] if i == 0 else perturb_pose(scene.knot_poses[i], rng, 0.01, 0.3 * DEG)
-            knots.append(T)
-            assert _both(be, proxy, "add_pose", t, T) == i
-            for b in by_knot.get(i - 1, []):
-                _both(be, proxy, "add_observations", b["knot"], b["plane"], b["points_body"], b["alphas"],
-                      b["sigmas"])
+        for i in range(len(scene.knot_times)):
+            _knot(be, proxy, knots, scene, rng, by_knot, i)
             if i == 10:  # a duplicate of the wall (linked), a door in it (parallel), one across it, removed
                 _both(be, proxy, "add_plane", 10, n_w, d_w + 0.001, vertical=True)
                 _both(be, proxy, "add_plane", 11, n_w, d_w + 0.02)
@@ -117,6 +130,64 @@ def test_the_proxy_gives_the_back_ends_ids_and_replays_to_the_same_estimates() -
         # after a change the counters do not follow, ids come from the worker
         b = scene.blocks[0]
         _both(be, proxy, "add_observations", b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    finally:
+        proxy.close()
+
+
+def test_the_counters_follow_the_folds_at_a_step() -> None:
+    """With the links folded at every step (``fold_links_in_window``), the counters follow the
+    fold: the surviving plane's new prior, the dropped planes' ties made again on it, a tie or link
+    asked for later between planes that became one (the pair's tie's id, -1), and the mirror
+    answers a dropped plane as its survivor; the estimates stay the in-process ones, bit for bit."""
+    scene = make_scene(duration=1.0, beams=61, sigma_range=0.003, seed=3)
+    rng = np.random.default_rng(5)
+    be, proxy, knots = _pair(backend_defaults(), fold=True)
+    try:
+        planes = _planes(scene, rng)
+        for j, n, d, hor, ver in planes:
+            _both(be, proxy, "add_plane", j, n, d, horizontal=hor, vertical=ver, anchor=scene.planes[j, :3] * 0.5)
+        walls = [j for j, n, _, hor, ver in planes if abs(scene.planes[j, 2]) < 0.1]
+        wall = next(j for j in walls if not planes[j][4])  # a wall without a verticality prior
+        n_w, d_w = scene.planes[wall, :3], float(scene.planes[wall, 3])
+        across = np.cross(n_w, [0.0, 0.0, 1.0])
+        by_knot = _blocks_by_knot(scene)
+        for i in range(len(scene.knot_times)):
+            for b in _knot(be, proxy, knots, scene, rng, by_knot, i):
+                if i > 10 and b["plane"] == wall:  # its duplicates observe it too
+                    for dup in (10, 11):
+                        _both(be, proxy, "add_observations", b["knot"], dup, b["points_body"], b["alphas"],
+                              b["sigmas"])
+            if i == 10:  # two duplicates of the wall (one with a prior the wall lacks), each with ties
+                _both(be, proxy, "add_plane", 10, n_w, d_w + 0.001, vertical=True)
+                _both(be, proxy, "add_plane", 11, n_w, d_w - 0.001)
+                _both(be, proxy, "add_plane", 12, across, 0.3, vertical=True)
+                _both(be, proxy, "add_plane", 13, n_w, d_w + 0.03)
+                _both(be, proxy, "add_perpendicular", 10, 12, 0.01)
+                _both(be, proxy, "add_perpendicular", 11, 12, 0.01)  # the same pair once folded
+                _both(be, proxy, "add_parallel", wall, 13, 0.01)
+                _both(be, proxy, "add_parallel", 11, 13, 0.01)
+                _both(be, proxy, "link_planes", wall, 10, 1e-3, 1e-3)
+                _both(be, proxy, "link_planes", 10, 11, 1e-3, 1e-3)
+            if i == 14:  # after the fold: the same surface asked again
+                assert _both(be, proxy, "link_planes", 11, wall, 1e-3, 1e-3) == -1
+                assert _both(be, proxy, "add_perpendicular", 11, 12, 0.01) >= 0
+                assert _both(be, proxy, "add_parallel", 10, 13, 0.01) >= 0
+                _both(be, proxy, "remove_plane", 13)
+            if i >= 8 and i % 4 == 0:
+                report = be.step()
+                proxy.step()
+                assert proxy.collect() == report
+                for k in range(max(0, i + 1 - 20), i + 1):
+                    np.testing.assert_array_equal(proxy.pose(k), be.pose(k))
+                for j in [*be.plane_ids(), 10, 11] if i >= 12 else be.plane_ids():
+                    n_be, d_be = be.plane(j)
+                    n_px, d_px = proxy.plane(j)
+                    np.testing.assert_array_equal(n_px, n_be)
+                    assert d_px == d_be
+        assert proxy._ids is not None and proxy._ids.folded == {10: wall, 11: wall}
+        assert 10 not in proxy.plane_ids() and 11 not in proxy.plane_ids()
+        assert _both(be, proxy, "fold_links") == {}
+        np.testing.assert_array_equal(proxy.poses(), be.poses())
     finally:
         proxy.close()
 
@@ -286,15 +357,15 @@ def box_imu_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
     return _box_walk(tmp_path_factory, imu=True)
 
 
-def _runner(bag: Path, pipelined: bool) -> SlamRunner:
-    """A runner over the whole bag (with its IMU, if it has one), finished."""
+def _runner(bag: Path, pipelined: bool, **backend: Any) -> SlamRunner:
+    """A runner over the whole bag (with its IMU, if it has one), finished; ``backend``: more of
+    the back end's configuration."""
     from common.rig import resolve_rig
     from slam.io.bag import read_scans, time_range
     from slam.run import load_imu
 
     rig = resolve_rig("itc_backpack")
-    # an update every second (not the default's two): enough of them on the short walks
-    cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined, "update_every": 20}})
+    cfg = SlamConfig.model_validate({"backend": {"pipelined": pipelined, **backend}})
     imu = load_imu(bag, cfg, *time_range(bag), rig=rig)
     runner = SlamRunner(rig, cfg, imu)
     assert isinstance(runner.backend, BackendProcess) == pipelined
@@ -304,8 +375,8 @@ def _runner(bag: Path, pipelined: bool) -> SlamRunner:
     return runner
 
 
-def _run(bag: Path, pipelined: bool) -> SlamResult:
-    runner = _runner(bag, pipelined)
+def _run(bag: Path, pipelined: bool, **backend: Any) -> SlamResult:
+    runner = _runner(bag, pipelined, **backend)
     try:
         return runner.result()
     finally:
@@ -343,7 +414,7 @@ def test_a_pipelined_imu_walk_keeps_the_front_ends_velocities(box_imu_walk: Simu
     results = {}
     for pipelined in (False, True):
         newest.clear()
-        runner = _runner(box_imu_walk.bag, pipelined)
+        runner = _runner(box_imu_walk.bag, pipelined, update_every=20)  # five updates in the 6 s
         try:
             results[pipelined] = runner.result()
             final = runner.backend.velocities()
@@ -354,3 +425,43 @@ def test_a_pipelined_imu_walk_keeps_the_front_ends_velocities(box_imu_walk: Simu
     assert errors[True] < max(0.03, 3.0 * errors[False]), errors
     gap = np.linalg.norm(results[True].T_world_body[:, :3, 3] - results[False].T_world_body[:, :3, 3], axis=1)
     assert gap.max() < 0.01, f"{1000 * gap.max():.2f} mm from the synchronous run"
+
+
+@pytest.fixture(scope="module")
+def ring_walk(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
+    """Once round the ring corridor: the start corridor's walls come back into view."""
+    from tests.test_slam_pipeline import RING_WORLD
+
+    folder = tmp_path_factory.mktemp("ring_walk")
+    world = folder / "ring.yaml"
+    world.write_text(RING_WORLD)
+    return simulate(world, "itc_backpack", duration=14.5, seed=3, out=folder / "ring.bag", progress=False)
+
+
+def test_a_pipelined_walk_folds_a_revisited_wall_at_the_step(ring_walk: SimulationResult) -> None:
+    """``fold_links: step`` in the worker too: the walls seen again after the loop, linked to their
+    first copies, become one variable at the next step (the worker's window holds one plane per
+    surface, as in sync, not two tied by a link), and the walk ends where the synchronous one does,
+    the same way every time."""
+    planes = {}
+    folded = {}
+    for pipelined in (False, True):
+        runner = _runner(ring_walk.bag, pipelined)
+        try:
+            planes[pipelined] = runner.backend.plane_ids()
+            if isinstance(runner.backend, BackendProcess):
+                assert runner.backend._ids is not None
+                folded = dict(runner.backend._ids.folded)
+            assert runner.stats.planes_merged >= 2
+        finally:
+            runner.close()
+    assert len(folded) >= 2, folded  # linked during the walk, folded at a step
+    assert not set(folded) & set(planes[True])
+    assert planes[True] == planes[False]
+    a, b, sync = _run(ring_walk.bag, True), _run(ring_walk.bag, True), _run(ring_walk.bag, False)
+    np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
+    np.testing.assert_array_equal(a.plane_offsets, b.plane_offsets)
+    np.testing.assert_array_equal(a.plane_ids, sync.plane_ids)
+    gap = np.linalg.norm(a.T_world_body[:, :3, 3] - sync.T_world_body[:, :3, 3], axis=1)
+    assert gap.max() < 0.002, f"{1000 * gap.max():.2f} mm from the synchronous run"
+    np.testing.assert_allclose(a.plane_offsets, sync.plane_offsets, atol=0.002)

@@ -114,20 +114,10 @@ class PlaneTies:
 
     def fold_links(self) -> dict[int, int]:
         """See :meth:`Backend.fold_links`."""
-        parent: dict[int, int] = {}
-
-        def root(j: int) -> int:
-            while parent.get(j, j) != j:
-                j = parent[j]
-            return j
-
-        for keep, drop, fid in self.links:
+        for _, _, fid in self.links:
             self.graph.records.pop(fid, None)
-            rk, rd = root(keep), root(drop)
-            if rk != rd:
-                parent[rd] = rk
+        out = link_roots([(keep, drop) for keep, drop, _ in self.links])
         self.links = []
-        out = {j: root(j) for j in parent}
         for drop, keep in out.items():
             if drop != keep:
                 self.merge(keep, drop)
@@ -173,6 +163,24 @@ class PlaneTies:
                 pairs.add((frozenset((na, nb)), perp))
                 out.append((na, nb, self._tie_factor(na, nb, sigma, perp), sigma, perp))
         self.parallels = out
+
+
+def link_roots(links: list[tuple[int, int]]) -> dict[int, int]:
+    """The merges that fold equality links ``(keep, drop)`` (in order): each dropped plane -> the
+    plane that survives it (in the order the merges are made; the pipelined back end's counters
+    follow the same order, ``slam.backend_process.FactorIds``)."""
+    parent: dict[int, int] = {}
+
+    def root(j: int) -> int:
+        while parent.get(j, j) != j:
+            j = parent[j]
+        return j
+
+    for keep, drop in links:
+        rk, rd = root(keep), root(drop)
+        if rk != rd:
+            parent[rd] = rk
+    return {j: root(j) for j in parent}
 
 
 def _plane_id(plane_id: int) -> int:
