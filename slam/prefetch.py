@@ -131,7 +131,7 @@ def _from_reader(
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _DONE:
                 done: StreamIndex = item[1]
                 index.stamps, index.scanner_ids, index.lag_ns = done.stamps, done.scanner_ids, done.lag_ns
-                index.intensities = done.intensities
+                index.intensities, index.last_stamp = done.intensities, done.last_stamp
                 break
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:
                 raise item[1]
