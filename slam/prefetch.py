@@ -17,6 +17,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import queue as queue_mod
 from collections.abc import Generator, Sequence
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -130,8 +131,8 @@ def _from_reader(
             item = get_from_children(q, [proc], f"{bag}: the scan reader process")
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _DONE:
                 done: StreamIndex = item[1]
-                index.stamps, index.scanner_ids, index.lag_ns = done.stamps, done.scanner_ids, done.lag_ns
-                index.intensities, index.last_stamp = done.intensities, done.last_stamp
+                for f in fields(StreamIndex):  # every field: the reader's index is the stream's
+                    setattr(index, f.name, getattr(done, f.name))
                 break
             if isinstance(item, tuple) and len(item) == 2 and item[0] == _ERROR:
                 raise item[1]
