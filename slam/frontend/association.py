@@ -179,12 +179,15 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         float(pmap.cell_size), *g[1])
     if cols.size == 0:
         return Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
-    # every candidate pair's end points and centroid against its plane's (dilated) extent, once
-    overlaps = pmap.overlaps_cells
-    pair_ids = pair_id.tolist()
-    pair_cells = cells.tolist()
-    pair_dil = pair_dilate.tolist()
-    near = np.array([overlaps(i, c, d) for i, c, d in zip(pair_ids, pair_cells, pair_dil, strict=True)], dtype=bool)
+    # every candidate pair's end points and centroid against its plane's (dilated) extent, once,
+    # and for a door's or board's pair (``whole``) each of the three on its own (compiled: the
+    # plane map's extent index)
+    whole = np.zeros(cols.shape[0], dtype=np.bool_)
+    if child_rows and gates.choice is not None:
+        is_child = np.zeros(rows.shape[0], dtype=np.bool_)
+        is_child[child_rows] = True
+        whole = is_child[cols]
+    near, each = pmap.extents.pairs_near(pair_id, cells, pair_dilate, whole)
     keep = near
     shadow = np.zeros(near.shape[0], dtype=np.bool_)
     choice = gates.choice
@@ -195,10 +198,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         # segmenter breaks there): both end points and the centroid of a segment on it lie within
         # its extent (dilated by the child margin), where a wall's segment runs on past it
         if child_rows:
-            keep = near.copy()
-            whole = set(child_rows)
-            for i in [i for i, (j, ok) in enumerate(zip(cols.tolist(), near.tolist(), strict=True)) if ok and j in whole]:
-                keep[i] = all(overlaps(pair_ids[i], [c], pair_dil[i]) for c in pair_cells[i])
+            keep = each
             if choice.hold_past_child:
                 # a door's segment running past the door's extent (the extent so far) is still the
                 # door's if it fits it better than its wall: held back, not given to the wall

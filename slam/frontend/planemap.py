@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from slam.frontend import batch_kernels as bk
 from slam.frontend import kernels as fk
+from slam.frontend.extent_index import ExtentIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -112,9 +113,9 @@ class PlaneMap:
         self._rows: tuple[int, FloatArray, NDArray[np.bool_]] | None = None
         # per plane: its cell centres (world frame) with the version and cell set they are of
         self._centres: dict[int, tuple[int, set[tuple[int, int]], int, FloatArray]] = {}
-        # per plane: its cell set (held, so that identity means the same set), the set's size then
-        # and the cells as an (n, 2) array
-        self._extent_arrays: dict[int, tuple[set[tuple[int, int]], int, NDArray[np.int64]]] = {}
+        # every plane's extent cells in one compiled index (the dilated-extent tests), grown with
+        # the planes' cell sets (``extend``, ``observe_segments``: the only places they grow)
+        self.extents = ExtentIndex()
         self._hosts: set[int] = set()  # the planes another plane was merged into (``has_merged``)
 
     def __len__(self) -> int:
@@ -127,6 +128,7 @@ class PlaneMap:
         p = Plane(len(self.planes), n, float(d), kind, u, v, last_seen_time=time, last_seen_odometer=odometer,
                   first_seen_odometer=odometer, seen_buckets={self._bucket_of(time)})
         self.planes.append(p)
+        self.extents.add_plane(p.id)
         self._active = None
         self._version += 1
         return p
@@ -197,6 +199,7 @@ class PlaneMap:
         # the set takes the duplicates (np.unique over rows costs ten times more)
         p = self.planes[pid]
         p.cells.update(zip(cells[:, 0].tolist(), cells[:, 1].tolist(), strict=True))
+        self.extents.insert_one(pid, cells)
         if p.n_segments < self.samples_until:
             p.samples.append(np.array(points_world, dtype=np.float64))
         self._grow_extremes(p, np.asarray(points_world, dtype=np.float64))
@@ -228,6 +231,7 @@ class PlaneMap:
         grows = np.ascontiguousarray(grows, dtype=np.bool_)
         cells, start = bk.segment_cells(pts, bounds, seg_plane, grows, us, vs, float(self.cell_size))
         bk.grow_extremes(pts, bounds, seg_plane, grows, extremes, has, us, vs)
+        self.extents.insert(np.array(pids, dtype=np.int64), start, cells)
         cu, cv, cs, bs = cells[:, 0].tolist(), cells[:, 1].tolist(), start.tolist(), bounds.tolist()
         grown = grows.tolist()
         for s, pid in enumerate(pids):
@@ -262,33 +266,13 @@ class PlaneMap:
         plane's extent."""
         if not self.planes[pid].cells:
             return False
-        return self.overlaps_cells(pid, self.cells_of(pid, points_world).tolist(), dilate)
+        return self.extents.near(pid, self.cells_of(pid, points_world), dilate)
 
     def overlaps_cells(self, pid: int, cells: list[list[int]], dilate: int) -> bool:
         """Whether any of the cells ``[[cu, cv], ...]`` (the plane's (u, v) frame, as
-        ``cells_of``) is within ``dilate`` cells of the plane's extent."""
-        ext = self.planes[pid].cells
-        if not ext:
-            return False
-        for c in cells:  # the usual answer: a point inside the extent itself
-            if (c[0], c[1]) in ext:
-                return True
-        if dilate <= 0 or not cells:
-            return False
-        # within dilate cells of one of the extent's: one compiled pass over the extent's cells
-        hit = self._extent_arrays.get(pid)
-        extent = hit[2] if hit is not None and hit[0] is ext and hit[1] == len(ext) else self._extent_array(pid)
-        return bool(fk.near_cells(extent, np.array(cells, dtype=np.int64).reshape(-1, 2), int(dilate)))
-
-    def _extent_array(self, pid: int) -> NDArray[np.int64]:
-        """The plane's extent cells as an (n, 2) array, rebuilt when the set was replaced or has
-        grown (extents only grow, by ``extend``)."""
-        ext = self.planes[pid].cells
-        hit = self._extent_arrays.get(pid)
-        if hit is None or hit[0] is not ext or hit[1] != len(ext):
-            hit = (ext, len(ext), np.array(list(ext), dtype=np.int64).reshape(-1, 2))
-            self._extent_arrays[pid] = hit
-        return hit[2]
+        ``cells_of``) is within ``dilate`` cells (Chebyshev distance) of the plane's extent
+        (compiled: ``extents``)."""
+        return self.extents.near(pid, np.array(cells, dtype=np.int64).reshape(-1, 2), dilate)
 
     def extents_touch(self, a: int, b: int, dilate: int) -> bool:
         """Whether two planes' extents are within ``dilate`` cells (measured in plane ``a``'s frame)."""
