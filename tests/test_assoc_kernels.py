@@ -553,3 +553,48 @@ def test_summaries_match_the_reference_over_overlapping_calls() -> None:
     got = sa.summaries([scans[5]])  # type: ignore[list-item]
     np.testing.assert_array_equal(got[0][0], _summaries_reference(knots, T_bs, [scans[5]])[0][0])
     assert sa.summaries([]) == []
+
+
+# --- the whole scan in one call (assoc_scan_kernels.associate_segments) ---------------------------
+
+@pytest.mark.parametrize("seed", range(6))
+def test_associate_segments_is_summaries_then_associate_scan(seed: int) -> None:
+    """``ScanAssociator.associate``'s one compiled call against the Python path it replaced:
+    ``world_segments``, :func:`associate_scan`, then the short segments left unassociated."""
+    from slam.frontend.assoc_scan_kernels import associate_segments
+    from slam.frontend.association import (
+        _NO_HOSTS,
+        _SAME_NORMAL,
+        _gate_scalars,
+        _map_inputs,
+        world_segments,
+    )
+
+    rng = np.random.default_rng(100 + seed)
+    pmap, children = _random_map(rng, int(rng.integers(1, 8)))
+    decided = 0
+    for _ in range(6):
+        s = _random_scan(rng, pmap, int(rng.integers(1, 60)))
+        half = rng.uniform(0.05, 0.5, s.n)[:, None] * s.direction
+        virtual = np.stack((s.centroid - half, s.centroid + half), axis=1) + rng.normal(0.0, 0.001, (s.n, 2, 3))
+        vsig = rng.uniform(0.0003, 0.004, s.n)
+        n_points = rng.integers(1, 40, s.n).astype(np.int64)
+        point_sigma, min_points, odometer = float(rng.uniform(0.001, 0.01)), int(rng.integers(1, 12)), float(rng.uniform(0, 80))
+        for gates in _gate_variants():
+            kids = children if rng.uniform() < 0.8 else None
+            ws = world_segments(virtual, s.endpoints, vsig, point_sigma, n_points, ORIGIN)
+            ref = associate_scan(ws, pmap, odometer, gates, kids)
+            ref.ids[n_points < min_points] = NONE
+            ref.grows[n_points < min_points] = False
+            m = _map_inputs(pmap, gates, kids)
+            assert m is not None
+            g = _gate_scalars(gates)
+            c = gates.choice
+            ids, grows = associate_segments(
+                virtual, np.ascontiguousarray(s.endpoints), vsig, point_sigma, n_points, ORIGIN, min_points, m.rows,
+                m.horizontal, m.ids, m.child_rows, m.is_child, odometer, float(pmap.cell_size), g[0], g[1],
+                pmap.extents.keys, pmap.extents.count, pmap.extents.box, c is not None, c is not None and c.veto,
+                c is not None and c.hold_past_child, m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+            _assert_same(Association(ids, grows), ref)
+            decided += int((ids >= 0).sum())
+    assert decided > 0

@@ -27,7 +27,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.frontend import assoc_kernels as ak
+from slam.frontend import assoc_scan_kernels as ask
 from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.observations import ScanSegments
@@ -144,14 +144,51 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
     which the child's own tilt cannot move), and with ``gates.child_margin_cells`` >= 0 its
     extent is dilated by that many cells only (a door's extent does not reach the next board).
 
-    The per-pair gates (angle and distance, end points, facing side) and the extent cells of the
-    pairs under them are computed in one compiled pass (``slam.frontend.assoc_kernels.scan_pairs``);
-    the extents (the plane map's) are then tested once per such pair, and the choice and the
-    nearest candidate are made in one compiled call (``assoc_kernels.decide``).
+    After the map's side in Python (:func:`_map_inputs`), one compiled call
+    (``slam.frontend.assoc_scan_kernels.associate_summarised``): the per-pair gates (angle and
+    distance, end points, facing side) and the extent cells of the pairs under them
+    (``assoc_kernels.scan_pairs``), each such pair's extent test against the plane map's extent
+    index (``extent_kernels.pairs_near``), then the choice and the nearest candidate
+    (``assoc_kernels.decide``).
     """
+    empty = Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
+    if segs.n == 0:
+        return empty
+    m = _map_inputs(pmap, gates, children)
+    if m is None:
+        return empty
+    g = _gate_scalars(gates)
+    choice = gates.choice
+    weight_n = (np.ones(segs.n, dtype=np.int64) if segs.n_points is None else segs.n_points)
+    out, grows = ask.associate_summarised(
+        segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
+        segs.origin, weight_n, m.rows, m.horizontal, m.ids, m.child_rows, m.is_child, float(odometer),
+        float(pmap.cell_size), g[0], g[1], pmap.extents.keys, pmap.extents.count, pmap.extents.box, choice is not None,
+        choice is not None and choice.veto, choice is not None and choice.hold_past_child, m.hosts,
+        m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+    return Association(out, grows)
+
+
+@dataclass(frozen=True)
+class _MapInputs:
+    """The active planes as the association kernels take them (world frame): ``rows`` (P, 12)
+    (``PlaneMap.active_rows``; a child's with its host's normal under ``child_host_normal``),
+    ``horizontal`` (P,), ``ids`` (P,), the children's rows ``child_rows`` and ``is_child`` (P,), and
+    the walls of the host test ``hosts`` (P,; ``_NO_HOSTS`` without it)."""
+
+    rows: FloatArray
+    horizontal: NDArray[np.bool_]
+    ids: NDArray[np.int64]
+    child_rows: NDArray[np.int64]
+    is_child: NDArray[np.bool_]
+    hosts: NDArray[np.bool_]
+
+
+def _map_inputs(pmap: PlaneMap, gates: Gates, children: dict[int, int] | None) -> _MapInputs | None:
+    """The map's side of :func:`associate_scan` (None without an active plane)."""
     active = pmap.active_planes()
-    if not active or segs.n == 0:
-        return Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
+    if not active:
+        return None
     # the active planes' arrays (world frame): normal, offset, offset sigma, odometer when last
     # seen, in-plane axes u and v
     ids, id_arr, pos, is_wall = _active_index(active)
@@ -170,54 +207,16 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
                 c = c - (float(rows[j, 0:3] @ c) + rows[j, 3]) * rows[j, 0:3]  # onto the child's plane
                 rows[j, 0:3] = n
                 rows[j, 3] = -float(n @ c)
-    g = _gate_scalars(gates)
-    # the candidates (cols[start[k]:start[k + 1]] by increasing m2) with their extent cells, and
-    # per pair its plane's id and extent margin (grown with the drift since the plane was seen)
-    start, cols, cells, dist_c, sig_d2, pair_id, pair_dilate = ak.scan_pairs(
-        segs.centroid, segs.direction, segs.endpoints, segs.sigma_centroid, segs.sigma_direction, segs.range,
-        segs.origin, rows, horizontal, id_arr, np.array(child_rows, dtype=np.int64), float(odometer), *g[0],
-        float(pmap.cell_size), *g[1])
-    if cols.size == 0:
-        return Association(np.full(segs.n, NONE, dtype=np.int64), np.zeros(segs.n, dtype=bool))
-    # every candidate pair's end points and centroid against its plane's (dilated) extent, once,
-    # and for a door's or board's pair (``whole``) each of the three on its own (compiled: the
-    # plane map's extent index)
-    whole = np.zeros(cols.shape[0], dtype=np.bool_)
-    if child_rows and gates.choice is not None:
-        is_child = np.zeros(rows.shape[0], dtype=np.bool_)
-        is_child[child_rows] = True
-        whole = is_child[cols]
-    near, each = pmap.extents.pairs_near(pair_id, cells, pair_dilate, whole)
-    keep = near
-    shadow = np.zeros(near.shape[0], dtype=np.bool_)
-    choice = gates.choice
+    is_child = np.zeros(rows.shape[0], dtype=np.bool_)
+    is_child[child_rows] = True
     hosts = _NO_HOSTS
-    if choice is not None:
-        # the choice between parallel planes from the segments' own lines, among the candidates
-        # over their (dilated) extents; a door's or board's segments end at its edges (the
-        # segmenter breaks there): both end points and the centroid of a segment on it lie within
-        # its extent (dilated by the child margin), where a wall's segment runs on past it
-        if child_rows:
-            keep = each
-            if choice.hold_past_child:
-                # a door's segment running past the door's extent (the extent so far) is still the
-                # door's if it fits it better than its wall: held back, not given to the wall
-                shadow = near & ~keep
-                keep = near
-        # the walls that may carry a door or board (not the children themselves, nor floors and
-        # ceilings); not in the tracking's veto, whose poses are still the prediction's
-        if choice.host_test and not choice.veto:
-            hosts = is_wall.copy()
-            hosts[child_rows] = False
-    weight = (np.ones(segs.n) if segs.n_points is None else segs.n_points.astype(np.float64))
-    # the choice (compiled: parallel_choice.choose_pairs documents it), its ids; as a veto, or
-    # without the choice, the nearest candidate over its extent unless another lies on a different
-    # surface (the same surface seen twice, a duplicate awaiting merge, is not ambiguity)
-    arm = np.ascontiguousarray(segs.centroid - segs.origin[None, :3])
-    out, grows = ak.decide(start, cols, near, keep, shadow, dist_c, sig_d2, rows, id_arr, _SAME_NORMAL,
-                           choice is not None, choice is not None and choice.veto, segs.sigma_centroid, weight,
-                           segs.range, arm, hosts, hosts is not _NO_HOSTS, *g[2])
-    return Association(out, grows)
+    choice = gates.choice
+    # the walls that may carry a door or board (not the children themselves, nor floors and
+    # ceilings); not in the tracking's veto, whose poses are still the prediction's
+    if choice is not None and choice.host_test and not choice.veto:
+        hosts = is_wall.copy()
+        hosts[child_rows] = False
+    return _MapInputs(rows, horizontal, id_arr, np.array(child_rows, dtype=np.int64), is_child, hosts)
 
 
 _SAME_NORMAL = float(np.cos(np.radians(2.0)))  # normals of one surface seen twice
@@ -317,15 +316,31 @@ class ScanAssociator:
     def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> Association:
         """The scan's :class:`Association` under ``gates``, from its ``summary``."""
         v_world, e_world, origin = summary
-        ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self._point_sigma, p.segs.n_points, origin[:3])
-        if self._line_direction:
-            d = v_world[:, 1] - v_world[:, 0]
-            d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
-            ws = replace(ws, direction=d)
         children = (self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal or gates.choice is not None)
                     else None)
-        a = associate_scan(ws, self._pmap, self._knots.odometer, gates, children)
-        short = p.segs.n_points < self._min_segment_points
-        a.ids[short] = NONE
-        a.grows[short] = False
-        return a
+        if self._line_direction:  # the segments' summaries in Python, their directions the lines'
+            ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self._point_sigma, p.segs.n_points, origin[:3])
+            d = v_world[:, 1] - v_world[:, 0]
+            d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+            a = associate_scan(replace(ws, direction=d), self._pmap, self._knots.odometer, gates, children)
+            short = p.segs.n_points < self._min_segment_points
+            a.ids[short] = NONE
+            a.grows[short] = False
+            return a
+        # one compiled call: the summaries, the gates, the extents and the choice
+        segs = p.segs
+        m = _map_inputs(self._pmap, gates, children) if segs.n_segments else None
+        if m is None:
+            return Association(np.full(segs.n_segments, NONE, dtype=np.int64), np.zeros(segs.n_segments, dtype=bool))
+        g = _gate_scalars(gates)
+        choice = gates.choice
+        ext = self._pmap.extents
+        ids, grows = ask.associate_segments(
+            np.ascontiguousarray(v_world, dtype=np.float64), np.ascontiguousarray(e_world, dtype=np.float64),
+            np.ascontiguousarray(segs.virtual_sigma, dtype=np.float64), float(self._point_sigma),
+            np.ascontiguousarray(segs.n_points, dtype=np.int64), np.ascontiguousarray(origin[:3], dtype=np.float64),
+            int(self._min_segment_points), m.rows, m.horizontal, m.ids, m.child_rows, m.is_child,
+            float(self._knots.odometer), float(self._pmap.cell_size), g[0], g[1], ext.keys, ext.count, ext.box,
+            choice is not None, choice is not None and choice.veto, choice is not None and choice.hold_past_child,
+            m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+        return Association(ids, grows)
