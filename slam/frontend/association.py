@@ -247,6 +247,10 @@ def _gate_scalars(gates: Gates) -> tuple[tuple[float, float, float, int, int, in
     return drift, tests, choice_scalars(gates.choice)
 
 
+# the map's side of an association: the children asked (None: not asked) and the active planes' arrays
+# (None: no active plane)
+MapSide = tuple[dict[int, int] | None, _MapInputs | None]
+
 # per scan, placed in the world: virtual points (k, 2, 3), end points (k, 2, 3), the scanner's
 # position at the scan's stamp (4,, homogeneous)
 ScanSummary = tuple[FloatArray, FloatArray, FloatArray]
@@ -313,11 +317,19 @@ class ScanAssociator:
         return (np.concatenate((segs.virtual_body.reshape(-1, 3), segs.points_body[ends_idx])),
                 np.concatenate((segs.virtual_times.ravel(), segs.times[ends_idx])), segs)
 
-    def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary) -> Association:
-        """The scan's :class:`Association` under ``gates``, from its ``summary``."""
-        v_world, e_world, origin = summary
+    def map_side(self, gates: Gates) -> MapSide:
+        """The map's side of :meth:`associate` under ``gates`` (the children asked, the active
+        planes' arrays): computed once for scans associated while the map does not change (the
+        tracking's pre-association), else per scan."""
         children = (self._children() if (gates.child_margin_cells >= 0 or gates.child_host_normal or gates.choice is not None)
                     else None)
+        return children, _map_inputs(self._pmap, gates, children)
+
+    def associate(self, p: PendingScan, gates: Gates, summary: ScanSummary, side: MapSide | None = None) -> Association:
+        """The scan's :class:`Association` under ``gates``, from its ``summary``, with the map's
+        side ``side`` (:meth:`map_side` of the same gates and an unchanged map; None: asked now)."""
+        v_world, e_world, origin = summary
+        children, m = self.map_side(gates) if side is None else side
         if self._line_direction:  # the segments' summaries in Python, their directions the lines'
             ws = world_segments(v_world, e_world, p.segs.virtual_sigma, self._point_sigma, p.segs.n_points, origin[:3])
             d = v_world[:, 1] - v_world[:, 0]
@@ -329,8 +341,7 @@ class ScanAssociator:
             return a
         # one compiled call: the summaries, the gates, the extents and the choice
         segs = p.segs
-        m = _map_inputs(self._pmap, gates, children) if segs.n_segments else None
-        if m is None:
+        if m is None or not segs.n_segments:
             return Association(np.full(segs.n_segments, NONE, dtype=np.int64), np.zeros(segs.n_segments, dtype=bool))
         g = _gate_scalars(gates)
         choice = gates.choice

@@ -52,8 +52,9 @@ class WindowTracker:
         if k_new < 1 or self.params.iterations == 0 or len(self._pmap) == 0 or not recent:
             return T_pred
         hosts = self._children() if self._edges.tracks() else None
+        side = self._associator.map_side(self.gates)  # the map does not change while the scans are tracked
         for p, summary in zip(ready, self._associator.summaries(ready), strict=True):
-            p.loose_ids = self._associator.associate(p, self.gates, summary).ids
+            p.loose_ids = self._associator.associate(p, self.gates, summary, side).ids
             if hosts is not None:
                 self._edges.match_loose(p, hosts)
         pts: list[FloatArray] = []
