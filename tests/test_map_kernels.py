@@ -271,3 +271,32 @@ def test_cross_rows_is_numpys_cross_bit_for_bit() -> None:
         a = rng.normal(size=3) * rng.uniform(0.01, 100.0)
         b = rng.normal(size=(n, 3)) * rng.uniform(0.01, 100.0)
         np.testing.assert_array_equal(bk.cross_rows(a, b), np.cross(a, b).reshape(-1, 3))
+
+
+def test_place_subsampled_is_subsample_then_place() -> None:
+    """``KnotMirror.place_segments_flat``'s one compiled call against the calls it replaced: the
+    rows ``subsample_rows`` picks, gathered in numpy and placed with ``KnotMirror.place``."""
+    from slam.frontend import kernels as fk
+    from slam.trajectory.interpolation import se3_exp
+
+    rng = np.random.default_rng(16)
+    for _ in range(40):
+        knots = KnotMirror(0.05)
+        knots.start(float(rng.uniform(0.0, 100.0)), None)
+        T = np.eye(4)
+        for _ in range(int(rng.integers(2, 12))):
+            T = T @ se3_exp(rng.normal(0.0, [0.05, 0.05, 0.2, 0.1, 0.1, 0.02]))
+            knots.append(T)
+        counts = rng.integers(1, 60, int(rng.integers(1, 12)))
+        offsets = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+        t_end = knots.time(knots.n - 1)
+        segs = SimpleNamespace(offsets=offsets, n_points=counts.astype(np.int64),
+                               points_body=rng.normal(0.0, 5.0, (offsets[-1], 3)),
+                               times=np.sort(rng.uniform(knots.time(0) - 0.02, t_end + 0.02, offsets[-1])))
+        js = rng.permutation(counts.size)[: int(rng.integers(1, counts.size + 1))].astype(np.int64)
+        per = rng.choice([1, 3, 8, 12], js.size).astype(np.int64)
+        sel, splits = fk.subsample_rows(offsets, segs.n_points, js, per)
+        want = knots.place(segs.points_body[sel], segs.times[sel])
+        got, bounds = knots.place_segments_flat(segs, js, per)  # type: ignore[arg-type]
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(bounds, np.concatenate(([0], splits, [want.shape[0]])))

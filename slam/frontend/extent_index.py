@@ -35,14 +35,18 @@ class ExtentIndex:
             self.count = np.concatenate((self.count, np.zeros(n - self.count.shape[0], dtype=np.int64)))
             self.box = np.concatenate((self.box, np.zeros((n - self.box.shape[0], 4), dtype=np.int64)))
 
-    def insert(self, seg_pid: IntArray, start: IntArray, cells: IntArray) -> None:
-        """Add ``cells[start[s]:start[s + 1]]`` (c, 2) to plane ``seg_pid[s]``'s extent, every ``s``."""
-        need = self.size + cells.shape[0]
-        if 2 * need > self.keys.shape[0]:  # at most half full
+    def reserve(self, n: int) -> None:
+        """Room for ``n`` more cells (the table kept at most half full)."""
+        need = self.size + n
+        if 2 * need > self.keys.shape[0]:
             cap = self.keys.shape[0]
             while 2 * need > cap:
                 cap *= 2
             self.keys = xk.rehash(self.keys, cap)
+
+    def insert(self, seg_pid: IntArray, start: IntArray, cells: IntArray) -> None:
+        """Add ``cells[start[s]:start[s + 1]]`` (c, 2) to plane ``seg_pid[s]``'s extent, every ``s``."""
+        self.reserve(cells.shape[0])
         self.size += xk.insert_cells(self.keys, self.count, self.box, seg_pid, start, cells)
 
     def insert_one(self, pid: int, cells: IntArray) -> None:

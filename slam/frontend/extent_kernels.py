@@ -15,6 +15,9 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.frontend.batch_kernels import grow_extremes, segment_cells
+
+FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
@@ -133,3 +136,18 @@ def pairs_near(keys: IntArray, count: IntArray, box: IntArray, pair_id: IntArray
                     each[i] = False
                     break
     return near, each
+
+
+@nb.njit(cache=True)
+def observe_cells(points_world: FloatArray, bounds: IntArray, seg_plane: IntArray, seg_pid: IntArray,
+                  grows: BoolArray, extremes: FloatArray, has: BoolArray, us: FloatArray, vs: FloatArray,
+                  cell_size: float, keys: IntArray, count: IntArray, box: IntArray) -> tuple[IntArray, IntArray, int]:
+    """``PlaneMap.observe_segments``' compiled part in one call: the growing segments' new cells
+    (``batch_kernels.segment_cells``: (c, 2) and each segment's start (S + 1,)), their planes'
+    extreme points grown in place (``batch_kernels.grow_extremes``), and the cells added to
+    plane ``seg_pid[s]``'s extent in the index (:func:`insert_cells`; the table must have room for
+    every row of ``points_world``). Returns the cells, the starts and the number of cells added."""
+    cells, start = segment_cells(points_world, bounds, seg_plane, grows, us, vs, cell_size)
+    grow_extremes(points_world, bounds, seg_plane, grows, extremes, has, us, vs)
+    added = insert_cells(keys, count, box, seg_pid, start, cells)
+    return cells, start, added

@@ -19,6 +19,7 @@ from slam.trajectory.kernels import (
     _interpolated_into,
     exp_ab,
     interval_logs,
+    place_uniform,
     so3_log_into,
 )
 
@@ -417,6 +418,31 @@ def subsample_rows(offsets: IntArray, n_points: IntArray, js: IntArray, per: Int
         if q < js.shape[0] - 1:
             splits[q] = o
     return rows, splits
+
+
+@nb.njit(cache=True)
+def place_subsampled(T: FloatArray, t0: float, dt: float, n_knots: int, offsets: IntArray, n_points: IntArray,
+                     js: IntArray, per: IntArray, points_body: FloatArray,
+                     times: FloatArray) -> tuple[FloatArray, IntArray]:
+    """The rows :func:`subsample_rows` picks of the segments ``js`` (every ``max(1, n // per)``-th
+    point; ``offsets``, ``n_points`` the scan's), placed in the world frame with the uniform knots
+    (``slam.trajectory.kernels.place_uniform`` of ``T`` (K, 4, 4), ``t0 + k dt``, ``n_knots``),
+    from the scan's ``points_body`` (n, 3) and ``times`` (n,): the points (m, 3) and each
+    segment's start row (len(js) + 1,: the last is m). ``KnotMirror.place_segments_flat`` in one call."""
+    sel, splits = subsample_rows(offsets, n_points, js, per)
+    m = sel.shape[0]
+    pts = np.empty((m, 3))
+    t = np.empty(m)
+    for k in range(m):
+        i = sel[k]
+        pts[k, 0], pts[k, 1], pts[k, 2] = points_body[i, 0], points_body[i, 1], points_body[i, 2]
+        t[k] = times[i]
+    placed = place_uniform(T, t0, dt, n_knots, t, pts)
+    bounds = np.empty(js.shape[0] + 1, dtype=np.int64)
+    bounds[0] = 0
+    bounds[1:-1] = splits
+    bounds[-1] = m
+    return placed, bounds
 
 
 @nb.njit(cache=True)

@@ -113,13 +113,11 @@ class KnotMirror:
         row (len(js) + 1,: the last is n)."""
         if js.size == 0:
             return np.empty((0, 3)), np.zeros(1, dtype=np.int64)
-        pers = np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64)
-        sel, splits = fk.subsample_rows(np.ascontiguousarray(segs.offsets, dtype=np.int64),
-                                        np.ascontiguousarray(segs.n_points, dtype=np.int64),
-                                        np.ascontiguousarray(js, dtype=np.int64), pers)
-        placed = self.place(segs.points_body[sel], segs.times[sel])
-        bounds = np.empty(js.size + 1, dtype=np.int64)
-        bounds[0] = 0
-        bounds[1:-1] = splits
-        bounds[-1] = placed.shape[0]
-        return placed, bounds
+        assert self.t0 is not None
+        # one compiled call: the rows picked, gathered and placed (``place``'s numbers)
+        return fk.place_subsampled(self.T, self.t0, self.dt, self.n, np.ascontiguousarray(segs.offsets, dtype=np.int64),
+                                   np.ascontiguousarray(segs.n_points, dtype=np.int64),
+                                   np.ascontiguousarray(js, dtype=np.int64),
+                                   np.ascontiguousarray(np.broadcast_to(per, js.shape), dtype=np.int64),
+                                   np.ascontiguousarray(segs.points_body, dtype=np.float64),
+                                   np.ascontiguousarray(segs.times, dtype=np.float64))

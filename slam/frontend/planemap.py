@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.frontend import batch_kernels as bk
+from slam.frontend import extent_kernels as xk
 from slam.frontend import kernels as fk
 from slam.frontend.extent_index import ExtentIndex
 
@@ -229,9 +229,13 @@ class PlaneMap:
         seg_plane = np.array([local[pid] for pid in pids], dtype=np.int64)
         pts = np.ascontiguousarray(points_world, dtype=np.float64)
         grows = np.ascontiguousarray(grows, dtype=np.bool_)
-        cells, start = bk.segment_cells(pts, bounds, seg_plane, grows, us, vs, float(self.cell_size))
-        bk.grow_extremes(pts, bounds, seg_plane, grows, extremes, has, us, vs)
-        self.extents.insert(np.array(pids, dtype=np.int64), start, cells)
+        # the cells, the extreme points and the extent index in one compiled call
+        ext = self.extents
+        ext.reserve(pts.shape[0])
+        cells, start, added = xk.observe_cells(pts, bounds, seg_plane, np.array(pids, dtype=np.int64), grows,
+                                               extremes, has, us, vs, float(self.cell_size), ext.keys, ext.count,
+                                               ext.box)
+        ext.size += added
         cu, cv, cs, bs = cells[:, 0].tolist(), cells[:, 1].tolist(), start.tolist(), bounds.tolist()
         grown = grows.tolist()
         for s, pid in enumerate(pids):
