@@ -382,3 +382,46 @@ def test_scan_edge_tests_kernel_matches_the_per_segment_code(window: int) -> Non
         n_steps += sum(len(v) for key, v in want.items() if key[1] == 0)
         n_recess += sum(v is not None for key, v in want.items() if key[1] != 0)
     assert n_steps > 20 and n_recess > 20 and n_exact_gap >= 5
+
+
+def test_scan_pair_breaks_is_candidates_place_product_and_checks_bit_for_bit() -> None:
+    """``BreakFinder._pair_breaks_batch``'s one compiled call against the calls it replaced:
+    ``pair_candidates``, ``KnotMirror.place``, numpy's stacked ``(n, 6, 3) @ (n, 3, 1)``, then
+    ``pair_breaks``; the same arrays, byte for byte."""
+    rng = np.random.default_rng(21)
+    n_kept = 0
+    for trial in range(200):
+        loose = trial % 3 != 0
+        knots = KnotMirror(0.05)
+        knots.start(10.0, None)
+        for _ in range(4):
+            knots.append(_pose(rng))
+        k = int(rng.integers(0, 10))
+        segs, _ = _scan(rng, k, 10.0 + float(rng.uniform(0.0, 0.1)))
+        wall = rng.uniform(size=k) < 0.6
+        ids = np.where(wall, rng.integers(0, 3, k), rng.integers(-1, 3, k)).astype(np.int64)
+        normal = rng.normal(size=(k, 3))
+        normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
+        normal[~wall] = 0.0
+        d, along = rng.normal(0.0, 3.0, k), rng.normal(size=(k, 3))
+        origin = rng.normal(size=3)
+        scalars = ((1e9, 0.0, 1e9) if loose else (0.01, 0.005, 0.05))
+        order = np.argsort(segs.first_beam, kind="stable")
+        common = (order, segs.n_points, wall, int(rng.integers(0, 6)), segs.first_beam, segs.offsets, segs.points_body,
+                  segs.times, segs.virtual_body, segs.virtual_times, 2 if loose else 6, 1e9 if loose else 0.2)
+        midpoint = bool(rng.uniform() < 0.5)
+        checks = (origin, scalars[0], scalars[1], scalars[2], float(rng.uniform(0.0, 0.5)), 0.1, midpoint)
+        jw, jo, lo, ia, ib, pts, times = ek.pair_candidates(*common)
+        got = ek.scan_pair_breaks(*common, knots.T, knots.t0, knots.dt, knots.n, ids, normal, d, along, *checks)
+        np.testing.assert_array_equal(got[0], jw)
+        if not jw.shape[0]:
+            assert all(a.shape[0] == 0 for a in got)
+            continue
+        placed = knots.place(pts, times).reshape(-1, 6, 3)
+        h = np.matmul(placed, normal[jw][:, :, None])[:, :, 0]
+        want = ek.pair_breaks(h, placed, jw, jo, lo, ia, ib, ids, normal, d, along, segs.points_body, segs.times,
+                              *checks)
+        for a, b in zip(got[1:], want, strict=True):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        n_kept += int(want[0].sum())
+    assert n_kept > 30

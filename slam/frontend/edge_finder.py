@@ -205,23 +205,19 @@ class BreakFinder:
     def _pair_breaks_batch(self, p: PendingScan, ids: NDArray[np.int64], wall: NDArray[np.bool_], walls: list[int],
                            origin: FloatArray) -> list[Break]:
         """:meth:`_pair_breaks` with ``point`` "midpoint" or "higher", for the segments ``walls``
-        (``wall``: per segment) of the scan: the pairs found, filtered and checked in two compiled
-        passes (``edge_kernels.pair_candidates``, ``pair_breaks``) around one place call."""
+        (``wall``: per segment) of the scan: the pairs found, filtered and checked in one compiled
+        call (``edge_kernels.scan_pair_breaks``: the candidates, their placing and the checks)."""
         ep = self.params
         segs = p.segs
         seg_normal, seg_d, seg_along = self._segment_walls(ids, walls)
-        jw, jo, lo, ia, ib, pts, times = ek.pair_candidates(
+        knots = self._knots
+        assert knots.t0 is not None
+        jw, keep, side, step, u, flat, x_world, pt_body, t, spacing = ek.scan_pair_breaks(
             np.argsort(segs.first_beam, kind="stable"), segs.n_points, wall, ep.max_skipped_points, segs.first_beam,
             segs.offsets, segs.points_body, segs.times, segs.virtual_body, segs.virtual_times,
-            ep.min_segment_points, ep.max_gap)
-        if not jw.shape[0]:
-            return []
-        placed = self._knots.place(pts, times).reshape(-1, 6, 3)
-        # one (6, 3) @ (3,) product per pair, as numpy computes it for one pair
-        h = np.matmul(placed, seg_normal[jw][:, :, None])[:, :, 0]
-        keep, side, step, u, flat, x_world, pt_body, t, spacing = ek.pair_breaks(
-            h, placed, jw, jo, lo, ia, ib, ids, seg_normal, seg_d, seg_along, segs.points_body, segs.times,
-            origin, ep.step_tolerance, ep.min_step, ep.max_step, self._min_sin, ep.flat_slope, ep.point == "midpoint")
+            ep.min_segment_points, ep.max_gap, knots.T, knots.t0, knots.dt, knots.n, ids, seg_normal, seg_d,
+            seg_along, origin, ep.step_tolerance, ep.min_step, ep.max_step, self._min_sin, ep.flat_slope,
+            ep.point == "midpoint")
         kept = np.flatnonzero(keep).tolist()
         if not kept:
             return []

@@ -16,7 +16,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.frontend.batch_kernels import _fma
+from slam.frontend.batch_kernels import _fma, rows_dot
+from slam.trajectory.kernels import place_uniform
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -173,6 +174,35 @@ def pair_breaks(h: FloatArray, w: FloatArray, jw: IntArray, jo: IntArray, lo: In
         keep[c], side[c], step[c], u[c], flat[c] = _break_geometry(
             origin, x_world[c], n_wall, seg_along[j], step_point, s1 + s2, w[c, 3] - w[c, 2], min_sin, flat_slope)
     return keep, side, step, u, flat, x_world, pt_body, t, spacing
+
+
+@nb.njit(cache=True)
+def scan_pair_breaks(order: IntArray, n_points: IntArray, wall: BoolArray, max_skipped_points: int,
+                     first_beam: IntArray, offsets: IntArray, points_body: FloatArray, times: FloatArray,
+                     virtual_body: FloatArray, virtual_times: FloatArray, min_segment_points: int, max_gap: float,
+                     T: FloatArray, t0: float, dt: float, n_knots: int, ids: IntArray, seg_normal: FloatArray,
+                     seg_d: FloatArray, seg_along: FloatArray, origin: FloatArray, step_tolerance: float,
+                     min_step: float, max_step: float, min_sin: float, flat_slope: float, midpoint: bool,
+                     ) -> tuple[IntArray, BoolArray, IntArray, IntArray, FloatArray, BoolArray, FloatArray, FloatArray,
+                                FloatArray, FloatArray]:
+    """``BreakFinder._pair_breaks_batch``'s compiled part in one call: :func:`pair_candidates`
+    (its first twelve arguments), the candidates' six points placed in the world with the uniform
+    knots (``slam.trajectory.kernels.place_uniform`` of ``T`` (K, 4, 4), ``t0 + k dt``,
+    ``n_knots``), their heights along the wall normal (``batch_kernels.rows_dot``: numpy's
+    ``(6, 3) @ (3,)`` per pair, OpenBLAS's gemv) and :func:`pair_breaks` (the rest). Returns the
+    pairs' wall segments ``j_wall`` (N,) and :func:`pair_breaks`' arrays."""
+    jw, jo, lo, ia, ib, pts, t = pair_candidates(order, n_points, wall, max_skipped_points, first_beam, offsets,
+                                                 points_body, times, virtual_body, virtual_times, min_segment_points,
+                                                 max_gap)
+    n = jw.shape[0]
+    placed = place_uniform(T, t0, dt, n_knots, t, pts).reshape((n, 6, 3))
+    h = np.empty((n, 6))
+    for c in range(n):
+        h[c] = rows_dot(placed[c], seg_normal[jw[c]])
+    keep, side, step, u, flat, x_world, pt_body, t_edge, spacing = pair_breaks(
+        h, placed, jw, jo, lo, ia, ib, ids, seg_normal, seg_d, seg_along, points_body, times, origin, step_tolerance,
+        min_step, max_step, min_sin, flat_slope, midpoint)
+    return jw, keep, side, step, u, flat, x_world, pt_body, t_edge, spacing
 
 
 @nb.njit(cache=True)
