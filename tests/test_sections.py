@@ -180,14 +180,24 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
     assert 0 < bound.sections.peak_kept_bytes <= budget
     assert 0 < free.sections.largest_net_bytes <= everything
     assert s_bound.final_error == s_free.final_error and np.array_equal(bound.poses(), free.poses())
-    # the eliminations come first: a budget for exactly all of them keeps them all and no factors
-    values = gtsam.Values(bound.graph.values)
-    kernel = bound.config.kernel
-    nets = bound.sections.reduce(values, kernel, DAMPING, keep=True).nets
-    assert nets is not None and all(n.data is not None for n in nets)
-    all_nets = sum(n.nbytes + n.index_bytes for n in nets)
-    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0, batch_cache_bytes=all_nets))
-    tight.sections._caching = True  # as within a solve
-    kept = tight.sections.reduce(values, kernel, DAMPING, keep=True)
-    assert kept.nets is not None and all(n.data is not None for n in kept.nets)
-    assert tight.sections._cache_bytes == 0 and tight.sections.peak_kept_bytes <= all_nets
+    # the factors come first: a budget for exactly all of them caches them all, and every
+    # elimination goes to disk (the same estimate, no elimination made twice)
+    free.sections._caching = True
+    for a, b in free.sections.plan():
+        free.sections.factors(a, b, free.config.kernel)
+    all_factors = free.sections._cache_bytes
+    free.sections._caching = False
+    free.sections.clear_cache()
+    nets = free.sections.reduce(gtsam.Values(free.graph.values), free.config.kernel, DAMPING, keep=True).nets
+    assert nets is not None
+    indices = sum(n.index_bytes for n in nets)  # the eliminations' indices stay in memory
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0,
+                                  batch_cache_bytes=all_factors + indices))
+    s_tight = tight.batch_optimize(graduated=False)
+    n_sections = len(tight.sections.plan())
+    assert tight.sections.sections_built == n_sections  # each built once
+    assert tight.sections.nets_spilled == tight.sections.sections_solved > 0  # every elimination on disk
+    assert tight.sections.sections_solved <= n_sections * (s_tight.iterations + 1)
+    assert s_tight.final_error == s_free.final_error and np.array_equal(tight.poses(), free.poses())
+    # a budget with room for the eliminations as well keeps them in memory
+    assert free.sections.nets_spilled == 0

@@ -24,10 +24,10 @@ two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of 
 The step is accepted, halved or retried with more damping as in :func:`slam.backend.solver.solve`
 (the error at a point is the sum of the sections' linearisations at zero); the trial point's
 step 1 is the next iteration's. ``BackendConfig.batch_cache_bytes`` bounds what is kept between
-passes in memory: the sections' eliminations first (one in memory saves writing and reading it),
-then the sections' factors, built from the observations once per solve (a kept one saves
-building it at every pass); an elimination that does not fit is written to disk (never
-eliminated again), factors that do not fit are built again when needed. The memory is therefore
+passes in memory: the sections' factors first, built from the observations once per solve (a
+kept one saves building it at every pass), then the sections' eliminations (one in memory saves
+writing and reading it); an elimination that does not fit is written to disk (never eliminated
+again), factors that do not fit are built again when needed. The memory is therefore
 at most that budget, one section's linearisation and elimination, the knots' values and the
 separator's system: it stops growing with the walk once the budget is full. A walk no longer
 than one section is solved whole, unchanged.
@@ -112,7 +112,8 @@ class SectionedBatch:
         # bytes they are estimated to hold
         self._cache: dict[tuple[int, int, str, float], tuple[gtsam.NonlinearFactorGraph, int]] = {}
         self._cache_bytes = 0
-        self._nets_bytes = 0  # the eliminations kept by the latest reduce
+        self._nets_bytes = 0  # the eliminations kept by the latest reduce (their indices, the matrices in memory)
+        self._in_memory: list[PackedNet] = []  # those of the latest reduce whose matrices are in memory
         self._caching = False  # only within optimize(): the observations change between solves
         # the most kept at once (eliminations and factors, estimated), the largest separator
         # system (its factors' matrices) and section elimination, for the statistics and the tests
@@ -139,7 +140,7 @@ class SectionedBatch:
         if hit is not None:
             return hit[0]
         graph, n_bytes = self._build(a, b, kernel)
-        if self._caching and self._cache_bytes + n_bytes + self._nets_bytes <= self.config.batch_cache_bytes:
+        if self._caching and self._room_for_factors(n_bytes):
             self._cache[key] = (graph, n_bytes)
             self._cache_bytes += n_bytes
             self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
@@ -158,16 +159,19 @@ class SectionedBatch:
             self._cleanup = weakref.finalize(self, shutil.rmtree, self._folder, True)
         return self._folder
 
-    def _room_for_net(self, n_bytes: int) -> bool:
-        """Whether an elimination of ``n_bytes`` fits the budget beside the eliminations kept so
-        far in this pass; cached factors are let go (the latest cached first) to make room, as a
-        kept elimination saves more work per byte than a section's factors."""
+    def _room_for_factors(self, n_bytes: int) -> bool:
+        """Whether a section's factors of ``n_bytes`` fit the budget beside the factors cached so
+        far; the eliminations held in memory by the current pass go to disk (the latest first) to
+        make room, as a cached section saves building its factors at every pass while an
+        elimination in memory saves only writing and reading it once."""
         budget = self.config.batch_cache_bytes
-        if self._nets_bytes + n_bytes > budget:
+        if self._cache_bytes + n_bytes > budget:
             return False
-        while self._cache and self._nets_bytes + self._cache_bytes + n_bytes > budget:
-            _, (_, freed) = self._cache.popitem()
-            self._cache_bytes -= freed
+        while self._in_memory and self._nets_bytes + self._cache_bytes + n_bytes > budget:
+            net = self._in_memory.pop()
+            self._nets_bytes -= net.nbytes
+            net.spill(self._spill_folder())
+            self.nets_spilled += 1
         return self._nets_bytes + self._cache_bytes + n_bytes <= budget
 
     def _build(self, a: int, b: int, kernel: RobustKernel) -> tuple[gtsam.NonlinearFactorGraph, int]:
@@ -230,6 +234,7 @@ class SectionedBatch:
         sep_keys: set[int] = set()
         nets: list[PackedNet] | None = [] if keep else None
         self._nets_bytes = 0
+        self._in_memory = []
         with self._serving(values):
             for a, b in sections:
                 lin = self.factors(a, b, kernel).linearize(values)
@@ -241,11 +246,12 @@ class SectionedBatch:
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     net = pack(bn, dims)
                     self.largest_net_bytes = max(self.largest_net_bytes, net.nbytes)
-                    if self._room_for_net(net.nbytes + net.index_bytes):
-                        self._nets_bytes += net.nbytes + net.index_bytes
+                    self._nets_bytes += net.index_bytes
+                    if self._cache_bytes + self._nets_bytes + net.nbytes <= self.config.batch_cache_bytes:
+                        self._nets_bytes += net.nbytes
+                        self._in_memory.append(net)
                     else:  # on disk: read back once for the back-substitution, never eliminated again
                         net.spill(self._spill_folder())
-                        self._nets_bytes += net.index_bytes
                         self.nets_spilled += 1
                     nets.append(net)
                     self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
