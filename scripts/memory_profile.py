@@ -164,7 +164,8 @@ def section_counts(backend: Any) -> dict[str, int]:
     """A sectioned final batch's figures so far (``slam.backend.sections``; none before it existed
     or for a walk solved whole): its sections, what it kept at most between passes (eliminations
     and cached factors, estimated bytes), its largest separator system (bytes of its factors'
-    matrices) and section elimination (kept or not), the sections built and eliminated."""
+    matrices) and section elimination (kept or not), the sections built and eliminated, the
+    eliminations written to disk (over the budget)."""
     sec = getattr(backend, "sections", None)
     if sec is None or not hasattr(sec, "peak_kept_bytes") or not sec.needed():
         return {}
@@ -172,7 +173,8 @@ def section_counts(backend: Any) -> dict[str, int]:
             "separator_peak_bytes": int(sec.peak_separator_bytes),
             "largest_elimination_bytes": int(getattr(sec, "largest_net_bytes", 0)),
             "sections_built": int(sec.sections_built),
-            "sections_solved": int(sec.sections_solved)}
+            "sections_solved": int(sec.sections_solved),
+            "eliminations_on_disk": int(getattr(sec, "nets_spilled", 0))}
 
 
 def rss_bytes(pid: int | str = "self") -> int:

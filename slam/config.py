@@ -371,9 +371,10 @@ class BackEndConfig(StrictModel):
         "about 56 MB per data minute, docs/memory.md)")
     batch_cache_mb: float = Field(
         512.0, ge=0, description="MB a sectioned final batch may keep from one pass over the sections to the "
-        "next, all together: first each section's elimination (for the back-substitution; about 8 kB per knot), "
-        "then the sections' factors (about 12 kB per knot); what does not fit is eliminated or built again (slower, "
-        "no memory). The batch's memory stops growing with the walk once this is full")
+        "next in memory, all together: first the sections' factors (about 12 kB per knot; those that do not fit "
+        "are built again at every pass, slower), then each section's elimination (for the back-substitution; about "
+        "11 kB per knot; one that does not fit is written to disk and read back). The batch's memory stops growing "
+        "with the walk once this is full")
     fold_links: Literal["step", "end"] = Field(
         "step", description="when two planes the front end found to be one surface (a wall walked past again) "
         "become one variable in the back end: 'step' at the next window step (the window then holds one plane "

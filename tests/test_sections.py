@@ -13,7 +13,7 @@ from backend_defaults import backend_defaults
 from box_scene import Scene, make_scene, perturb_pose
 
 from slam.backend import Backend, BackendConfig
-from slam.backend.sections import _net_bytes, plan_sections, separator_knots
+from slam.backend.sections import plan_sections, separator_knots
 from slam.backend.solver import DAMPING, damping_rows
 from slam.config import SlamConfig
 
@@ -105,20 +105,33 @@ def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
     solved = be.sections.sections_solved
     kept = be.sections.reduce(values, be.config.kernel, DAMPING, keep=True)
     assert kept.nets is not None and len(kept.nets) == len(be.sections.plan())
+    assert all(n.data is not None for n in kept.nets) and be.sections.nets_spilled == 0
     again = be.sections.back_substitute(values, be.config.kernel, DAMPING, kept.graph.optimize(), kept.nets)
     assert be.sections.sections_solved == solved + len(be.sections.plan())
     for k in values.keys():
         assert np.array_equal(again.at(k), delta.at(k)), gtsam.DefaultKeyFormatter(k)
-    # a memory budget for one section's elimination: the others are eliminated again, same step
-    first = _net_bytes(kept.nets[0])
+    # a memory budget for one section's elimination: the others go to disk and are read back,
+    # not eliminated again, to the same step bit for bit
+    first = kept.nets[0].nbytes + kept.nets[0].index_bytes
     tight = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0, batch_cache_bytes=first))
     some = tight.sections.reduce(values, be.config.kernel, DAMPING, keep=True)
-    assert some.nets is not None and some.nets[0] is not None and all(n is None for n in some.nets[1:])
+    assert some.nets is not None and some.nets[0].data is not None
+    assert all(n.data is None and n.path is not None and n.path.exists() for n in some.nets[1:])
+    assert tight.sections.nets_spilled == len(some.nets) - 1
+    files = [n.path for n in some.nets[1:]]
     solved = tight.sections.sections_solved
     part = tight.sections.back_substitute(values, be.config.kernel, DAMPING, some.graph.optimize(), some.nets)
-    assert tight.sections.sections_solved == solved + len(some.nets) - 1
+    assert tight.sections.sections_solved == solved
     for k in values.keys():
         assert np.array_equal(part.at(k), delta.at(k)), gtsam.DefaultKeyFormatter(k)
+    folder = tight.sections._folder
+    assert folder is not None and folder.is_dir()
+    del some
+    assert not any(f.exists() for f in files if f is not None)  # a let-go elimination's file goes with it
+    del tight
+    import gc
+    gc.collect()
+    assert not folder.exists()
 
 
 def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None:
@@ -167,14 +180,24 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
     assert 0 < bound.sections.peak_kept_bytes <= budget
     assert 0 < free.sections.largest_net_bytes <= everything
     assert s_bound.final_error == s_free.final_error and np.array_equal(bound.poses(), free.poses())
-    # the eliminations come first: a budget for exactly all of them keeps them all and no factors
-    values = gtsam.Values(bound.graph.values)
-    kernel = bound.config.kernel
-    nets = bound.sections.reduce(values, kernel, DAMPING, keep=True).nets
-    assert nets is not None and all(n is not None for n in nets)
-    all_nets = sum(_net_bytes(n) for n in nets if n is not None)
-    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0, batch_cache_bytes=all_nets))
-    tight.sections._caching = True  # as within a solve
-    kept = tight.sections.reduce(values, kernel, DAMPING, keep=True)
-    assert kept.nets is not None and all(n is not None for n in kept.nets)
-    assert tight.sections._cache_bytes == 0 and tight.sections.peak_kept_bytes <= all_nets
+    # the factors come first: a budget for exactly all of them caches them all, and every
+    # elimination goes to disk (the same estimate, no elimination made twice)
+    free.sections._caching = True
+    for a, b in free.sections.plan():
+        free.sections.factors(a, b, free.config.kernel)
+    all_factors = free.sections._cache_bytes
+    free.sections._caching = False
+    free.sections.clear_cache()
+    nets = free.sections.reduce(gtsam.Values(free.graph.values), free.config.kernel, DAMPING, keep=True).nets
+    assert nets is not None
+    indices = sum(n.index_bytes for n in nets)  # the eliminations' indices stay in memory
+    tight = _build(scene, replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0,
+                                  batch_cache_bytes=all_factors + indices))
+    s_tight = tight.batch_optimize(graduated=False)
+    n_sections = len(tight.sections.plan())
+    assert tight.sections.sections_built == n_sections  # each built once
+    assert tight.sections.nets_spilled == tight.sections.sections_solved > 0  # every elimination on disk
+    assert tight.sections.sections_solved <= n_sections * (s_tight.iterations + 1)
+    assert s_tight.final_error == s_free.final_error and np.array_equal(tight.poses(), free.poses())
+    # a budget with room for the eliminations as well keeps them in memory
+    assert free.sections.nets_spilled == 0

@@ -14,21 +14,23 @@ two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of 
 1. per section, in turn: linearise its factors, add the damping rows of its interior, eliminate
    the interior (gtsam's partial elimination) and keep what remains: a dense factor on the
    section's separator (its planes and its cut knots), a few MB, and the interior's conditionals
-   (the elimination's Bayes net, about 8 kB per knot on the office walk) while the budget allows;
+   (the elimination's Bayes net, about 11 kB per knot on the office walk) packed into flat
+   arrays (:mod:`slam.backend.packed_net`): in memory while the budget allows, else on disk;
 2. solve the separator: those factors, the planes' own factors (priors, ties) and the separator's
    damping rows, one small sparse system;
-3. per section: back-substitute its interior into its kept conditionals (or those of a fresh
-   elimination), given the separator's step.
+3. per section: back-substitute its interior through its kept conditionals (one compiled
+   pass; read back from disk if they lie there), given the separator's step.
 
 The step is accepted, halved or retried with more damping as in :func:`slam.backend.solver.solve`
 (the error at a point is the sum of the sections' linearisations at zero); the trial point's
 step 1 is the next iteration's. ``BackendConfig.batch_cache_bytes`` bounds what is kept between
-passes: the sections' eliminations first (a kept one saves a linearisation and an elimination),
-then the sections' factors, built from the observations once per solve (a kept one saves
-building it at every pass); what does not fit is built or eliminated again when needed. The
-memory is therefore at most that budget, one section's linearisation, the knots' values and the
-separator's system: it stops growing with the walk once the budget is full, at the price of
-more work per pass. A walk no longer than one section is solved whole, unchanged.
+passes in memory: the sections' factors first, built from the observations once per solve (a
+kept one saves building it at every pass), then the sections' eliminations (one in memory saves
+writing and reading it); an elimination that does not fit is written to disk (never eliminated
+again), factors that do not fit are built again when needed. The memory is therefore
+at most that budget, one section's linearisation and elimination, the knots' values and the
+separator's system: it stops growing with the walk once the budget is full. A walk no longer
+than one section is solved whole, unchanged.
 
 The planes' marginal covariances come from the separator's system without damping: the exact
 marginals of the whole graph (every plane is in the separator), its dense information matrix
@@ -40,10 +42,14 @@ Frames: poses ``T_world_body``, planes in the world frame about their anchors.
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
 import time as _time
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -54,6 +60,8 @@ from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
 from slam.backend.graph import FactorGraph, copy_value, top_knot
+from slam.backend.packed_net import PackedNet, pack
+from slam.backend.packed_net import solve as solve_net
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
 from slam.heap import trim_heap
 
@@ -85,8 +93,9 @@ class Reduced:
 
     graph: gtsam.GaussianFactorGraph
     error: float
-    # each section's interior eliminated (None: not kept, over the budget); None: none kept
-    nets: list[gtsam.GaussianBayesNet | None] | None = None
+    # each section's interior eliminated, packed (in memory within the budget, else on disk);
+    # None: not kept
+    nets: list[PackedNet] | None = None
 
 
 class SectionedBatch:
@@ -103,13 +112,17 @@ class SectionedBatch:
         # bytes they are estimated to hold
         self._cache: dict[tuple[int, int, str, float], tuple[gtsam.NonlinearFactorGraph, int]] = {}
         self._cache_bytes = 0
-        self._nets_bytes = 0  # the eliminations kept by the latest reduce
+        self._nets_bytes = 0  # the eliminations kept by the latest reduce (their indices, the matrices in memory)
+        self._in_memory: list[PackedNet] = []  # those of the latest reduce whose matrices are in memory
         self._caching = False  # only within optimize(): the observations change between solves
         # the most kept at once (eliminations and factors, estimated), the largest separator
         # system (its factors' matrices) and section elimination, for the statistics and the tests
         self.peak_kept_bytes = 0
         self.peak_separator_bytes = 0
         self.largest_net_bytes = 0  # the largest section's elimination (kept or not)
+        self.nets_spilled = 0  # eliminations written to disk (over the budget)
+        self._folder: Path | None = None
+        self._cleanup: weakref.finalize | None = None
 
     def needed(self) -> bool:
         """Whether the walk is longer than one section (and than a walk solved whole)."""
@@ -127,7 +140,7 @@ class SectionedBatch:
         if hit is not None:
             return hit[0]
         graph, n_bytes = self._build(a, b, kernel)
-        if self._caching and self._cache_bytes + n_bytes + self._nets_bytes <= self.config.batch_cache_bytes:
+        if self._caching and self._room_for_factors(n_bytes):
             self._cache[key] = (graph, n_bytes)
             self._cache_bytes += n_bytes
             self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
@@ -138,16 +151,27 @@ class SectionedBatch:
         self._cache.clear()
         self._cache_bytes = 0
 
-    def _room_for_net(self, n_bytes: int) -> bool:
-        """Whether an elimination of ``n_bytes`` fits the budget beside the eliminations kept so
-        far in this pass; cached factors are let go (the latest cached first) to make room, as a
-        kept elimination saves more work per byte than a section's factors."""
+    def _spill_folder(self) -> Path:
+        """The temporary folder of the eliminations on disk (made at the first; removed with
+        this object or at the interpreter's exit)."""
+        if self._folder is None:
+            self._folder = Path(tempfile.mkdtemp(prefix="backpack_slam_sections_"))
+            self._cleanup = weakref.finalize(self, shutil.rmtree, self._folder, True)
+        return self._folder
+
+    def _room_for_factors(self, n_bytes: int) -> bool:
+        """Whether a section's factors of ``n_bytes`` fit the budget beside the factors cached so
+        far; the eliminations held in memory by the current pass go to disk (the latest first) to
+        make room, as a cached section saves building its factors at every pass while an
+        elimination in memory saves only writing and reading it once."""
         budget = self.config.batch_cache_bytes
-        if self._nets_bytes + n_bytes > budget:
+        if self._cache_bytes + n_bytes > budget:
             return False
-        while self._cache and self._nets_bytes + self._cache_bytes + n_bytes > budget:
-            _, (_, freed) = self._cache.popitem()
-            self._cache_bytes -= freed
+        while self._in_memory and self._nets_bytes + self._cache_bytes + n_bytes > budget:
+            net = self._in_memory.pop()
+            self._nets_bytes -= net.nbytes
+            net.spill(self._spill_folder())
+            self.nets_spilled += 1
         return self._nets_bytes + self._cache_bytes + n_bytes <= budget
 
     def _build(self, a: int, b: int, kernel: RobustKernel) -> tuple[gtsam.NonlinearFactorGraph, int]:
@@ -208,8 +232,9 @@ class SectionedBatch:
         out = gtsam.GaussianFactorGraph()
         err = 0.0
         sep_keys: set[int] = set()
-        nets: list[gtsam.GaussianBayesNet | None] | None = [] if keep else None
+        nets: list[PackedNet] | None = [] if keep else None
         self._nets_bytes = 0
+        self._in_memory = []
         with self._serving(values):
             for a, b in sections:
                 lin = self.factors(a, b, kernel).linearize(values)
@@ -219,11 +244,16 @@ class SectionedBatch:
                 sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
-                    n_bytes = _net_bytes(bn)
-                    self.largest_net_bytes = max(self.largest_net_bytes, n_bytes)
-                    fits = self._room_for_net(n_bytes)
-                    nets.append(bn if fits else None)
-                    self._nets_bytes += n_bytes if fits else 0
+                    net = pack(bn, dims)
+                    self.largest_net_bytes = max(self.largest_net_bytes, net.nbytes)
+                    self._nets_bytes += net.index_bytes
+                    if self._cache_bytes + self._nets_bytes + net.nbytes <= self.config.batch_cache_bytes:
+                        self._nets_bytes += net.nbytes
+                        self._in_memory.append(net)
+                    else:  # on disk: read back once for the back-substitution, never eliminated again
+                        net.spill(self._spill_folder())
+                        self.nets_spilled += 1
+                    nets.append(net)
                     self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
                 del lin, rest, bn
             planes = self.plane_factors()
@@ -239,7 +269,7 @@ class SectionedBatch:
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
                         sep_delta: gtsam.VectorValues,
-                        nets: list[gtsam.GaussianBayesNet | None] | None = None) -> gtsam.VectorValues:
+                        nets: list[PackedNet] | None = None) -> gtsam.VectorValues:
         """Step 3 (module doc): the whole step, the interiors solved given the separator's; each
         section from its kept elimination in ``nets`` (:attr:`Reduced.nets` of :meth:`reduce` at
         ``values`` and ``damping``), else linearised and eliminated again."""
@@ -250,16 +280,15 @@ class SectionedBatch:
         delta.insert(sep_delta)
         with self._serving(values):
             for i, (a, b) in enumerate(sections):
-                bn = nets[i] if nets is not None else None
-                if bn is None:
+                net = nets[i] if nets is not None else None
+                if net is None:
                     lin = self.factors(a, b, kernel).linearize(values)
                     bn, _ = self._eliminate(lin, [int(k) for k in lin.keyVector()], (a, b), sep, dims, damping)
-                    del lin
-                sol = bn.optimize(sep_delta)
-                for j in range(bn.size()):
-                    k = int(bn.at(j).firstFrontalKey())
-                    delta.insert(k, sol.at(k))
-                del bn, sol
+                    net = pack(bn, dims)
+                    del lin, bn
+                for k, v in solve_net(net, sep_delta):
+                    delta.insert(k, v)
+                del net
         return self._fill(delta, dims)
 
     def _eliminate(self, lin: gtsam.GaussianFactorGraph, keys: list[int], section: tuple[int, int], sep: set[int],
@@ -431,11 +460,6 @@ def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:
     """Whether ``key`` is a knot variable of ``[a, b)`` that no other section touches."""
     k = top_knot((key,))
     return k is not None and a <= k < b and k not in sep
-
-
-def _net_bytes(bn: gtsam.GaussianBayesNet) -> int:
-    """Bytes of a Bayes net's conditionals' matrices ([R S d] of each)."""
-    return 8 * sum(int(c.rows()) * int(c.cols()) for c in (bn.at(i) for i in range(bn.size())))
 
 
 def _graph_bytes(graph: gtsam.GaussianFactorGraph) -> int:

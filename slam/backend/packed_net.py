@@ -1,0 +1,186 @@
+"""A section's eliminated interior packed into flat arrays, kept in memory or on disk, and
+back-substituted by one compiled pass (issue 27): what :mod:`slam.backend.sections` keeps of a
+section between its reduction and its back-substitution instead of gtsam's Bayes net.
+
+A Gaussian Bayes net from sequential elimination is a list of conditionals ``R x_f = d - S x_p``
+(``x_f`` the frontal variables, ``R`` upper triangular; ``x_p`` the parents: variables
+eliminated later and the separator's). Packed, each conditional is its augmented matrix
+``[R S d]`` (row-major, float64, in one flat array) and the keys of its frontals and parents.
+The data array can be written to a file and read back for the solve, so that the sections'
+eliminations need not stay on the heap nor be eliminated again when they do not fit the batch's
+budget. The solve is the same arithmetic as gtsam's ``GaussianConditional::solve`` (``rhs = d -
+S x_p``, then back substitution through ``R``) in another summation order, so the step agrees
+with ``GaussianBayesNet.optimize`` to rounding (about 1e-15 relative).
+
+Keys are gtsam keys; the values are steps (tangent vectors) in the variables' own coordinates.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gtsam
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass
+class PackedNet:
+    """The conditionals of a Bayes net (see the module doc), in elimination order.
+
+    ``frontals[fptr[j]:fptr[j + 1]]`` are conditional ``j``'s frontal keys, ``parents[pptr[j]:
+    pptr[j + 1]]`` its parents; ``dims`` maps every key that occurs to its dimension (``keys``
+    sorted, ``key_dims`` alongside); conditional ``j``'s ``[R S d]`` is ``data[mptr[j]:mptr[j + 1]]``
+    (rows = its frontals' dimension, row-major). ``data`` is None while it lies in ``path``."""
+
+    frontals: IntArray
+    fptr: IntArray
+    parents: IntArray
+    pptr: IntArray
+    keys: IntArray
+    key_dims: IntArray
+    mptr: IntArray
+    data: FloatArray | None
+    path: Path | None = None
+    _remove: weakref.finalize | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the matrices (in memory or on disk)."""
+        return 8 * int(self.mptr[-1])
+
+    @property
+    def index_bytes(self) -> int:
+        """Bytes of the index arrays (always in memory)."""
+        return sum(int(a.nbytes) for a in (self.frontals, self.fptr, self.parents, self.pptr, self.keys,
+                                               self.key_dims, self.mptr))
+
+    def spill(self, folder: Path) -> None:
+        """Move the matrices to a new file in ``folder`` (removed by :meth:`drop` or when this
+        object is collected)."""
+        if self.data is None:
+            return
+        fd, name = tempfile.mkstemp(prefix="net_", suffix=".f64", dir=folder)
+        with os.fdopen(fd, "wb") as f:
+            f.write(np.ascontiguousarray(self.data).tobytes())
+        self.path, self.data = Path(name), None
+        self._remove = weakref.finalize(self, Path(name).unlink, True)
+
+    def matrices(self) -> FloatArray:
+        """The matrices, from memory or read from the file (a copy that the caller lets go)."""
+        if self.data is not None:
+            return self.data
+        assert self.path is not None
+        return np.fromfile(self.path, dtype=np.float64)
+
+    def drop(self) -> None:
+        """Remove the file, if any."""
+        if self._remove is not None:
+            self._remove()
+        self.path, self._remove = None, None
+
+
+def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
+    """The conditionals of ``bn`` packed (see :class:`PackedNet`); ``dims`` the variables'
+    dimensions by key (every key of ``bn``)."""
+    n = bn.size()
+    frontals: list[int] = []
+    parents: list[int] = []
+    fptr, pptr, mptr = [0], [0], [0]
+    blocks: list[FloatArray] = []
+    for j in range(n):
+        c = bn.at(j)
+        ks = [int(k) for k in c.keys()]
+        R = np.asarray(c.R())
+        rows, nf, acc = R.shape[0], 0, 0
+        while acc < rows:  # the leading keys whose dimensions make up R's rows are the frontals
+            acc += dims[ks[nf]]
+            nf += 1
+        if acc != rows:
+            raise ValueError(f"pack: conditional {j}'s R has {rows} rows, its frontals {acc} dimensions")
+        frontals.extend(ks[:nf])
+        parents.extend(ks[nf:])
+        fptr.append(len(frontals))
+        pptr.append(len(parents))
+        aug = np.empty((rows, int(c.cols())))
+        aug[:, :rows] = R
+        aug[:, rows:-1] = np.asarray(c.S()) if len(ks) > nf else np.zeros((rows, 0))
+        aug[:, -1] = np.asarray(c.d())
+        blocks.append(aug.ravel())
+        mptr.append(mptr[-1] + aug.size)
+    all_keys = np.unique(np.array(frontals + parents, dtype=np.int64))
+    return PackedNet(np.array(frontals, dtype=np.int64), np.array(fptr, dtype=np.int64),
+                     np.array(parents, dtype=np.int64), np.array(pptr, dtype=np.int64), all_keys,
+                     np.array([dims[int(k)] for k in all_keys.tolist()], dtype=np.int64),
+                     np.array(mptr, dtype=np.int64),
+                     np.concatenate(blocks) if blocks else np.zeros(0))
+
+
+def solve(net: PackedNet, given: gtsam.VectorValues) -> list[tuple[int, FloatArray]]:
+    """The frontal variables' values given the parents' that no conditional solves (``given``:
+    the separator's step), by back substitution from the last conditional to the first. Returns
+    ``(key, value)`` per frontal key in elimination order. A singular ``R`` (a zero on its
+    diagonal) is a RuntimeError, as gtsam's indeterminate system."""
+    offsets = np.concatenate(([0], np.cumsum(net.key_dims)))
+    x = np.zeros(int(offsets[-1]))
+    frontal = np.zeros(net.keys.shape[0], dtype=np.bool_)
+    frontal[np.searchsorted(net.keys, net.frontals)] = True
+    for i in np.flatnonzero(~frontal).tolist():
+        k = int(net.keys[i])
+        if not given.exists(k):
+            raise ValueError(f"packed net: no value given for parent {gtsam.DefaultKeyFormatter(k)}")
+        x[offsets[i]:offsets[i + 1]] = given.at(k)
+    f_slot = np.searchsorted(net.keys, net.frontals)
+    p_slot = np.searchsorted(net.keys, net.parents)
+    ok = _back_substitute(net.fptr, net.pptr, f_slot, p_slot, offsets, net.key_dims, net.mptr, net.matrices(), x)
+    if ok >= 0:
+        raise RuntimeError(f"indeterminate system at conditional {ok} "
+                           f"({gtsam.DefaultKeyFormatter(int(net.frontals[net.fptr[ok]]))})")
+    return [(int(k), x[offsets[s]:offsets[s + 1]].copy()) for k, s in zip(net.frontals.tolist(), f_slot.tolist(),
+                                                                            strict=True)]
+
+
+@nb.njit(cache=True)
+def _back_substitute(fptr: IntArray, pptr: IntArray, f_slot: IntArray, p_slot: IntArray, offsets: IntArray,
+                     key_dims: IntArray, mptr: IntArray, data: FloatArray, x: FloatArray) -> int:
+    """Solve every conditional in reverse elimination order into ``x`` (indexed by ``offsets``
+    of the keys' slots). Returns -1, or the index of a conditional with a singular ``R``."""
+    n = fptr.shape[0] - 1
+    for j in range(n - 1, -1, -1):
+        rows = 0
+        for s in f_slot[fptr[j]:fptr[j + 1]]:
+            rows += key_dims[s]
+        cols = int((mptr[j + 1] - mptr[j]) // rows)
+        m = data[mptr[j]:mptr[j + 1]].reshape(rows, cols)
+        rhs = m[:, cols - 1].copy()
+        c = rows
+        for s in p_slot[pptr[j]:pptr[j + 1]]:
+            o = offsets[s]
+            for q in range(key_dims[s]):
+                v = x[o + q]
+                for r in range(rows):
+                    rhs[r] -= m[r, c] * v
+                c += 1
+        sol = np.zeros(rows)
+        for r in range(rows - 1, -1, -1):
+            acc = rhs[r]
+            for q in range(r + 1, rows):
+                acc -= m[r, q] * sol[q]
+            if m[r, r] == 0.0 or not np.isfinite(acc):
+                return j
+            sol[r] = acc / m[r, r]
+        c = 0
+        for s in f_slot[fptr[j]:fptr[j + 1]]:
+            o = offsets[s]
+            for q in range(key_dims[s]):
+                x[o + q] = sol[c]
+                c += 1
+    return -1
