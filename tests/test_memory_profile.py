@@ -115,7 +115,7 @@ def test_sampler_samples_this_process_without_itself(tmp_path: Path) -> None:
 def test_section_counts_of_a_sectioned_batch_only() -> None:
     class Sections:
         peak_kept_bytes, peak_separator_bytes, sections_built, sections_solved = 5_000, 700, 3, 6
-        largest_net_bytes = 900
+        largest_net_bytes, nets_spilled = 900, 2
 
         def __init__(self, needed: bool) -> None:
             self._needed = needed
@@ -130,7 +130,8 @@ def test_section_counts_of_a_sectioned_batch_only() -> None:
     assert mp.section_counts(types.SimpleNamespace(sections=Sections(False))) == {}  # solved whole
     out = mp.section_counts(types.SimpleNamespace(sections=Sections(True)))
     assert out == {"sections": 3, "section_kept_peak_bytes": 5_000, "separator_peak_bytes": 700,
-                   "largest_elimination_bytes": 900, "sections_built": 3, "sections_solved": 6}
+                   "largest_elimination_bytes": 900, "sections_built": 3, "sections_solved": 6,
+                   "eliminations_on_disk": 2}
 
 
 def test_heap_keeper_trims_once_resident_memory_crept_up_by_its_slack() -> None:
