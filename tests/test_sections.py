@@ -201,3 +201,18 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
     assert s_tight.final_error == s_free.final_error and np.array_equal(tight.poses(), free.poses())
     # a budget with room for the eliminations as well keeps them in memory
     assert free.sections.nets_spilled == 0
+
+
+def test_plane_covariances_in_chunks_are_the_same(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The inverse's columns solved a few planes at a time (the hour's separator is large) give
+    the covariances of one solve for all planes."""
+    import slam.backend.sections as sections
+
+    cut = _build(scene, replace(backend_defaults(), batch_section_knots=40, batch_whole_knots=0))
+    cut.batch_optimize(graduated=False)
+    whole = cut.sections.plane_covariances()
+    monkeypatch.setattr(sections, "_COVARIANCE_CHUNK", 2)
+    parts = cut.sections.plane_covariances()
+    assert sorted(parts) == sorted(whole) and len(whole) >= 5
+    for j, c in whole.items():
+        np.testing.assert_allclose(parts[j], c, rtol=1e-12, atol=1e-18)

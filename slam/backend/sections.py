@@ -69,6 +69,7 @@ FloatArray = NDArray[np.float64]
 # a cached interval factor's points (body point, fraction, sigma, plane index, their copies in the
 # factor's arrays) and the factor's own objects, estimated
 _BYTES_PER_POINT, _BYTES_PER_FACTOR = 48, 2048
+_COVARIANCE_CHUNK = 256  # planes whose columns of the separator's inverse are solved at once
 _REACH = 2  # a factor spans at most this many knots below its highest (the constant-velocity prior: 3 knots)
 
 
@@ -420,18 +421,23 @@ class SectionedBatch:
         first = np.concatenate(([0], np.cumsum([dims[k] for k in keys])))
         planes = [(i, k) for i, k in enumerate(keys) if chr(gtsam.Symbol(k).chr()) == "p"]
         info, _ = red.graph.hessian(gtsam.Ordering(keys))
-        try:
-            factor = scipy.linalg.cho_factor(info, lower=True, check_finite=False)
+        del red
+        try:  # factored in place: the hour's separator (~3 x its planes) is n x n, hundreds of MB
+            factor = scipy.linalg.cho_factor(info, lower=True, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError:
-            return self._plane_covariances_one_by_one(red.graph, values)
-        cols = np.concatenate([np.arange(first[i], first[i + 1]) for i, _ in planes]) if planes else np.zeros(0, int)
-        unit = np.zeros((info.shape[0], cols.shape[0]))
-        unit[cols, np.arange(cols.shape[0])] = 1.0
-        inv = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
+            return self._plane_covariances_one_by_one(self.reduce(values, self.config.kernel, 0.0).graph, values)
         out: dict[int, FloatArray] = {}
-        for n, (_, k) in enumerate(planes):
-            block = inv[3 * n:3 * n + 3, 3 * n:3 * n + 3]
-            out[int(gtsam.Symbol(k).index())] = 0.5 * (block + block.T)
+        n = info.shape[0]
+        for lo in range(0, len(planes), _COVARIANCE_CHUNK):  # a chunk of planes' columns of the inverse at a time
+            chunk = planes[lo:lo + _COVARIANCE_CHUNK]
+            cols = np.concatenate([np.arange(first[i], first[i + 1]) for i, _ in chunk])
+            unit = np.zeros((n, cols.shape[0]))
+            unit[cols, np.arange(cols.shape[0])] = 1.0
+            inv = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
+            for m, (_, k) in enumerate(chunk):
+                block = inv[3 * m:3 * m + 3, 3 * m:3 * m + 3]
+                out[int(gtsam.Symbol(k).index())] = 0.5 * (block + block.T)
+            del unit, inv
         return out
 
     @staticmethod
