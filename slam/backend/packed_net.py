@@ -92,36 +92,36 @@ def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
     """The conditionals of ``bn`` packed (see :class:`PackedNet`); ``dims`` the variables'
     dimensions by key (every key of ``bn``)."""
     n = bn.size()
-    frontals: list[int] = []
-    parents: list[int] = []
-    fptr, pptr, mptr = [0], [0], [0]
-    blocks: list[FloatArray] = []
-    for j in range(n):
-        c = bn.at(j)
-        ks = [int(k) for k in c.keys()]
+    conds = [bn.at(j) for j in range(n)]
+    sizes = np.array([int(c.rows()) * int(c.cols()) for c in conds], dtype=np.int64)
+    mptr = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    data = np.empty(int(mptr[-1]))  # filled in place: no second copy of the matrices
+    frontals: list[IntArray] = []
+    parents: list[IntArray] = []  # numpy rows, not Python ints: a section's parents run to millions
+    fptr, pptr = np.zeros(n + 1, dtype=np.int64), np.zeros(n + 1, dtype=np.int64)
+    for j, c in enumerate(conds):
+        ks = np.array(c.keys(), dtype=np.int64)
         R = np.asarray(c.R())
         rows, nf, acc = R.shape[0], 0, 0
         while acc < rows:  # the leading keys whose dimensions make up R's rows are the frontals
-            acc += dims[ks[nf]]
+            acc += dims[int(ks[nf])]
             nf += 1
         if acc != rows:
             raise ValueError(f"pack: conditional {j}'s R has {rows} rows, its frontals {acc} dimensions")
-        frontals.extend(ks[:nf])
-        parents.extend(ks[nf:])
-        fptr.append(len(frontals))
-        pptr.append(len(parents))
-        aug = np.empty((rows, int(c.cols())))
+        frontals.append(ks[:nf])
+        parents.append(ks[nf:])
+        fptr[j + 1] = fptr[j] + nf
+        pptr[j + 1] = pptr[j] + ks.shape[0] - nf
+        aug = data[mptr[j]:mptr[j + 1]].reshape(rows, -1)
         aug[:, :rows] = R
-        aug[:, rows:-1] = np.asarray(c.S()) if len(ks) > nf else np.zeros((rows, 0))
-        aug[:, -1] = np.asarray(c.d())
-        blocks.append(aug.ravel())
-        mptr.append(mptr[-1] + aug.size)
-    all_keys = np.unique(np.array(frontals + parents, dtype=np.int64))
-    return PackedNet(np.array(frontals, dtype=np.int64), np.array(fptr, dtype=np.int64),
-                     np.array(parents, dtype=np.int64), np.array(pptr, dtype=np.int64), all_keys,
-                     np.array([dims[int(k)] for k in all_keys.tolist()], dtype=np.int64),
-                     np.array(mptr, dtype=np.int64),
-                     np.concatenate(blocks) if blocks else np.zeros(0))
+        if ks.shape[0] > nf:
+            aug[:, rows:-1] = c.S()
+        aug[:, -1] = c.d()
+    f_all = np.concatenate(frontals) if frontals else np.zeros(0, dtype=np.int64)
+    p_all = np.concatenate(parents) if parents else np.zeros(0, dtype=np.int64)
+    all_keys = np.unique(np.concatenate((f_all, p_all)))
+    return PackedNet(f_all, fptr, p_all, pptr, all_keys,
+                     np.array([dims[int(k)] for k in all_keys.tolist()], dtype=np.int64), mptr, data)
 
 
 def solve(net: PackedNet, given: gtsam.VectorValues) -> list[tuple[int, FloatArray]]:
