@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 import tempfile
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import gtsam
@@ -50,7 +50,6 @@ class PackedNet:
     mptr: IntArray
     data: FloatArray | None
     path: Path | None = None
-    _remove: weakref.finalize | None = field(default=None, repr=False, compare=False)
 
     @property
     def nbytes(self) -> int:
@@ -64,15 +63,14 @@ class PackedNet:
                                                self.key_dims, self.mptr))
 
     def spill(self, folder: Path) -> None:
-        """Move the matrices to a new file in ``folder`` (removed by :meth:`drop` or when this
-        object is collected)."""
+        """Move the matrices to a new file in ``folder`` (removed when this object is collected)."""
         if self.data is None:
             return
         fd, name = tempfile.mkstemp(prefix="net_", suffix=".f64", dir=folder)
         with os.fdopen(fd, "wb") as f:
             f.write(np.ascontiguousarray(self.data).tobytes())
         self.path, self.data = Path(name), None
-        self._remove = weakref.finalize(self, Path(name).unlink, True)
+        weakref.finalize(self, Path(name).unlink, True)  # kept alive by weakref's registry
 
     def matrices(self) -> FloatArray:
         """The matrices, from memory or read from the file (a copy that the caller lets go)."""
@@ -80,12 +78,6 @@ class PackedNet:
             return self.data
         assert self.path is not None
         return np.fromfile(self.path, dtype=np.float64)
-
-    def drop(self) -> None:
-        """Remove the file, if any."""
-        if self._remove is not None:
-            self._remove()
-        self.path, self._remove = None, None
 
 
 def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
@@ -131,14 +123,14 @@ def solve(net: PackedNet, given: gtsam.VectorValues) -> list[tuple[int, FloatArr
     diagonal) is a RuntimeError, as gtsam's indeterminate system."""
     offsets = np.concatenate(([0], np.cumsum(net.key_dims)))
     x = np.zeros(int(offsets[-1]))
+    f_slot = np.searchsorted(net.keys, net.frontals)
     frontal = np.zeros(net.keys.shape[0], dtype=np.bool_)
-    frontal[np.searchsorted(net.keys, net.frontals)] = True
+    frontal[f_slot] = True
     for i in np.flatnonzero(~frontal).tolist():
         k = int(net.keys[i])
         if not given.exists(k):
             raise ValueError(f"packed net: no value given for parent {gtsam.DefaultKeyFormatter(k)}")
         x[offsets[i]:offsets[i + 1]] = given.at(k)
-    f_slot = np.searchsorted(net.keys, net.frontals)
     p_slot = np.searchsorted(net.keys, net.parents)
     ok = _back_substitute(net.fptr, net.pptr, f_slot, p_slot, offsets, net.key_dims, net.mptr, net.matrices(), x)
     if ok >= 0:
