@@ -384,8 +384,29 @@ def test_run_command_writes_every_output(box_noisy: SimulationResult, tmp_path: 
     assert main(["run", str(box_noisy.bag), "--out", str(out), "--quiet"]) == 0
     for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    assert "outputs:" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "outputs:" in printed and "cloud.ply" in printed and "map.rrd" in printed
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folders left
+
+
+def test_run_command_lists_only_the_outputs_it_wrote(box_noisy: SimulationResult, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from backpack_slam.cli import main
+
+    cfg = tmp_path / "nocloud.yaml"
+    cfg.write_text("output:\n  cloud: false\n  rerun: false\n")
+    # a survey format of a cloud that is turned off: refused before anything runs
+    assert main(["run", str(box_noisy.bag), "--config", str(cfg), "--out", str(tmp_path / "x"),
+                 "--cloud-format", "laz", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--cloud-format" in err and "output.cloud" in err and "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+    out = tmp_path / "run"
+    assert main(["run", str(box_noisy.bag), "--config", str(cfg), "--out", str(out), "--quiet"]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("outputs:"))
+    assert "trajectory.tum" in line and "summary.json" in line
+    assert "cloud.ply" not in line and "map.rrd" not in line
+    assert not (out / "cloud.ply").exists() and not (out / "map.rrd").exists()
 
 
 def test_bag_without_the_rig_topics_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

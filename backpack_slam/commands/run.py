@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = with_segmenter(load_slam_config(args.config), args.segmenter, parse_params(args.param))
     if args.voxel is not None and not (math.isfinite(args.voxel) and args.voxel > 0):
         raise ValueError(f"--voxel {args.voxel}: must be finite and > 0")
+    if fmt is not None and not cfg.output.cloud:
+        raise ValueError(f"--cloud-format {args.cloud_format}: the configuration turns the cloud off (output.cloud: false)")
     summary = run_slam(args.bag, rig, cfg, args.out, progress=not args.quiet, voxel=args.voxel, urdf=args.urdf,
                        report=lambda line: print(f"note: {line}", file=sys.stderr))
     c = summary["counts"]
@@ -67,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         f"{c['segments_associated']}/{c['segments']} segments associated, "
         f"{t['wall']:.1f} s ({summary['realtime_factor']:.2f}x real time)"
     )
-    print(f"outputs: {args.out}/ (trajectory.tum, planes.json, segments.npz, cloud.ply, map.rrd, summary.json)")
+    names = ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json")
+    print(f"outputs: {args.out}/ ({', '.join(n for n in names if (Path(args.out) / n).exists())})")
     if fmt is not None:
         out = Path(args.out)
         n = export_cloud(out / "cloud.ply", out / f"cloud.{fmt}", fmt, out / "trajectory.tum")
