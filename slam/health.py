@@ -6,7 +6,9 @@ speeds and turn rates (a walker does not move at 17 m/s), the translation direct
 associated planes leave unobserved and for how long (without an IMU a few seconds fail the run:
 edges do not hold such a direction), the IMU factors' residuals against the IMU's noise (the
 scans' motion against what the IMU measured), the number of planes, and a walk that starts
-moving along a direction its first scans do not observe. On a recording whose beams carry
+moving along a direction its first scans do not observe, and the final batch's departure from the
+online estimate (:func:`trajectory_departure`: a stretch the batch slid against its neighbours).
+On a recording whose beams carry
 several echoes, failures that reading the wrong echo causes name ``input.echo``. Each check that
 fails its limit is a :class:`Problem` naming its cause; the verdict is ``failed`` when any
 problem is a failure, ``degraded`` when there are only warnings, else ``ok``. A failed run
@@ -67,6 +69,15 @@ class HealthSection(StrictModel):
     max_unobserved_start_motion: float = Field(
         default=0.1, gt=0, description="m: without an IMU, motion along a direction no plane has observed since the "
         "walk's start: failed (the motion model has no speed to carry there)")
+    departure_window: float = Field(
+        default=10.0, gt=0, description="s: the span over which the final batch's trajectory is compared with the "
+        "online estimate (the displacement in the body frame of its start)")
+    warn_batch_departure: float = Field(
+        default=0.2, gt=0, description="m: the final batch changed a departure_window's displacement by more: degraded "
+        "(the office walks: at most 0.07-0.13 m, the online window's cm wiggles in corridors)")
+    max_batch_departure: float = Field(
+        default=0.5, gt=0, description="m: ... by more: failed. The batch and the online estimate disagree on the "
+        "walk's shape; one of them is wrong (an hour's batch once slid 9 s of a corridor 1 m along it, then ran off)")
     max_unobserved_seconds: float = Field(
         default=3.0, gt=0, description="s unobserved in a row without an IMU: failed. Only planes count: without an "
         "IMU nothing else holds the position along the direction (a 6 s standing-start corridor walk without an IMU "
@@ -143,6 +154,42 @@ def motion_problems(knot_times: FloatArray, T_world_body: FloatArray, cfg: Healt
                            f"the trajectory jumps at t = {knot_times[k + 1] - knot_times[0]:.1f} s "
                            f"({acc[k]:.0f} m/s^2 between knot intervals)", float(acc[k]), cfg.max_accel))
     return out, m
+
+
+def trajectory_departure(knot_times: FloatArray, T_before: FloatArray, T_after: FloatArray,
+                         window: float) -> tuple[float, float]:
+    """How far two estimates of the same knots (``T_world_body`` (K, 4, 4) each, at
+    ``knot_times`` (K,)) differ in shape: for every knot k, its displacement to the first knot
+    ``window`` s later, in k's body frame, by each estimate; returns the largest difference (m)
+    and its knot's time (s since the first knot). A rigid change of the whole trajectory (a datum,
+    a yaw drift spread over a loop) moves it little; a stretch slid against its neighbours, a lot.
+    (0, 0) for a walk shorter than ``window``."""
+    t = np.asarray(knot_times, dtype=np.float64)
+    j = np.searchsorted(t, t + window)
+    k = np.flatnonzero(j < t.shape[0])
+    if k.shape[0] == 0:
+        return 0.0, 0.0
+    j = j[k]
+
+    def shape(T: FloatArray) -> FloatArray:
+        return np.einsum("kji,kj->ki", T[k, :3, :3], T[j, :3, 3] - T[k, :3, 3])
+
+    d = np.linalg.norm(shape(T_before) - shape(T_after), axis=1)
+    i = int(np.argmax(d))
+    return float(d[i]), float(t[k[i]] - t[0])
+
+
+def batch_problems(departure: float, departure_time: float, cfg: HealthSection) -> list[Problem]:
+    """The final batch's departure from the online estimate (:func:`trajectory_departure`) against
+    its limits."""
+    if departure <= cfg.warn_batch_departure:
+        return []
+    sev: Severity = "failure" if departure > cfg.max_batch_departure else "warning"
+    return [Problem("batch_departure", sev,
+                    f"the final batch moved the trajectory {departure:.2f} m against the online estimate within "
+                    f"{cfg.departure_window:g} s at t = {departure_time:.1f} s: the two disagree on the walk's shape "
+                    "and one of them is wrong", departure,
+                    cfg.max_batch_departure if sev == "failure" else cfg.warn_batch_departure)]
 
 
 def _unobserved_windows(seg_stamp: FloatArray, seg_normal: FloatArray, t0: float, t1: float, window: float,

@@ -55,6 +55,7 @@ from slam.frontend.planemap import KIND_NAMES, PlaneMap
 from slam.frontend.scan_prep import PreparedScan, ScanPreparer, knot_deskew
 from slam.frontend.transients import TRANSIENT, TransientFilter
 from slam.frontend.window_tracker import WindowTracker
+from slam.health import trajectory_departure
 from slam.imu_feed import ImuSamples, motion_model
 from slam.result import BatchStats, RunStats, SlamResult, StageTimer
 
@@ -288,6 +289,7 @@ class SlamRunner:
         t = _time.perf_counter()
         summary = None
         self.backend.fold_links()
+        online = self.backend.poses() if batch and self.knots.n >= 2 else None
         if batch and self.knots.n >= 2:
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
@@ -301,6 +303,10 @@ class SlamRunner:
                 summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
         self._timer.add("batch", t)
         poses = self.backend.poses()
+        departure = (0.0, 0.0)
+        if online is not None:
+            departure = trajectory_departure(self.backend.knot_times(), online, poses, self.cfg.health.departure_window)
+            del online
         ids, normals, offsets = self.backend.planes()
         real = ids < EDGE_ID_BASE  # edge planes are observations' helpers, not surfaces
         ids, normals, offsets = ids[real], normals[real], offsets[real]
@@ -315,7 +321,7 @@ class SlamRunner:
             pool_dropped=self.pool.dropped,
             singular_systems=list(self.backend.singular_systems),
             batch=None if summary is None else BatchStats(summary.initial_error, summary.final_error,
-                                                          summary.iterations, summary.seconds),
+                                                          summary.iterations, summary.seconds, *departure),
             residuals=self.backend.residual_statistics(),
         )
         cov: dict[int, FloatArray] = {}

@@ -28,6 +28,11 @@ class BatchStats:
     final_error: float
     iterations: int
     seconds: float
+    # how far the batch moved the trajectory's shape from the online estimate: the largest
+    # difference (m) of the body-frame displacement over ``health.departure_window`` and its
+    # time (s since the first knot); see :func:`slam.health.trajectory_departure`
+    departure: float = 0.0
+    departure_time: float = 0.0
 
 
 @dataclass

@@ -39,7 +39,14 @@ from segmentation.noise import estimate as estimate_noise_model
 from slam import params
 from slam.config import SlamConfig
 from slam.export import write_summary_json
-from slam.health import Health, assess, rig_problems, silent_scanners, start_problems
+from slam.health import (
+    Health,
+    assess,
+    batch_problems,
+    rig_problems,
+    silent_scanners,
+    start_problems,
+)
 from slam.heap import trim_heap
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
@@ -243,7 +250,9 @@ def run_health(res: SlamResult, cfg: SlamConfig, with_imu: bool,
     return assess(res.knot_times, res.T_world_body, rows["stamp"], rows["plane_id"], normals, counts,
                   residuals.get("rms_whitened"), with_imu, cfg.health,
                   extra=silent_scanners(res.scanner_names, rows["scanner"]) + start_problems(res.stats.initial_motion)
-                  + rig_problems(rig_mismatches or [], cfg.health),
+                  + rig_problems(rig_mismatches or [], cfg.health)
+                  + ([] if res.stats.batch is None else batch_problems(res.stats.batch.departure,
+                                                                       res.stats.batch.departure_time, cfg.health)),
                   imu_rms_whitened=residuals.get("imu_rms_whitened"), echoes=echoes)
 
 

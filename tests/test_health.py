@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.health import HealthSection, assess, rig_problems, start_problems, unobserved_spans
+from slam.health import (
+    HealthSection,
+    assess,
+    batch_problems,
+    rig_problems,
+    start_problems,
+    trajectory_departure,
+    unobserved_spans,
+)
 
 CFG = HealthSection()
 ROOM = {0: np.array([1.0, 0, 0]), 1: np.array([0, 1.0, 0]), 2: np.array([0, 0, 1.0])}
@@ -153,3 +161,40 @@ def test_a_rig_off_the_recordings_transforms_degrades_or_fails_the_run() -> None
     off = rig_problems([("top", np.radians(0.3), 0.0), ("left", np.radians(1.0), 0.02)], CFG)
     assert [(p.code, p.severity) for p in off] == [("rig_mismatch", "failure")]
     assert "scanner 'left' differs from the recording's transforms by 1.00 deg / 0.020 m" in off[0].message
+
+
+def _turning_walk(n: int = 1200, dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """A walk along a curve, the body's x axis along its way (60 s)."""
+    t = 100.0 + dt * np.arange(n)
+    yaw = 0.02 * (t - t[0])
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    T[:, 0, 3] = np.cumsum(1.1 * dt * np.cos(yaw))
+    T[:, 1, 3] = np.cumsum(1.1 * dt * np.sin(yaw))
+    return t, T
+
+
+def test_trajectory_departure_ignores_a_rigid_change_and_finds_a_slid_stretch() -> None:
+    t, T = _turning_walk()
+    c, s = np.cos(0.3), np.sin(0.3)
+    rigid = np.array([[c, -s, 0, 5.0], [s, c, 0, -2.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    assert trajectory_departure(t, T, rigid @ T, 10.0)[0] < 1e-9
+    slid = T.copy()  # 9 s of the walk slid 1 m along world x, staying there (the hour's batch at 3,150 s)
+    ramp = np.clip((t - t[0] - 30.0) / 9.0, 0.0, 1.0)
+    slid[:, 0, 3] -= ramp
+    d, at = trajectory_departure(t, T, slid, 10.0)
+    assert 0.95 < d <= 1.0 + 1e-9 and 20.0 <= at <= 39.0
+    assert trajectory_departure(t[:100], T[:100], slid[:100], 10.0) == (0.0, 0.0)  # shorter than the window
+
+
+def test_a_batch_that_departs_from_the_online_estimate_degrades_or_fails_the_run() -> None:
+    assert batch_problems(0.07, 2421.0, CFG) == []
+    (warn,) = batch_problems(0.3, 12.0, CFG)
+    assert warn.severity == "warning" and warn.code == "batch_departure" and "t = 12.0 s" in warn.message
+    (fail,) = batch_problems(1.0, 3150.0, CFG)
+    assert fail.severity == "failure" and fail.limit == CFG.max_batch_departure and "0.50" not in fail.message
+    t, T = _walk()
+    st, pid = _segments(t, [0, 1, 2])
+    h = assess(t, T, st, pid, ROOM, {"segments": len(st), "segments_associated": len(st)}, 0.6, True, CFG,
+               extra=[fail])
+    assert h.verdict == "failed" and any("final batch moved the trajectory 1.00 m" in line for line in h.lines())

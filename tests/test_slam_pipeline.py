@@ -141,6 +141,7 @@ def test_the_result_is_complete(box_noisy: SimulationResult, rig: Any) -> None:
     from slam.io.bag import read_scans
 
     cfg = _fast()
+    cfg = cfg.model_copy(update={"health": cfg.health.model_copy(update={"departure_window": 1.0})})  # a short walk
     runner = SlamRunner(rig, cfg)
     for line in read_scans(box_noisy.bag, rig=rig):
         runner.add_scan(line)
@@ -154,6 +155,9 @@ def test_the_result_is_complete(box_noisy: SimulationResult, rig: Any) -> None:
     d = res.stats.to_dict()
     assert d["knots"] == len(res.knot_times) and d["planes"] == len(res.plane_ids) and d["scans"] > 0
     assert d["batch"]["iterations"] >= 1 and res.stats["batch"] == d["batch"]
+    # the batch's change of the walk's shape against the online estimate, measured (and small here)
+    assert 0.0 < d["batch"]["departure"] < cfg.health.warn_batch_departure
+    assert 0.0 <= d["batch"]["departure_time"] <= res.knot_times[-1] - res.knot_times[0] - cfg.health.departure_window
     assert {"segments", "associated", "planes_created", "observation_blocks", "updates", "edge_observations",
             "trimmed_points", "pool_dropped", "singular_systems", "residuals", "imu_used"} <= set(d)
     assert runner.result(batch=False, covariances=False).plane_covariances == {}
