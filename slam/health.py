@@ -77,7 +77,7 @@ class HealthSection(StrictModel):
         "(the office walks: at most 0.07-0.13 m, the online window's cm wiggles in corridors)")
     max_batch_departure: float = Field(
         default=0.5, gt=0, description="m: ... by more: failed. The batch and the online estimate disagree on the "
-        "walk's shape; one of them is wrong (an hour's batch once slid 9 s of a corridor 1 m along it, then ran off)")
+        "walk's shape; one of them is wrong")
     max_unobserved_seconds: float = Field(
         default=3.0, gt=0, description="s unobserved in a row without an IMU: failed. Only planes count: without an "
         "IMU nothing else holds the position along the direction (a 6 s standing-start corridor walk without an IMU "
