@@ -306,7 +306,6 @@ class SlamRunner:
         departure = (0.0, 0.0)
         if online is not None:
             departure = trajectory_departure(self.backend.knot_times(), online, poses, self.cfg.health.departure_window)
-            del online
         ids, normals, offsets = self.backend.planes()
         real = ids < EDGE_ID_BASE  # edge planes are observations' helpers, not surfaces
         ids, normals, offsets = ids[real], normals[real], offsets[real]
@@ -344,6 +343,7 @@ class SlamRunner:
             stats=stats,
             timings=dict(self._timer.t),
             deskew=self.knots.deskew,
+            T_world_body_online=online,
         )
 
     def close(self) -> None:

@@ -116,7 +116,9 @@ class SlamResult:
     marginal the solver could not give is left out (and all of them when the result was taken
     without covariances). ``segment_rows``: per segment of every scan, its scanner, scan index,
     stamp, beam range and (resolved) plane id, sorted. ``deskew``: the gyro's rotation between
-    knots (``slam.trajectory.deskew``) applied to body points, None without it."""
+    knots (``slam.trajectory.deskew``) applied to body points, None without it.
+    ``T_world_body_online``: the window's (online) poses of the same knots before the final batch,
+    None when the result was taken without one."""
 
     knot_times: FloatArray
     T_world_body: FloatArray
@@ -130,3 +132,4 @@ class SlamResult:
     stats: RunStats
     timings: dict[str, float]
     deskew: DeskewTable | None
+    T_world_body_online: FloatArray | None = None

@@ -67,8 +67,11 @@ def plane_records(res: SlamResult, covariances: dict[int, FloatArray]) -> list[P
 
 
 def write_tables(out: Path, res: SlamResult) -> list[PlaneRecord]:
-    """trajectory.tum, planes.json and segments.npz into ``out``; returns the planes written."""
+    """trajectory.tum, planes.json and segments.npz into ``out`` (and trajectory_online.tum, the
+    window's estimate before the final batch, when there was one); returns the planes written."""
     write_trajectory_tum(out / "trajectory.tum", res.knot_times, res.T_world_body)
+    if res.T_world_body_online is not None:
+        write_trajectory_tum(out / "trajectory_online.tum", res.knot_times, res.T_world_body_online)
     planes = plane_records(res, res.plane_covariances)
     write_planes_json(out / "planes.json", planes)
     rows = res.segment_rows

@@ -351,7 +351,8 @@ def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> 
     assert "ru_maxrss" in mem["definition"]
     # the thinned cloud and the recording; the file of every point is gone
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [
-        "cloud.ply", "map.rrd", "planes.json", "segments.npz", "summary.json", "trajectory.tum"]
+        "cloud.ply", "map.rrd", "planes.json", "segments.npz", "summary.json", "trajectory.tum",
+        "trajectory_online.tum"]
     n = summary["counts"]["cloud_points"]
     assert 0 < n == cloud_ply_layout(tmp_path / "run" / "cloud.ply")[0]
     # a well-posed walk meets no singular linear system in its solves

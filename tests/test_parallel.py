@@ -121,7 +121,7 @@ def test_parallel_runs_write_the_same_outputs(walk: SimulationResult, rig: Any, 
     # the reader and two cloud parts open the bag once each; this process twice: it lets go of
     # its index while the reader reads and opens the bag again for the export
     assert list(opens().values()) == [2, 1, 1, 1]
-    for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply"):
+    for name in ("trajectory.tum", "trajectory_online.tum", "planes.json", "segments.npz", "cloud.ply"):
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "par" / name).read_bytes(), name
     assert one["counts"] == par["counts"]
     assert one["counts"]["cloud_points"] > 100_000

@@ -160,7 +160,9 @@ def test_the_result_is_complete(box_noisy: SimulationResult, rig: Any) -> None:
     assert 0.0 <= d["batch"]["departure_time"] <= res.knot_times[-1] - res.knot_times[0] - cfg.health.departure_window
     assert {"segments", "associated", "planes_created", "observation_blocks", "updates", "edge_observations",
             "trimmed_points", "pool_dropped", "singular_systems", "residuals", "imu_used"} <= set(d)
+    assert res.T_world_body_online is not None and res.T_world_body_online.shape == res.T_world_body.shape
     assert runner.result(batch=False, covariances=False).plane_covariances == {}
+    assert runner.result(batch=False, covariances=False).T_world_body_online is None
     assert "batch" not in runner.result(batch=False, covariances=False).stats.to_dict()
 
 
@@ -386,8 +388,15 @@ def test_run_command_writes_every_output(box_noisy: SimulationResult, tmp_path: 
 
     out = tmp_path / "run"
     assert main(["run", str(box_noisy.bag), "--out", str(out), "--quiet"]) == 0
-    for name in ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json"):
+    for name in ("trajectory.tum", "trajectory_online.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd",
+                 "summary.json"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    from slam.export import read_trajectory_tum
+
+    t_b, T_b = read_trajectory_tum(out / "trajectory.tum")
+    t_o, T_o = read_trajectory_tum(out / "trajectory_online.tum")  # the window's, same knots
+    np.testing.assert_array_equal(t_b, t_o)
+    assert np.abs(T_b[:, :3, 3] - T_o[:, :3, 3]).max() < 0.05
     printed = capsys.readouterr().out
     assert "outputs:" in printed and "cloud.ply" in printed and "map.rrd" in printed
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folders left

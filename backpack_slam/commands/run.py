@@ -69,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         f"{c['segments_associated']}/{c['segments']} segments associated, "
         f"{t['wall']:.1f} s ({summary['realtime_factor']:.2f}x real time)"
     )
-    names = ("trajectory.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd", "summary.json")
+    names = ("trajectory.tum", "trajectory_online.tum", "planes.json", "segments.npz", "cloud.ply", "map.rrd",
+             "summary.json")
     print(f"outputs: {args.out}/ ({', '.join(n for n in names if (Path(args.out) / n).exists())})")
     if fmt is not None:
         out = Path(args.out)
