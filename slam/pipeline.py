@@ -289,8 +289,9 @@ class SlamRunner:
         t = _time.perf_counter()
         summary = None
         self.backend.fold_links()
-        online = self.backend.poses() if batch and self.knots.n >= 2 else None
+        online = None  # the window's poses, kept until the batch is done
         if batch and self.knots.n >= 2:
+            online = self.backend.poses()
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
