@@ -232,6 +232,14 @@ class FrontEndConfig(StrictModel):
     child_merge_distance: float = Field(
         0.004, gt=0, description="m, a door or board tied to its wall merges with it only when nearer than this "
         "over its extent (with parallel_choice)")
+    layer_merge_distance: float = Field(
+        0.012, ge=0, description="m, a door or board tied to its wall whose extent has grown longer than "
+        "child_max_length and lies nearer its wall than this over that extent is a second layer of the wall, not a "
+        "door or board: merged with it (an hour's corridor walls were taken over by such layers 8-13 mm in front, "
+        "their door edges no longer found, and the walk slid 1 m along the corridor); 0 = off")
+    child_max_length: float = Field(
+        3.0, gt=0, description="m, extent (along either axis) beyond which a plane tied to its wall is no door or "
+        "board of the layer test (layer_merge_distance)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "

@@ -213,6 +213,8 @@ def map_params(cfg: SlamConfig) -> MapParams:
         link_sigma=fe.link_sigma,
         child_merge_distance=fe.child_merge_distance if fe.parallel_choice else float("inf"),
         child_adopt_cells=1 if fe.parallel_choice else 1 << 20,
+        layer_merge_distance=fe.layer_merge_distance,
+        child_max_length=fe.child_max_length,
         distinct_offset=fe.merge_distinct_offset,
     )
 

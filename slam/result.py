@@ -45,6 +45,7 @@ class RunStats:
     associated: int = 0  # segment observations made (at association, plane creation and adoption)
     planes_created: int = 0
     planes_merged: int = 0
+    wall_layers_merged: int = 0  # of them: doors/boards found to be a second layer of their wall
     planes_transient: int = 0  # planes taken out as things that moved (people walking by)
     observation_blocks: int = 0
     updates: int = 0  # back-end updates (window solves or iSAM2 steps)

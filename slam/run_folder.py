@@ -130,6 +130,7 @@ class RunCounts:
     planes: int
     planes_created: int
     planes_merged: int
+    wall_layers_merged: int
     planes_transient: int
     planes_rejected: int
     planes_rejected_oblique: int

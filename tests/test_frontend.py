@@ -278,6 +278,54 @@ def test_a_board_seen_beside_its_wall_in_one_scan_is_not_merged_into_it() -> Non
     assert not builder.pmap.planes[board].merged_into >= 0
 
 
+def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_of_it() -> None:
+    """The hour's corridor (issue 27, session 25): a plane tied to its wall as a board, 8 mm in front
+    of it and grown along 6 m of it, took the wall's segments, so the door edges along the corridor
+    were no longer found and the walk slid 1 m. A tied plane longer than child_max_length and
+    within layer_merge_distance of its wall is merged into the wall (the wall kept); a board of a
+    board's size 8 mm proud, or a long one 2 cm proud, stays; with layer_merge_distance 0 none is."""
+    from types import SimpleNamespace
+
+    from slam.frontend.map_builder import MapBuilder, TieKind
+    from slam.params import map_params
+
+    def scene(offset: float, x1: float, cfg: SlamConfig) -> tuple[MapBuilder, list[tuple[int, int]], int, int, Any]:
+        pmap = PlaneMap(bucket=0.5)
+        n = np.array([0.0, -1.0, 0.0])
+        wall = pmap.add(n, 7.25, 1, 1.0, 0.0)
+        layer = pmap.add(n, 7.25 - offset, 1, 3.0, 2.0)
+        xs, zs = np.meshgrid(np.linspace(0.0, 12.0, 60), np.linspace(0.2, 2.6, 12))
+        pmap.extend(wall.id, np.column_stack((xs.ravel(), np.full(xs.size, 7.25), zs.ravel())))
+        xb, zb = np.meshgrid(np.linspace(2.0, x1, 30), np.linspace(0.9, 2.1, 6))
+        pmap.extend(layer.id, np.column_stack((xb.ravel(), np.full(xb.size, 7.25 - offset), zb.ravel())))
+        for pl in (wall, layer):
+            pl.n_segments = 1000
+            pmap.seen(pl.id, 37.8, 40.0)
+        layer.n_segments = 800  # fewer than its wall (else the tie is read the other way round)
+        links: list[tuple[int, int]] = []
+        sink = SimpleNamespace(link_planes=lambda keep, drop, *a: links.append((keep, drop)))
+        stats = SimpleNamespace(planes_merged=0, wall_layers_merged=0)
+        builder = MapBuilder(map_params(cfg), pmap, None, SimpleNamespace(odometer=45.0), sink,  # type: ignore[arg-type]
+                             stats)  # type: ignore[arg-type]
+        builder.ties.tie(layer.id, wall.id, TieKind.BOARD)
+        return builder, links, wall.id, layer.id, stats
+
+    cfg = SlamConfig()
+    builder, links, wall, layer, stats = scene(0.008, 8.0, cfg)  # 6 m long, 8 mm proud
+    builder.merge(38.0)
+    assert links == [(wall, layer)]  # the wall is kept
+    assert builder.pmap.planes[layer].merged_into == wall
+    assert stats.wall_layers_merged == 1 and stats.planes_merged == 1
+    for offset, x1 in ((0.008, 3.8), (0.02, 8.0)):  # a board of a board's length; a long board 2 cm proud
+        builder, links, wall, layer, stats = scene(offset, x1, cfg)
+        builder.merge(38.0)
+        assert links == [] and stats.wall_layers_merged == 0
+    off = cfg.model_copy(update={"frontend": cfg.frontend.model_copy(update={"layer_merge_distance": 0.0})})
+    builder, links, wall, layer, stats = scene(0.008, 8.0, off)
+    builder.merge(38.0)
+    assert links == []
+
+
 def test_the_other_face_of_a_wall_faces_away_and_lies_its_thickness_behind() -> None:
     # the corridor's face of a partition: y = 6.15, seen from the corridor (normal +y)
     wall_n, wall_d = np.array([0.0, 1.0, 0.0]), -6.15

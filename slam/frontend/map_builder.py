@@ -66,6 +66,8 @@ class MapParams:
     child_merge_distance: float  # m, a tied door or board merges with its wall only nearer than this
     child_adopt_cells: int  # cells: a new door or board adopts pooled segments with both ends this near its extent
     distinct_offset: float  # m: parallel planes one scan's segments took this far apart are two surfaces (0: off)
+    layer_merge_distance: float  # m: a child longer than child_max_length this near its wall is a layer of it (0: off)
+    child_max_length: float  # m
 
 
 class TieKind(Enum):
@@ -358,6 +360,21 @@ class MapBuilder:
                 n, d = self._sink.plane(pl.id)
                 self.pmap.set_estimate(pl.id, n, d)
 
+    def _layer_host(self, a: int, b: int, children: dict[int, int]) -> int | None:
+        """The wall of the pair when the other plane, tied to it as a door or board, is a second
+        layer of it instead: longer than any door or board (``child_max_length``) and within
+        ``layer_merge_distance`` of the wall over its whole extent; else None. Such a layer takes
+        the wall's segments (it is nearer them than the wall wherever the pose estimate leans its
+        way), so the door edges along the wall are no longer found."""
+        mp = self.params
+        if mp.layer_merge_distance <= 0.0:
+            return None
+        for child, host in ((a, b), (b, a)):
+            if children.get(child) == host and self.pmap.extent_length(child) > mp.child_max_length and \
+                    self.pmap.max_distance_over(child, host) <= mp.layer_merge_distance:
+                return host
+        return None
+
     def merge(self, now: float) -> None:
         """Merge the recently seen planes with the planes they converged onto (the same facing,
         touching extents, offsets within the drift since they were seen): tied in the back end,
@@ -390,15 +407,20 @@ class MapBuilder:
                 # that a tilted plane (a door fitted with a bit of its wall) does not merge on the
                 # strength of its centre alone
                 small, big = (a, b) if len(a.cells) <= len(b.cells) else (b, a)
-                if self.pmap.max_distance_over(small.id, big.id) > tol:
-                    continue
-                # a door or board and its wall (or another child of it): one surface only when nearer
-                # than any door or board
-                pair = frozenset((a.id, b.id))
-                if (pair in tied or pair in self._distinct) and \
-                        self.pmap.max_distance_over(small.id, big.id) > min(mp.child_merge_distance, tol):
-                    continue
-                keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
+                dist = self.pmap.max_distance_over(small.id, big.id)
+                host = self._layer_host(a.id, b.id, children)
+                if host is None:
+                    if dist > tol:
+                        continue
+                    # a door or board and its wall (or another child of it): one surface only when
+                    # nearer than any door or board
+                    pair = frozenset((a.id, b.id))
+                    if (pair in tied or pair in self._distinct) and dist > min(mp.child_merge_distance, tol):
+                        continue
+                    keep, drop = (a, b) if a.n_segments >= b.n_segments else (b, a)
+                else:
+                    keep, drop = (a, b) if a.id == host else (b, a)
+                    self._stats.wall_layers_merged += 1
                 self._sink.link_planes(keep.id, drop.id, mp.link_sigma, mp.link_sigma)
                 self.pmap.merge(keep.id, drop.id)
                 self._stats.planes_merged += 1

@@ -300,6 +300,14 @@ class PlaneMap:
         self._centres[pid] = (self._version, p.cells, len(p.cells), out)
         return out
 
+    def extent_length(self, pid: int) -> float:
+        """The longer side (m) of the bounding rectangle of the plane's extent cells (0 without cells)."""
+        cells = self.planes[pid].cells
+        if not cells:
+            return 0.0
+        c = np.array(list(cells), dtype=np.int64)
+        return float((c.max(axis=0) - c.min(axis=0) + 1).max()) * self.cell_size
+
     def max_distance_over(self, src: int, dst: int) -> float:
         """Largest distance of plane ``dst`` from plane ``src`` over ``src``'s extent (m): the
         offset difference of two planes where one of them was seen, tilt included."""
