@@ -283,7 +283,8 @@ def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_o
     of it and grown along 6 m of it, took the wall's segments, so the door edges along the corridor
     were no longer found and the walk slid 1 m. A tied plane longer than child_max_length and
     within layer_merge_distance of its wall is merged into the wall (the wall kept); a board of a
-    board's size 8 mm proud, or a long one 2 cm proud, stays; with layer_merge_distance 0 none is."""
+    board's size 8 mm proud, or a long one 2 cm proud, stays; with layer_merge_distance 0 (the
+    default) none is."""
     from types import SimpleNamespace
 
     from slam.frontend.map_builder import MapBuilder, TieKind
@@ -310,7 +311,9 @@ def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_o
         builder.ties.tie(layer.id, wall.id, TieKind.BOARD)
         return builder, links, wall.id, layer.id, stats
 
-    cfg = SlamConfig()
+    base = SlamConfig()
+    assert base.frontend.layer_merge_distance == 0.0  # off by default
+    cfg = base.model_copy(update={"frontend": base.frontend.model_copy(update={"layer_merge_distance": 0.012})})
     builder, links, wall, layer, stats = scene(0.008, 8.0, cfg)  # 6 m long, 8 mm proud
     builder.merge(38.0)
     assert links == [(wall, layer)]  # the wall is kept
@@ -320,8 +323,7 @@ def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_o
         builder, links, wall, layer, stats = scene(offset, x1, cfg)
         builder.merge(38.0)
         assert links == [] and stats.wall_layers_merged == 0
-    off = cfg.model_copy(update={"frontend": cfg.frontend.model_copy(update={"layer_merge_distance": 0.0})})
-    builder, links, wall, layer, stats = scene(0.008, 8.0, off)
+    builder, links, wall, layer, stats = scene(0.008, 8.0, base)
     builder.merge(38.0)
     assert links == []
 
