@@ -233,15 +233,15 @@ class FrontEndConfig(StrictModel):
         0.004, gt=0, description="m, a door or board tied to its wall merges with it only when nearer than this "
         "over its extent (with parallel_choice)")
     layer_merge_distance: float = Field(
-        0.0, ge=0, description="m, a door or board tied to its wall whose extent has grown longer than "
+        0.012, ge=0, description="m, a door or board tied to its wall whose extent has grown longer than "
         "child_max_length and lies nearer its wall than this over that extent is a second layer of the wall, not a "
         "door or board: merged with it (an hour's corridor walls were taken over by such layers 8-13 mm in front, "
-        "their door edges no longer found, and the walk slid 1 m along the corridor); 0 = off. Off by default "
-        "(issue 27, session 25): at 0.012 the hour's corridor kept its walls, but on the 10-minute office walk, "
-        "seed 2, boards grown along their walls were merged too (confusions 15.9 -> 29.5 %, ATE 3.1 -> 5.4 mm)")
+        "their door edges no longer found, and the walk slid 1 m along the corridor); 0 = off")
     child_max_length: float = Field(
-        3.0, gt=0, description="m, extent (along either axis) beyond which a plane tied to its wall is no door or "
-        "board of the layer test (layer_merge_distance)")
+        6.0, gt=0, description="m, extent (along either axis) beyond which a plane tied to its wall is no door or "
+        "board for the layer test (layer_merge_distance). 3 m merged boards grown along their walls on the "
+        "10-minute office walk, seed 2 (confusions 15.9 -> 29.5 %, ATE 3.1 -> 5.4 mm); at 6 m neither 10-minute "
+        "seed merges any (bit for bit as without the test) and the hour's layer still merges (issue 27, session 25)")
     wall_faces: bool = Field(
         True, description="tie a new wall parallel to the other face of its wall (opposite facing, "
         "wall_thickness behind it, overlapping extents): a room's walls and the corridor's are the two faces of "

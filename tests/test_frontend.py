@@ -280,11 +280,11 @@ def test_a_board_seen_beside_its_wall_in_one_scan_is_not_merged_into_it() -> Non
 
 def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_of_it() -> None:
     """The hour's corridor (issue 27, session 25): a plane tied to its wall as a board, 8 mm in front
-    of it and grown along 6 m of it, took the wall's segments, so the door edges along the corridor
-    were no longer found and the walk slid 1 m. A tied plane longer than child_max_length and
-    within layer_merge_distance of its wall is merged into the wall (the wall kept); a board of a
-    board's size 8 mm proud, or a long one 2 cm proud, stays; with layer_merge_distance 0 (the
-    default) none is."""
+    of it and grown along the corridor, took the wall's segments, so the door edges along the
+    corridor were no longer found and the walk slid 1 m. A tied plane longer than child_max_length
+    (6 m) and within layer_merge_distance (12 mm) of its wall is merged into the wall (the wall
+    kept); a board 1.8 or 5 m long 8 mm proud, or a long one 2 cm proud, stays; with
+    layer_merge_distance 0 none is."""
     from types import SimpleNamespace
 
     from slam.frontend.map_builder import MapBuilder, TieKind
@@ -311,19 +311,18 @@ def test_a_board_grown_along_its_wall_within_a_centimetre_is_merged_as_a_layer_o
         builder.ties.tie(layer.id, wall.id, TieKind.BOARD)
         return builder, links, wall.id, layer.id, stats
 
-    base = SlamConfig()
-    assert base.frontend.layer_merge_distance == 0.0  # off by default
-    cfg = base.model_copy(update={"frontend": base.frontend.model_copy(update={"layer_merge_distance": 0.012})})
-    builder, links, wall, layer, stats = scene(0.008, 8.0, cfg)  # 6 m long, 8 mm proud
+    cfg = SlamConfig()
+    builder, links, wall, layer, stats = scene(0.008, 10.0, cfg)  # 8 m long, 8 mm proud
     builder.merge(38.0)
     assert links == [(wall, layer)]  # the wall is kept
     assert builder.pmap.planes[layer].merged_into == wall
     assert stats.wall_layers_merged == 1 and stats.planes_merged == 1
-    for offset, x1 in ((0.008, 3.8), (0.02, 8.0)):  # a board of a board's length; a long board 2 cm proud
+    for offset, x1 in ((0.008, 3.8), (0.008, 7.0), (0.02, 10.0)):  # a board; a 5 m board; a long one 2 cm proud
         builder, links, wall, layer, stats = scene(offset, x1, cfg)
         builder.merge(38.0)
         assert links == [] and stats.wall_layers_merged == 0
-    builder, links, wall, layer, stats = scene(0.008, 8.0, base)
+    off = cfg.model_copy(update={"frontend": cfg.frontend.model_copy(update={"layer_merge_distance": 0.0})})
+    builder, links, wall, layer, stats = scene(0.008, 10.0, off)
     builder.merge(38.0)
     assert links == []
 
