@@ -217,6 +217,20 @@ class FrontEndConfig(StrictModel):
         "seen so far) but that the choice puts on the door or board rather than on its wall is held back; off: the "
         "door or board is no candidate for it and the wall takes it (the small room's door segments seen beyond the "
         "door's young extent went to the wall)")
+    local_step_reach: float = Field(
+        0.0, ge=0, description="m, with parallel_choice: a segment the association gives to a wall is compared with "
+        "the wall's other segments of its scan whose ends lie within this distance of its own; one that lies a step "
+        "off them (local_step_gate sigmas) while they lie nearer the wall is a door, board or poster face not yet "
+        "mapped, or a segment across its edge, and goes to the pool instead, where such segments make the door's "
+        "plane (office walk: most wall<->door confusions of single-surface segments happened before the door's "
+        "plane existed); 0 = off")
+    local_step_gate: float = Field(3.0, gt=0, description="sigmas of the local step test")
+    local_step_sigma: float = Field(
+        0.001, gt=0, description="m, what two neighbouring segments of one wall in one scan may differ by beyond "
+        "their own lines' sigmas (flatness), in the local step test")
+    local_step_lever_deg: float = Field(
+        0.02, ge=0, description="deg, the rotation's error in the local step test, times the two segments' "
+        "separation")
     host_sigma: float = Field(
         0.0004, gt=0, description="m, what a wall's own segment misses of its distance to the wall once the scan's "
         "offset is removed, in the host test (office walk: 99 % of wall segments within 1.6 mm up to 2.5 m)")

@@ -32,6 +32,7 @@ from slam.frontend.parallel_choice import (
     ChoiceParams,
     choose,
     families,
+    local_scalars,
 )
 from slam.frontend.planemap import KIND_CEILING, KIND_FLOOR, KIND_WALL, PlaneMap
 from slam.params import gates as config_gates
@@ -594,7 +595,8 @@ def test_associate_segments_is_summaries_then_associate_scan(seed: int) -> None:
                 virtual, np.ascontiguousarray(s.endpoints), vsig, point_sigma, n_points, ORIGIN, min_points, m.rows,
                 m.horizontal, m.ids, m.child_rows, m.is_child, odometer, float(pmap.cell_size), g[0], g[1],
                 pmap.extents.keys, pmap.extents.count, pmap.extents.box, c is not None, c is not None and c.veto,
-                c is not None and c.hold_past_child, m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+                c is not None and c.hold_past_child, m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2], m.walls,
+                local_scalars(c))
             _assert_same(Association(ids, grows), ref)
             decided += int((ids >= 0).sum())
     assert decided > 0

@@ -473,3 +473,91 @@ def decide(
             out[k] = NONE  # the choice as a veto: the nearest candidate where the choice agrees
         grows[k] = out[k] >= 0
     return out, grows
+
+
+@nb.njit(cache=True)
+def _end_gap(endpoints: FloatArray, a: int, b: int) -> float:
+    """The least distance (m) between an end point of segment ``a`` and one of segment ``b``."""
+    best = np.inf
+    for p in range(2):
+        for q in range(2):
+            d2 = 0.0
+            for r in range(3):
+                e = endpoints[a, p, r] - endpoints[b, q, r]
+                d2 += e * e
+            best = min(best, d2)
+    return math.sqrt(best)
+
+
+@nb.njit(cache=True)
+def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray, walls: BoolArray,
+                endpoints: FloatArray, centroid: FloatArray, sigma_own: FloatArray, weight: FloatArray,
+                reach: float, gate: float, flat2: float, lever: float) -> int:
+    """The local step test (``parallel_choice.ChoiceParams.local_reach``) on one scan's
+    association ``out`` (plane ids per segment; changed in place with ``grows``): a segment ``k``
+    given to a wall (``walls`` (P,) over the columns of ``ids`` and ``dist`` (k, P), the signed
+    centroid distances) is compared with each other segment ``j`` of the scan given to that wall
+    whose end points lie within ``reach`` of its own (``endpoints`` (k, 2, 3), world frame). The
+    scan's pose error shifts both alike, so their difference ``dist[k] - dist[j]`` has the sigma of
+    their own lines (``sigma_own``), the wall's flatness (``flat2``, squared) and the rotation's
+    lever over their separation only. Where it exceeds ``gate`` sigmas and ``j`` lies nearer the
+    wall's offset in this scan (the point-weighted median of its segments' distances, ``weight``),
+    ``k`` is off the wall: left to the pool (``NONE``). Returns how many were."""
+    k_n = out.shape[0]
+    col = np.full(k_n, -1, dtype=np.int64)
+    for k in range(k_n):
+        if out[k] >= 0:
+            for j in range(ids.shape[0]):
+                if ids[j] == out[k]:
+                    if walls[j]:
+                        col[k] = j
+                    break
+    # each wall's offset in this scan: the point-weighted median of its segments' distances
+    rho = np.zeros(k_n)
+    members = np.empty(k_n, dtype=np.int64)
+    for k in range(k_n):
+        c = col[k]
+        if c < 0:
+            continue
+        m = 0
+        total = 0.0
+        for j in range(k_n):
+            if col[j] == c:
+                members[m] = j
+                m += 1
+                total += weight[j]
+        order = np.argsort(dist[members[:m], c], kind="mergesort")
+        acc = 0.0
+        med = dist[k, c]
+        for q in range(m):
+            j = members[order[q]]
+            acc += weight[j]
+            if acc >= 0.5 * total:
+                med = dist[j, c]
+                break
+        rho[k] = dist[k, c] - med
+    off = np.zeros(k_n, dtype=np.bool_)
+    for k in range(k_n):
+        c = col[k]
+        if c < 0:
+            continue
+        for j in range(k_n):
+            if j == k or col[j] != c or abs(rho[j]) >= abs(rho[k]):
+                continue
+            if _end_gap(endpoints, k, j) > reach:
+                continue
+            sep2 = 0.0
+            for r in range(3):
+                e = centroid[k, r] - centroid[j, r]
+                sep2 += e * e
+            s = math.sqrt(sigma_own[k] ** 2 + sigma_own[j] ** 2 + flat2 + lever * lever * sep2)
+            if abs(dist[k, c] - dist[j, c]) > gate * s:
+                off[k] = True
+                break
+    n_off = 0
+    for k in range(k_n):
+        if off[k]:
+            out[k] = NONE
+            grows[k] = False
+            n_off += 1
+    return n_off

@@ -12,7 +12,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from slam.frontend.assoc_kernels import NONE, decide, scan_pairs
+from slam.frontend.assoc_kernels import NONE, decide, local_steps, scan_pairs
 from slam.frontend.extent_kernels import pairs_near
 from slam.frontend.kernels import segment_summaries
 
@@ -24,6 +24,7 @@ BoolArray = NDArray[np.bool_]
 DriftScalars = tuple[float, float, float, int, int, int]
 TestScalars = tuple[float, float, float, float, float]
 ChoiceTuple = tuple[float, float, float, float, float, float, float, float, float, bool, bool, float]
+LocalTuple = tuple[float, float, float, float]
 
 
 @nb.njit(cache=True)
@@ -34,7 +35,7 @@ def associate_summarised(
     odometer: float, cell_size: float, drift: DriftScalars, tests: TestScalars,
     keys: IntArray, count: IntArray, box: IntArray,
     with_choice: bool, veto: bool, hold_past_child: bool, hosts: BoolArray, has_hosts: bool, same_normal: float,
-    choice: ChoiceTuple,
+    choice: ChoiceTuple, walls: BoolArray, local: LocalTuple,
 ) -> tuple[IntArray, BoolArray]:
     """``association.associate_scan`` after its Python set-up, for the k segments' summaries
     (``association.WorldSegments``' arrays, world frame): per segment its plane id (``NONE``,
@@ -42,7 +43,9 @@ def associate_summarised(
     ``horizontal`` (P,), their ids ``ids`` (P,), the children's rows ``child_rows`` and
     ``is_child`` (P,); ``drift`` and ``tests`` the gates' scalars (``association._gate_scalars``),
     ``keys``, ``count``, ``box`` the plane map's extent index, ``choice`` the choice's scalars
-    (``parallel_choice.choice_scalars``), ``hosts`` (P,) the walls of the host test."""
+    (``parallel_choice.choice_scalars``), ``hosts`` (P,) the walls of the host test; with
+    ``local[0]`` > 0 the local step test (``assoc_kernels.local_steps``; ``local`` as
+    ``parallel_choice.local_scalars``) on the walls ``walls`` (P,)."""
     k_n = centroid.shape[0]
     start, cols, cells, dist, sig_d2, pair_id, pair_dilate = scan_pairs(
         centroid, direction, endpoints, sigma_centroid, sigma_direction, seg_range, origin, rows, horizontal,
@@ -72,9 +75,14 @@ def associate_summarised(
         weight[k] = float(n_points[k])
         for r in range(3):
             arm[k, r] = centroid[k, r] - origin[r]
-    return decide(start, cols, near, keep, shadow, dist, sig_d2, rows, ids, same_normal, with_choice, veto,
-                  sigma_centroid, weight, seg_range, arm, hosts, has_hosts, choice[0], choice[1], choice[2], choice[3],
-                  choice[4], choice[5], choice[6], choice[7], choice[8], choice[9], choice[10], choice[11])
+    out, grows = decide(start, cols, near, keep, shadow, dist, sig_d2, rows, ids, same_normal, with_choice, veto,
+                        sigma_centroid, weight, seg_range, arm, hosts, has_hosts, choice[0], choice[1], choice[2],
+                        choice[3], choice[4], choice[5], choice[6], choice[7], choice[8], choice[9], choice[10],
+                        choice[11])
+    if local[0] > 0.0:
+        local_steps(out, grows, dist, ids, walls, endpoints, centroid, sigma_centroid, weight, local[0], local[1],
+                    local[2], local[3])
+    return out, grows
 
 
 @nb.njit(cache=True)
@@ -85,7 +93,7 @@ def associate_segments(
     odometer: float, cell_size: float, drift: DriftScalars, tests: TestScalars,
     keys: IntArray, count: IntArray, box: IntArray,
     with_choice: bool, veto: bool, hold_past_child: bool, hosts: BoolArray, has_hosts: bool, same_normal: float,
-    choice: ChoiceTuple,
+    choice: ChoiceTuple, walls: BoolArray, local: LocalTuple,
 ) -> tuple[IntArray, BoolArray]:
     """``ScanAssociator.associate`` of one scan: the segments' summaries
     (``kernels.segment_summaries`` of the virtual points and end points (k, 2, 3) placed in the
@@ -98,7 +106,7 @@ def associate_segments(
     out, grows = associate_summarised(
         centroid, direction, endpoints_world, sigma_centroid, sigma_direction, seg_range, origin, n_points, rows,
         horizontal, ids, child_rows, is_child, odometer, cell_size, drift, tests, keys, count, box, with_choice, veto,
-        hold_past_child, hosts, has_hosts, same_normal, choice)
+        hold_past_child, hosts, has_hosts, same_normal, choice, walls, local)
     for k in range(n_points.shape[0]):
         if n_points[k] < min_segment_points:
             out[k] = NONE

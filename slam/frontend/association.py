@@ -31,7 +31,13 @@ from slam.frontend import assoc_scan_kernels as ask
 from slam.frontend import kernels as fk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.observations import ScanSegments
-from slam.frontend.parallel_choice import NONE, ChoiceParams, ChoiceScalars, choice_scalars
+from slam.frontend.parallel_choice import (
+    NONE,
+    ChoiceParams,
+    ChoiceScalars,
+    choice_scalars,
+    local_scalars,
+)
 from slam.frontend.pending import PendingScan
 from slam.frontend.planemap import KIND_WALL, Plane, PlaneMap
 
@@ -165,7 +171,7 @@ def associate_scan(segs: WorldSegments, pmap: PlaneMap, odometer: float, gates: 
         segs.origin, weight_n, m.rows, m.horizontal, m.ids, m.child_rows, m.is_child, float(odometer),
         float(pmap.cell_size), g[0], g[1], pmap.extents.keys, pmap.extents.count, pmap.extents.box, choice is not None,
         choice is not None and choice.veto, choice is not None and choice.hold_past_child, m.hosts,
-        m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+        m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2], m.walls, local_scalars(choice))
     return Association(out, grows)
 
 
@@ -174,7 +180,8 @@ class _MapInputs:
     """The active planes as the association kernels take them (world frame): ``rows`` (P, 12)
     (``PlaneMap.active_rows``; a child's with its host's normal under ``child_host_normal``),
     ``horizontal`` (P,), ``ids`` (P,), the children's rows ``child_rows`` and ``is_child`` (P,), and
-    the walls of the host test ``hosts`` (P,; ``_NO_HOSTS`` without it)."""
+    the walls of the host test ``hosts`` (P,; ``_NO_HOSTS`` without it) and the walls that are no
+    door or board ``walls`` (P,; the local step test's)."""
 
     rows: FloatArray
     horizontal: NDArray[np.bool_]
@@ -182,6 +189,7 @@ class _MapInputs:
     child_rows: NDArray[np.int64]
     is_child: NDArray[np.bool_]
     hosts: NDArray[np.bool_]
+    walls: NDArray[np.bool_]
 
 
 def _map_inputs(pmap: PlaneMap, gates: Gates, children: dict[int, int] | None) -> _MapInputs | None:
@@ -209,14 +217,15 @@ def _map_inputs(pmap: PlaneMap, gates: Gates, children: dict[int, int] | None) -
                 rows[j, 3] = -float(n @ c)
     is_child = np.zeros(rows.shape[0], dtype=np.bool_)
     is_child[child_rows] = True
+    walls = is_wall.copy()
+    walls[child_rows] = False
     hosts = _NO_HOSTS
     choice = gates.choice
     # the walls that may carry a door or board (not the children themselves, nor floors and
     # ceilings); not in the tracking's veto, whose poses are still the prediction's
     if choice is not None and choice.host_test and not choice.veto:
-        hosts = is_wall.copy()
-        hosts[child_rows] = False
-    return _MapInputs(rows, horizontal, id_arr, np.array(child_rows, dtype=np.int64), is_child, hosts)
+        hosts = walls
+    return _MapInputs(rows, horizontal, id_arr, np.array(child_rows, dtype=np.int64), is_child, hosts, walls)
 
 
 _SAME_NORMAL = float(np.cos(np.radians(2.0)))  # normals of one surface seen twice
@@ -353,5 +362,5 @@ class ScanAssociator:
             int(self._min_segment_points), m.rows, m.horizontal, m.ids, m.child_rows, m.is_child,
             float(self._knots.odometer), float(self._pmap.cell_size), g[0], g[1], ext.keys, ext.count, ext.box,
             choice is not None, choice is not None and choice.veto, choice is not None and choice.hold_past_child,
-            m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2])
+            m.hosts, m.hosts is not _NO_HOSTS, _SAME_NORMAL, g[2], m.walls, local_scalars(choice))
         return Association(ids, grows)

@@ -68,6 +68,28 @@ class ChoiceParams:
     # a door's or board's segment past the child's extent that the choice gives to the child is
     # held back (not given to the wall, its only candidate left otherwise)
     hold_past_child: bool
+    # the local step test (``assoc_kernels.local_steps``): a segment given to a wall that lies a
+    # step off the wall's other segments of its scan whose ends are within ``local_reach`` (m) of
+    # its own is a door, board or poster face not yet mapped (or a segment across its edge) and is
+    # left to the pool; 0 = off. ``local_gate`` sigmas of the step, whose sigma adds
+    # ``local_sigma`` (m, flatness) and the rotation's lever ``local_lever`` (rad) times the two
+    # segments' separation to their own sigmas
+    local_reach: float = 0.0
+    local_gate: float = 3.0
+    local_sigma: float = 0.001
+    local_lever: float = 0.0
+
+
+LocalScalars = tuple[float, float, float, float]
+
+
+def local_scalars(params: ChoiceParams | None) -> LocalScalars:
+    """The local step test's numbers as ``assoc_kernels.local_steps`` takes them: reach (0: off;
+    off without a choice and in its veto), gate, the square of ``local_sigma``, lever."""
+    if params is None or params.veto or params.local_reach <= 0.0:
+        return (0.0, 0.0, 0.0, 0.0)
+    return (float(params.local_reach), float(params.local_gate), float(params.local_sigma) ** 2,
+            float(params.local_lever))
 
 
 @dataclass(frozen=True)
