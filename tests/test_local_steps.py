@@ -53,6 +53,18 @@ def test_a_poster_five_millimetres_proud_is_told_from_its_wall() -> None:
     assert n == 1
 
 
+def test_a_door_holding_most_of_the_scans_points_does_not_send_the_wall_away() -> None:
+    # one short wall segment beside a long door segment: the door sets the scan's median, the
+    # wall's plane says the wall segment is the wall's
+    out, dist, ends, cen = _scan([(0.0, 0.4, 0.001), (0.5, 1.4, 0.013)], [WALL, WALL])
+    weight = np.array([20.0, 90.0])
+    got = out.copy()
+    grows = np.ones(2, dtype=bool)
+    n = local_steps(got, grows, dist, IDS, WALLS, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0)
+    np.testing.assert_array_equal(got, [WALL, WALL])
+    assert n == 0
+
+
 def test_a_step_beyond_the_reach_or_within_the_sigmas_is_left_alone() -> None:
     # the same door, but its nearest wall segment ends 2 m away
     out, dist, ends, cen = _scan([(0.0, 1.0, 0.002), (3.0, 4.0, 0.014)], [WALL, WALL])

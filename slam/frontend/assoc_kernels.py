@@ -501,8 +501,9 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
     scan's pose error shifts both alike, so their difference ``dist[k] - dist[j]`` has the sigma of
     their own lines (``sigma_own``), the wall's flatness (``flat2``, squared) and the rotation's
     lever over their separation only. Where it exceeds ``gate`` sigmas and ``j`` lies nearer the
-    wall's offset in this scan (the point-weighted median of its segments' distances, ``weight``),
-    ``k`` is off the wall: left to the pool (``NONE``). Returns how many were."""
+    wall both by its offset in this scan (the point-weighted median of its segments' distances,
+    ``weight``) and by its distance from the wall's plane, ``k`` is off the wall: left to the pool
+    (``NONE``). Returns how many were."""
     k_n = out.shape[0]
     col = np.full(k_n, -1, dtype=np.int64)
     for k in range(k_n):
@@ -542,7 +543,10 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
         if c < 0:
             continue
         for j in range(k_n):
-            if j == k or col[j] != c or abs(rho[j]) >= abs(rho[k]):
+            # j nearer the wall both in this scan (its offset from the scan's median) and on the map
+            # (its distance from the wall's plane): a door whose segment holds most of the scan's
+            # points on the wall sets the median and must not send the wall's own segment away
+            if j == k or col[j] != c or abs(rho[j]) >= abs(rho[k]) or abs(dist[j, c]) >= abs(dist[k, c]):
                 continue
             if _end_gap(endpoints, k, j) > reach:
                 continue
