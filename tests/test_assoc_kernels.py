@@ -247,7 +247,14 @@ def _associate_scan_reference(segs: WorldSegments, pmap: PlaneMap, odometer: flo
         id_arr = np.asarray(ids, dtype=np.int64)
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
         if not gates.choice.veto:
-            return Association(chosen, ch.grows & (ch.column >= 0))
+            grows = ch.grows & (ch.column >= 0)
+            reach, gate, flat2, lever = local_scalars(gates.choice)
+            if reach > 0.0:  # the local step test after the choice (its behaviour: tests/test_local_steps.py)
+                walls = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
+                walls[child_rows] = False
+                ak.local_steps(chosen, grows, dist_c, id_arr, walls, normals, same_normal, segs.endpoints, segs.centroid,
+                            segs.sigma_centroid, weight, reach, gate, flat2, lever)
+            return Association(chosen, grows)
     else:
         chosen = None
     for k in hit.tolist():
@@ -358,6 +365,8 @@ def _gate_variants() -> list[Gates]:
         replace(g, choice=replace(g.choice, walls_only=True, sigma_lever=0.0)),
         replace(t, child_margin_cells=-1, extent_margin_cells=0),
         replace(g, chi2=30.0, sigma_pose=0.03, drift_rate=0.02),
+        replace(g, choice=replace(g.choice, local_reach=0.0)),
+        replace(g, choice=replace(g.choice, local_reach=3.0, local_gate=1.0, local_sigma=0.0002)),
     ]
 
 

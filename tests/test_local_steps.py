@@ -11,6 +11,8 @@ from slam.frontend.parallel_choice import NONE, ChoiceParams, local_scalars
 WALL, DOOR = 7, 9  # plane ids; columns 0 and 1
 IDS = np.array([WALL, DOOR], dtype=np.int64)
 WALLS = np.array([True, False])
+NORMALS = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+SAME = float(np.cos(np.radians(2.0)))
 
 
 def _scan(spans: list[tuple[float, float, float]], plane: list[int]) -> tuple[np.ndarray, ...]:
@@ -32,7 +34,7 @@ def _run(out: np.ndarray, dist: np.ndarray, ends: np.ndarray, cen: np.ndarray, r
     out = out.copy()
     grows = np.ones(out.shape[0], dtype=bool)
     k = out.shape[0]
-    n = local_steps(out, grows, dist, IDS, WALLS, ends, cen, np.full(k, sigma), np.full(k, 60.0), reach, 3.0,
+    n = local_steps(out, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(k, sigma), np.full(k, 60.0), reach, 3.0,
                     0.001**2, float(np.radians(0.02)))
     return out, grows, n
 
@@ -60,7 +62,7 @@ def test_a_door_holding_most_of_the_scans_points_does_not_send_the_wall_away() -
     weight = np.array([20.0, 90.0])
     got = out.copy()
     grows = np.ones(2, dtype=bool)
-    n = local_steps(got, grows, dist, IDS, WALLS, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0)
+    n = local_steps(got, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0)
     np.testing.assert_array_equal(got, [WALL, WALL])
     assert n == 0
 
@@ -99,3 +101,24 @@ def test_the_test_is_off_without_a_reach_and_in_the_trackings_veto() -> None:
     assert local_scalars(ChoiceParams(**{**p.__dict__, "veto": True}))[0] == 0.0
     assert local_scalars(ChoiceParams(**{**p.__dict__, "local_reach": 0.0}))[0] == 0.0
     assert local_scalars(None)[0] == 0.0
+
+
+def test_a_young_duplicate_of_the_wall_counts_as_the_wall() -> None:
+    # the first lap of a corridor: the wall's segments on plane 7, its young duplicate 11 (1 mm
+    # off, awaiting its merge) took the door's segment; a wall 3 m behind (13) is no neighbour
+    ids = np.array([WALL, 11, 13], dtype=np.int64)
+    walls = np.array([True, True, True])
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    out, d, ends, cen = _scan([(0.0, 1.0, 0.001), (1.1, 2.0, 0.013), (2.1, 3.0, 0.0015)], [WALL, 11, WALL])
+    dist = np.stack([d[:, 0], d[:, 0] - 0.001, d[:, 0] - 3.0], axis=1)
+    grows = np.ones(3, dtype=bool)
+    n = local_steps(out, grows, dist, ids, walls, normals, SAME, ends, cen, np.full(3, 0.0003), np.full(3, 60.0), 0.5,
+                    3.0, 0.001**2, 0.0)
+    np.testing.assert_array_equal(out, [WALL, NONE, WALL])
+    assert n == 1
+    # a perpendicular wall is not the same wall
+    out, d, ends, cen = _scan([(0.0, 1.0, 0.001), (1.1, 2.0, 0.013)], [WALL, 11])
+    normals[1] = (1.0, 0.0, 0.0)
+    n = local_steps(out, np.ones(2, dtype=bool), np.stack([d[:, 0], d[:, 0], d[:, 0]], axis=1), ids, walls, normals,
+                    SAME, ends, cen, np.full(2, 0.0003), np.full(2, 60.0), 0.5, 3.0, 0.001**2, 0.0)
+    assert n == 0

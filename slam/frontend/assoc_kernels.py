@@ -491,19 +491,23 @@ def _end_gap(endpoints: FloatArray, a: int, b: int) -> float:
 
 @nb.njit(cache=True)
 def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray, walls: BoolArray,
-                endpoints: FloatArray, centroid: FloatArray, sigma_own: FloatArray, weight: FloatArray,
-                reach: float, gate: float, flat2: float, lever: float) -> int:
+                normals: FloatArray, same_normal: float, endpoints: FloatArray, centroid: FloatArray,
+                sigma_own: FloatArray, weight: FloatArray, reach: float, gate: float, flat2: float,
+                lever: float) -> int:
     """The local step test (``parallel_choice.ChoiceParams.local_reach``) on one scan's
     association ``out`` (plane ids per segment; changed in place with ``grows``): a segment ``k``
-    given to a wall (``walls`` (P,) over the columns of ``ids`` and ``dist`` (k, P), the signed
-    centroid distances) is compared with each other segment ``j`` of the scan given to that wall
-    whose end points lie within ``reach`` of its own (``endpoints`` (k, 2, 3), world frame). The
+    given to a wall ``c`` (``walls`` (P,) over the columns of ``ids``, ``normals`` (P, 3) and
+    ``dist`` (k, P), the signed centroid distances) is compared with each other segment ``j`` of
+    the scan given to that wall or to a wall parallel to it (normals' cosine above
+    ``same_normal``: a young duplicate of the wall awaiting its merge) whose end points lie within
+    ``reach`` of its own (``endpoints`` (k, 2, 3), world frame), both measured from ``c``. The
     scan's pose error shifts both alike, so their difference ``dist[k] - dist[j]`` has the sigma of
     their own lines (``sigma_own``), the wall's flatness (``flat2``, squared) and the rotation's
     lever over their separation only. Where it exceeds ``gate`` sigmas and ``j`` lies nearer the
-    wall both by its offset in this scan (the point-weighted median of its segments' distances,
-    ``weight``) and by its distance from the wall's plane, ``k`` is off the wall: left to the pool
-    (``NONE``). Returns how many were."""
+    wall both by its offset in this scan (the point-weighted median of the distances from ``c`` of
+    the segments on ``c`` and its parallels within ``_LOCAL_NEAR``, ``weight``) and by its
+    distance from ``c``'s plane, ``k`` is off the wall: left to the pool (``NONE``). Returns how
+    many were."""
     k_n = out.shape[0]
     col = np.full(k_n, -1, dtype=np.int64)
     for k in range(k_n):
@@ -513,17 +517,18 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
                     if walls[j]:
                         col[k] = j
                     break
-    # each wall's offset in this scan: the point-weighted median of its segments' distances
     rho = np.zeros(k_n)
     members = np.empty(k_n, dtype=np.int64)
     for k in range(k_n):
         c = col[k]
         if c < 0:
             continue
+        # the wall's offset in this scan: the point-weighted median of the distances from c of
+        # the segments on c and on walls parallel to it near c
         m = 0
         total = 0.0
         for j in range(k_n):
-            if col[j] == c:
+            if col[j] >= 0 and abs(dist[j, c]) < _LOCAL_NEAR and _parallel(normals, col[j], c, same_normal):
                 members[m] = j
                 m += 1
                 total += weight[j]
@@ -546,7 +551,10 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
             # j nearer the wall both in this scan (its offset from the scan's median) and on the map
             # (its distance from the wall's plane): a door whose segment holds most of the scan's
             # points on the wall sets the median and must not send the wall's own segment away
-            if j == k or col[j] != c or abs(rho[j]) >= abs(rho[k]) or abs(dist[j, c]) >= abs(dist[k, c]):
+            if j == k or col[j] < 0 or not _parallel(normals, col[j], c, same_normal):
+                continue
+            rj = dist[j, c] - (dist[k, c] - rho[k])
+            if abs(rj) >= abs(rho[k]) or abs(dist[j, c]) >= abs(dist[k, c]):
                 continue
             if _end_gap(endpoints, k, j) > reach:
                 continue
@@ -565,3 +573,15 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
             grows[k] = False
             n_off += 1
     return n_off
+
+
+_LOCAL_NEAR = 0.05  # m: a parallel wall's segment this near a wall counts towards its offset in the scan
+
+
+@nb.njit(cache=True)
+def _parallel(normals: FloatArray, a: int, b: int, same_normal: float) -> bool:
+    """Whether planes ``a`` and ``b`` (rows of ``normals``) are one surface's direction: the same
+    plane, or normals within the cosine ``same_normal``, same facing."""
+    if a == b:
+        return True
+    return normals[a, 0] * normals[b, 0] + normals[a, 1] * normals[b, 1] + normals[a, 2] * normals[b, 2] > same_normal

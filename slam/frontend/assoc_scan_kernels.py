@@ -80,8 +80,8 @@ def associate_summarised(
                         choice[3], choice[4], choice[5], choice[6], choice[7], choice[8], choice[9], choice[10],
                         choice[11])
     if local[0] > 0.0:
-        local_steps(out, grows, dist, ids, walls, endpoints, centroid, sigma_centroid, weight, local[0], local[1],
-                    local[2], local[3])
+        local_steps(out, grows, dist, ids, walls, np.ascontiguousarray(rows[:, 0:3]), same_normal, endpoints, centroid,
+                    sigma_centroid, weight, local[0], local[1], local[2], local[3])
     return out, grows
 
 
