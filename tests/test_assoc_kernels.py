@@ -441,7 +441,7 @@ def _choice_params(rng: np.random.Generator) -> ChoiceParams:
                         sigma_pose=float(rng.choice([0.0, 0.004, 0.02])), sigma_lever=float(np.radians(0.01)),
                         walls_only=bool(rng.uniform() < 0.3), veto=False, host_sigma=0.0004,
                         host_lever=float(np.radians(0.015)), host_test=True, model=False,
-                        hold_past_child=False)
+                        hold_past_child=False, local_reach=0.0, local_gate=3.0, local_sigma=0.001, local_lever=0.0)
 
 
 def test_choose_matches_the_reference_on_random_candidates() -> None:

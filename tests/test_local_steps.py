@@ -96,7 +96,7 @@ def test_segments_on_a_door_or_unassociated_are_not_tested() -> None:
 def test_the_test_is_off_without_a_reach_and_in_the_trackings_veto() -> None:
     p = ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=0.002, sigma_lever=0.0, walls_only=False,
                      veto=False, host_sigma=0.0004, host_lever=0.0, host_test=False, model=False,
-                     hold_past_child=False, local_reach=0.5, local_sigma=0.002)
+                     hold_past_child=False, local_reach=0.5, local_gate=3.0, local_sigma=0.002, local_lever=0.0)
     assert local_scalars(p) == (0.5, 3.0, 0.002**2, 0.0)
     assert local_scalars(ChoiceParams(**{**p.__dict__, "veto": True}))[0] == 0.0
     assert local_scalars(ChoiceParams(**{**p.__dict__, "local_reach": 0.0}))[0] == 0.0

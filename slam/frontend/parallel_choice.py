@@ -74,10 +74,10 @@ class ChoiceParams:
     # left to the pool; 0 = off. ``local_gate`` sigmas of the step, whose sigma adds
     # ``local_sigma`` (m, flatness) and the rotation's lever ``local_lever`` (rad) times the two
     # segments' separation to their own sigmas
-    local_reach: float = 0.0
-    local_gate: float = 3.0
-    local_sigma: float = 0.001
-    local_lever: float = 0.0
+    local_reach: float
+    local_gate: float
+    local_sigma: float
+    local_lever: float
 
 
 LocalScalars = tuple[float, float, float, float]
