@@ -365,7 +365,7 @@ def _gate_variants() -> list[Gates]:
         replace(g, choice=replace(g.choice, walls_only=True, sigma_lever=0.0)),
         replace(t, child_margin_cells=-1, extent_margin_cells=0),
         replace(g, chi2=30.0, sigma_pose=0.03, drift_rate=0.02),
-        replace(g, choice=replace(g.choice, local_reach=0.0)),
+        replace(g, choice=replace(g.choice, local_reach=0.5)),
         replace(g, choice=replace(g.choice, local_reach=3.0, local_gate=1.0, local_sigma=0.0002)),
     ]
 

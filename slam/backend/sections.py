@@ -422,6 +422,8 @@ class SectionedBatch:
         planes = [(i, k) for i, k in enumerate(keys) if chr(gtsam.Symbol(k).chr()) == "p"]
         info, _ = red.graph.hessian(gtsam.Ordering(keys))
         del red
+        if not np.isfinite(info).all():  # LAPACK's behaviour on a non-finite matrix is undefined
+            return self._plane_covariances_one_by_one(self.reduce(values, self.config.kernel, 0.0).graph, values)
         try:  # factored in place: the hour's separator (~3 x its planes) is n x n, hundreds of MB
             factor = scipy.linalg.cho_factor(info, lower=True, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError:
