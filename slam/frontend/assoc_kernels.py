@@ -519,29 +519,33 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
                     break
     rho = np.zeros(k_n)
     members = np.empty(k_n, dtype=np.int64)
+    med = np.zeros(ids.shape[0])
+    has_med = np.zeros(ids.shape[0], dtype=np.bool_)
     for k in range(k_n):
         c = col[k]
         if c < 0:
             continue
-        # the wall's offset in this scan: the point-weighted median of the distances from c of
-        # the segments on c and on walls parallel to it near c
-        m = 0
-        total = 0.0
-        for j in range(k_n):
-            if col[j] >= 0 and abs(dist[j, c]) < _LOCAL_NEAR and _parallel(normals, col[j], c, same_normal):
-                members[m] = j
-                m += 1
-                total += weight[j]
-        order = np.argsort(dist[members[:m], c], kind="mergesort")
-        acc = 0.0
-        med = dist[k, c]
-        for q in range(m):
-            j = members[order[q]]
-            acc += weight[j]
-            if acc >= 0.5 * total:
-                med = dist[j, c]
-                break
-        rho[k] = dist[k, c] - med
+        if not has_med[c] or not np.isfinite(med[c]):
+            # the wall's offset in this scan: the point-weighted median of the distances from c
+            # of the segments on c and on walls parallel to it near c (k itself among them)
+            m = 0
+            total = 0.0
+            for j in range(k_n):
+                if col[j] >= 0 and abs(dist[j, c]) < _LOCAL_NEAR and _parallel(normals, col[j], c, same_normal):
+                    members[m] = j
+                    m += 1
+                    total += weight[j]
+            order = np.argsort(dist[members[:m], c], kind="mergesort")
+            acc = 0.0
+            med[c] = dist[k, c] if m > 0 else np.nan  # none near the wall: k is its own reference
+            for q in range(m):
+                j = members[order[q]]
+                acc += weight[j]
+                if acc >= 0.5 * total:
+                    med[c] = dist[j, c]
+                    break
+            has_med[c] = True
+        rho[k] = dist[k, c] - med[c] if np.isfinite(med[c]) else 0.0
     off = np.zeros(k_n, dtype=np.bool_)
     for k in range(k_n):
         c = col[k]
