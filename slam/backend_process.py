@@ -36,6 +36,7 @@ import multiprocessing as mp
 import os
 import queue as queue_mod
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -581,6 +582,10 @@ class BackendProcess:
 
     def plane_covariance(self, plane_id: int) -> FloatArray:
         out: FloatArray = self._sync("plane_covariance", plane_id)
+        return out
+
+    def plane_covariances(self, plane_ids: Sequence[int]) -> dict[int, FloatArray]:
+        out: dict[int, FloatArray] = self._sync("plane_covariances", list(plane_ids))
         return out
 
     def release(self) -> None:

@@ -324,12 +324,8 @@ class SlamRunner:
                                                           summary.iterations, summary.seconds, *departure),
             residuals=self.backend.residual_statistics(),
         )
-        cov: dict[int, FloatArray] = {}
-        for pid in map(int, ids) if covariances else ():
-            try:
-                cov[pid] = self.backend.plane_covariance(pid)
-            except (ValueError, RuntimeError):  # no marginal for this plane (an indeterminate system)
-                continue
+        # a plane without a marginal (an indeterminate system) is left out
+        cov = self.backend.plane_covariances([int(p) for p in ids]) if covariances else {}
         self.backend.release()  # the marginals and the batch's factors: the export needs the memory
         return SlamResult(
             knot_times=self.backend.knot_times(),

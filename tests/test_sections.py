@@ -216,3 +216,53 @@ def test_plane_covariances_in_chunks_are_the_same(scene: Scene, monkeypatch: pyt
     assert sorted(parts) == sorted(whole) and len(whole) >= 5
     for j, c in whole.items():
         np.testing.assert_allclose(parts[j], c, rtol=1e-12, atol=1e-18)
+
+
+def _with_local_plane(scene: Scene, config: BackendConfig, last_knot: int) -> Backend:
+    """The scene's backend with plane 99: a second copy of plane 2 seen only up to ``last_knot``."""
+    be = _build(scene, config)
+    n0, d0 = scene.planes[2, :3], scene.planes[2, 3]
+    be.add_plane(99, n0 + 0.01, d0 + 0.01)
+    for b in scene.blocks:
+        if b["plane"] == 2 and b["knot"] < last_knot:
+            be.add_observations(b["knot"], 99, b["points_body"], b["alphas"], b["sigmas"])
+    return be
+
+
+def test_a_plane_one_section_sees_is_eliminated_with_it(scene: Scene) -> None:
+    """A plane seen from one section only (an edge, a room walked once) is that section's
+    interior, not the separator's: the same step, estimate and covariances as the whole graph's,
+    with a smaller separator system."""
+    cfg = replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0)
+    be = _with_local_plane(scene, cfg, 15)
+    plan = be.sections.plan()
+    assert plan[0][1] > 15 and len(plan) > 2
+    p99 = int(gtsam.symbol("p", 99))
+    assert be.sections.local_planes(plan) == {p99: 0}  # the room's planes are seen from every section
+    assert be.sections.local_planes(plan, keep_planes=[99]) == {} and be.sections.local_planes(plan, None) == {}
+    values = gtsam.Values(be.graph.values)
+    red = be.sections.reduce(values, be.config.kernel, DAMPING)
+    assert p99 not in {int(k) for k in red.graph.keyVector()}
+    held = be.sections.reduce(values, be.config.kernel, DAMPING, keep_planes=None)
+    assert p99 in {int(k) for k in held.graph.keyVector()}
+    assert red.error == pytest.approx(held.error, rel=1e-12)
+    delta = be.sections.back_substitute(values, be.config.kernel, DAMPING, red.graph.optimize())
+    ref = be.sections.back_substitute(values, be.config.kernel, DAMPING, held.graph.optimize(), keep_planes=None)
+    for k in values.keys():
+        assert np.allclose(delta.at(k), ref.at(k), rtol=1e-7, atol=1e-10), gtsam.DefaultKeyFormatter(k)
+    # the solve and the covariances, against the whole graph's
+    whole = _with_local_plane(scene, backend_defaults(), 15)
+    whole.batch_optimize(graduated=False)
+    s_cut = be.batch_optimize(graduated=False)
+    assert s_cut.iterations > 0
+    assert np.abs(be.poses()[:, :3, 3] - whole.poses()[:, :3, 3]).max() < 1e-7
+    cov = be.plane_covariances([0, 3, 99])
+    assert sorted(cov) == [0, 3, 99]
+    for j in (0, 3, 99):
+        assert np.allclose(cov[j], whole.plane_covariance(j), rtol=1e-5, atol=1e-14), j
+    assert sorted(be.sections.plane_covariances([0])) == [0]  # only the planes asked for
+    assert 99 in be.sections.plane_covariances()  # None: every plane
+    # a plane tied to another (a factor on planes alone) stays in the separator
+    tied = _with_local_plane(scene, cfg, 15)
+    tied.add_parallel(2, 99, 0.01)
+    assert tied.sections.local_planes(tied.sections.plan()) == {}

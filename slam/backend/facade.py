@@ -25,6 +25,8 @@ their beam times.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import P, X
@@ -260,6 +262,22 @@ class Backend:
         """Marginal covariance (3, 3) of a plane in its retract coordinates: normal direction in
         the ``Unit3.basis()`` tangent (2, rad) and offset (m), about its anchor."""
         return self._covariance(P(self.blocks.check_plane(plane_id)))
+
+    def plane_covariances(self, plane_ids: Sequence[int]) -> dict[int, FloatArray]:
+        """:meth:`plane_covariance` of each of ``plane_ids``, a plane without one (an
+        indeterminate system) left out. A sectioned walk computes them all at once, the other
+        planes that one section alone sees eliminated with it."""
+        if self.sections.needed():
+            ids = {int(j): self.blocks.check_plane(int(j)) for j in plane_ids}
+            got = self.sections.plane_covariances(sorted(set(ids.values())))
+            return {j: got[i] for j, i in ids.items() if i in got}
+        out: dict[int, FloatArray] = {}
+        for j in plane_ids:
+            try:
+                out[int(j)] = self.plane_covariance(int(j))
+            except (ValueError, RuntimeError):
+                continue
+        return out
 
     def _covariance(self, key: int) -> FloatArray:
         """From the incremental solver if it holds the current graph, else from the whole graph

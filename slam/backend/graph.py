@@ -28,6 +28,7 @@ FloatArray = NDArray[np.float64]
 _INDEX_BITS = 56  # a gtsam Symbol key: its character above these bits, its index below
 _INDEX_MASK = (1 << _INDEX_BITS) - 1
 _KNOT_CHARS = frozenset(map(ord, "xvb"))
+_PLANE_CHAR = ord("p")
 
 
 @dataclass(slots=True)
@@ -144,6 +145,11 @@ def top_knot(keys: Sequence[int]) -> int | None:
             i = k & _INDEX_MASK
             top = i if top is None else max(top, i)
     return top
+
+
+def plane_indices(keys: Sequence[int]) -> list[int]:
+    """The plane indices of the plane keys (P symbols) among ``keys``."""
+    return [k & _INDEX_MASK for k in keys if (k >> _INDEX_BITS) == _PLANE_CHAR]
 
 
 def copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = False) -> None:

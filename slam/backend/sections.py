@@ -8,8 +8,11 @@ before the elimination). Here the knots are cut into sections of at most
 ``BackendConfig.batch_section_knots``. Every factor belongs to one section (an observation block
 to that of its knot, another factor to that of its highest knot; the factors on planes alone to
 none). A section's **interior** is its knots' variables (poses, velocities, biases) that no other
-section's factor touches; the **separator** is everything else: every plane and the knots within
-two of a cut. One damped Gauss-Newton step is then, exactly (up to the order of floating-point sums):
+section's factor touches, and the planes that only its factors touch (an edge or a room seen
+once, unless their covariance is asked for); the **separator** is everything else: the planes
+seen from two sections or tied, and the knots within two of a cut. (With every plane in the
+separator, the hour's separator system held every edge plane of the walk: dense, its size grew
+with the walk's square.) One damped Gauss-Newton step is then, exactly (up to the order of floating-point sums):
 
 1. per section, in turn: linearise its factors, add the damping rows of its interior, eliminate
    the interior (gtsam's partial elimination) and keep what remains: a dense factor on the
@@ -46,7 +49,7 @@ import shutil
 import tempfile
 import time as _time
 import weakref
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,12 +57,13 @@ from pathlib import Path
 import gtsam
 import numpy as np
 import scipy.linalg
+from gtsam.symbol_shorthand import P
 from numpy.typing import NDArray
 
 from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
-from slam.backend.graph import FactorGraph, copy_value, top_knot
+from slam.backend.graph import FactorGraph, copy_value, plane_indices, top_knot
 from slam.backend.packed_net import PackedNet, pack
 from slam.backend.packed_net import solve as solve_net
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
@@ -123,6 +127,8 @@ class SectionedBatch:
         self.largest_net_bytes = 0  # the largest section's elimination (kept or not)
         self.nets_spilled = 0  # eliminations written to disk (over the budget)
         self._folder: Path | None = None
+        # the planes one section alone sees (local_planes) for a graph version and plan
+        self._local: tuple[tuple[int, tuple[tuple[int, int], ...]], dict[int, int]] | None = None
         self._cleanup: weakref.finalize | None = None
 
     def needed(self) -> bool:
@@ -131,6 +137,23 @@ class SectionedBatch:
 
     def plan(self) -> list[tuple[int, int]]:
         return plan_sections(len(self.graph.times), self.config.batch_section_knots)
+
+    def local_planes(self, sections: list[tuple[int, int]],
+                     keep_planes: Collection[int] | None = ()) -> dict[int, int]:
+        """Plane keys that the factors of one section alone touch (and no factor on planes
+        alone), each to that section's index: eliminated with its interior. Not those of
+        ``keep_planes`` (plane ids; None: none is local). Kept until the graph changes."""
+        if keep_planes is None:
+            return {}
+        tag = (self.graph.version, tuple(sections))
+        if self._local is None or self._local[0] != tag:
+            self._local = (tag, _local_planes(self.graph, self.blocks.cols.ids(), self.blocks.cols.knot,
+                                              self.blocks.cols.plane, [a for a, _ in sections]))
+        local = self._local[1]
+        if keep_planes:
+            held = {int(P(int(j))) for j in keep_planes}
+            return {k: i for k, i in local.items() if k not in held}
+        return local
 
     # ----------------------------------------------------------------- the sections' factors
     def factors(self, a: int, b: int, kernel: RobustKernel) -> gtsam.NonlinearFactorGraph:
@@ -224,11 +247,15 @@ class SectionedBatch:
             table.at(None)
 
     # ----------------------------------------------------------------- one step
-    def reduce(self, values: gtsam.Values, kernel: RobustKernel, damping: float, keep: bool = False) -> Reduced:
+    def reduce(self, values: gtsam.Values, kernel: RobustKernel, damping: float, keep: bool = False,
+               keep_planes: Collection[int] | None = ()) -> Reduced:
         """Step 1 and the system of step 2 (module doc) at ``values``; ``damping`` 0: none. With
-        ``keep``, each section's elimination is kept for :meth:`back_substitute` at this point."""
+        ``keep``, each section's elimination is kept for :meth:`back_substitute` at this point.
+        ``keep_planes``: plane ids kept in the separator even if one section alone sees them (None:
+        every plane)."""
         sections = self.plan()
         sep = separator_knots(sections)
+        local = self.local_planes(sections, keep_planes)
         dims = {int(k): int(d) for k, d in values.dims().items()}
         out = gtsam.GaussianFactorGraph()
         err = 0.0
@@ -237,12 +264,14 @@ class SectionedBatch:
         self._nets_bytes = 0
         self._in_memory = []
         with self._serving(values):
-            for a, b in sections:
+            for i, (a, b) in enumerate(sections):
                 lin = self.factors(a, b, kernel).linearize(values)
                 keys = [int(k) for k in lin.keyVector()]
                 err += lin.error(_zeros(keys, dims))
-                bn, rest = self._eliminate(lin, keys, (a, b), sep, dims, damping)
-                sep_keys.update(k for k in keys if not _is_interior(k, a, b, sep))
+                interior = [k for k in keys if _is_interior(k, a, b, sep) or local.get(k) == i]
+                bn, rest = self._eliminate(lin, interior, dims, damping)
+                inner = set(interior)
+                sep_keys.update(k for k in keys if k not in inner)
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     net = pack(bn, dims)
@@ -270,12 +299,15 @@ class SectionedBatch:
 
     def back_substitute(self, values: gtsam.Values, kernel: RobustKernel, damping: float,
                         sep_delta: gtsam.VectorValues,
-                        nets: list[PackedNet] | None = None) -> gtsam.VectorValues:
+                        nets: list[PackedNet] | None = None,
+                        keep_planes: Collection[int] | None = ()) -> gtsam.VectorValues:
         """Step 3 (module doc): the whole step, the interiors solved given the separator's; each
         section from its kept elimination in ``nets`` (:attr:`Reduced.nets` of :meth:`reduce` at
-        ``values`` and ``damping``), else linearised and eliminated again."""
+        ``values`` and ``damping``), else linearised and eliminated again. ``keep_planes``: as the
+        :meth:`reduce` that gave ``sep_delta``."""
         sections = self.plan()
         sep = separator_knots(sections)
+        local = self.local_planes(sections, keep_planes)
         dims = {int(k): int(d) for k, d in values.dims().items()}
         delta = gtsam.VectorValues()
         delta.insert(sep_delta)
@@ -284,7 +316,9 @@ class SectionedBatch:
                 net = nets[i] if nets is not None else None
                 if net is None:
                     lin = self.factors(a, b, kernel).linearize(values)
-                    bn, _ = self._eliminate(lin, [int(k) for k in lin.keyVector()], (a, b), sep, dims, damping)
+                    interior = [int(k) for k in lin.keyVector()
+                                if _is_interior(int(k), a, b, sep) or local.get(int(k)) == i]
+                    bn, _ = self._eliminate(lin, interior, dims, damping)
                     net = pack(bn, dims)
                     del lin, bn
                 for k, v in solve_net(net, sep_delta):
@@ -292,11 +326,10 @@ class SectionedBatch:
                 del net
         return self._fill(delta, dims)
 
-    def _eliminate(self, lin: gtsam.GaussianFactorGraph, keys: list[int], section: tuple[int, int], sep: set[int],
-                   dims: dict[int, int], damping: float) -> tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph]:
-        """A section's linearisation (its ``keys``) with its interior's damping rows added, the
-        interior eliminated: its conditionals and the factor left on the separator."""
-        interior = [k for k in keys if _is_interior(k, *section, sep)]
+    def _eliminate(self, lin: gtsam.GaussianFactorGraph, interior: list[int], dims: dict[int, int],
+                   damping: float) -> tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph]:
+        """A section's linearisation with its ``interior``'s damping rows added, the interior
+        eliminated (in COLAMD's order): its conditionals and the factor left on the separator."""
         if damping > 0.0:
             lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
         self.sections_solved += 1
@@ -402,32 +435,35 @@ class SectionedBatch:
             total += float(self.plane_factors().error(values))
         return total
 
-    def plane_covariances(self) -> dict[int, FloatArray]:
-        """Marginal covariance (3, 3) of every plane (retract coordinates about its anchor) from
-        the separator's undamped system: the whole graph's marginals. The separator's information
-        matrix is dense (each section's reduced factor spans all its planes), so it is inverted
-        once, by Cholesky, for all planes; if it is singular, each plane's marginal is asked of
-        gtsam in turn and a plane the system leaves indeterminate is left out."""
+    def plane_covariances(self, plane_ids: Collection[int] | None = None) -> dict[int, FloatArray]:
+        """Marginal covariance (3, 3) of the planes ``plane_ids`` (None: every plane; retract
+        coordinates about its anchor) from the separator's undamped system: the whole graph's
+        marginals. The planes asked for stay in the separator, the others that one section alone
+        sees are eliminated with it. The separator's information matrix is dense (each section's
+        reduced factor spans all its planes), so it is inverted once, by Cholesky, for all planes;
+        if it is singular, each plane's marginal is asked of gtsam in turn and a plane the system
+        leaves indeterminate is left out."""
         try:
-            return self._plane_covariances()
+            return self._plane_covariances(plane_ids)
         finally:
             trim_heap()
 
-    def _plane_covariances(self) -> dict[int, FloatArray]:
+    def _plane_covariances(self, plane_ids: Collection[int] | None) -> dict[int, FloatArray]:
         values = self.graph.values
-        red = self.reduce(values, self.config.kernel, 0.0)
+        red = self.reduce(values, self.config.kernel, 0.0, keep_planes=plane_ids)
         keys = sorted(int(k) for k in red.graph.keyVector())
         dims = {int(k): int(d) for k, d in values.dims().items()}
         first = np.concatenate(([0], np.cumsum([dims[k] for k in keys])))
-        planes = [(i, k) for i, k in enumerate(keys) if chr(gtsam.Symbol(k).chr()) == "p"]
+        wanted = None if plane_ids is None else {int(P(int(j))) for j in plane_ids}
+        planes = [(i, k) for i, k in enumerate(keys) if plane_indices((k,)) and (wanted is None or k in wanted)]
         info, _ = red.graph.hessian(gtsam.Ordering(keys))
-        del red
         if not np.isfinite(info).all():  # LAPACK's behaviour on a non-finite matrix is undefined
-            return self._plane_covariances_one_by_one(self.reduce(values, self.config.kernel, 0.0).graph, values)
-        try:  # factored in place: the hour's separator (~3 x its planes) is n x n, hundreds of MB
+            return self._plane_covariances_one_by_one(red.graph, values, wanted)
+        try:  # factored in place
             factor = scipy.linalg.cho_factor(info, lower=True, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError:
-            return self._plane_covariances_one_by_one(self.reduce(values, self.config.kernel, 0.0).graph, values)
+            return self._plane_covariances_one_by_one(red.graph, values, wanted)
+        del red
         out: dict[int, FloatArray] = {}
         n = info.shape[0]
         for lo in range(0, len(planes), _COVARIANCE_CHUNK):  # a chunk of planes' columns of the inverse at a time
@@ -443,7 +479,8 @@ class SectionedBatch:
         return out
 
     @staticmethod
-    def _plane_covariances_one_by_one(graph: gtsam.GaussianFactorGraph, values: gtsam.Values) -> dict[int, FloatArray]:
+    def _plane_covariances_one_by_one(graph: gtsam.GaussianFactorGraph, values: gtsam.Values,
+                                      wanted: set[int] | None) -> dict[int, FloatArray]:
         sep = gtsam.Values()
         for k in graph.keyVector():
             copy_value(sep, values, int(k))
@@ -451,12 +488,35 @@ class SectionedBatch:
         out: dict[int, FloatArray] = {}
         for k in graph.keyVector():
             sym = gtsam.Symbol(int(k))
-            if chr(sym.chr()) == "p":
+            if chr(sym.chr()) == "p" and (wanted is None or int(k) in wanted):
                 try:
                     out[int(sym.index())] = np.asarray(marg.marginalCovariance(int(k)))
                 except RuntimeError:
                     continue
         return out
+
+
+def _local_planes(graph: FactorGraph, block_ids: NDArray[np.int64], block_knot: NDArray[np.int64],
+                  block_plane: NDArray[np.int64], starts: list[int]) -> dict[int, int]:
+    """Plane key -> section index of the planes whose factors all lie in one section (a block by
+    its knot, another factor by its highest knot, as :meth:`SectionedBatch._build` assigns them)
+    and that no factor on planes alone (a prior, a tie) touches."""
+    first = np.asarray(starts, dtype=np.int64)
+    section = np.searchsorted(first, block_knot[block_ids], side="right") - 1
+    pairs = np.unique(np.stack((block_plane[block_ids], section)), axis=1)
+    planes, n_sections = np.unique(pairs[0], return_counts=True)
+    seen: dict[int, int] = dict(zip(pairs[0].tolist(), pairs[1].tolist(), strict=True))
+    shared = set(planes[n_sections > 1].tolist())
+    for rec in graph.records.values():
+        ps = plane_indices(rec.keys)
+        if not ps:
+            continue
+        top = top_knot(rec.keys)
+        where = -1 if top is None else int(np.searchsorted(first, top, side="right") - 1)
+        for j in ps:
+            if where < 0 or seen.setdefault(j, where) != where:
+                shared.add(j)
+    return {int(P(j)): i for j, i in seen.items() if j not in shared}
 
 
 def _knot_indices(keys: tuple[int, ...]) -> list[int]:
