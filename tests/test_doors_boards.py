@@ -82,13 +82,12 @@ def test_doors_and_boards_not_mapped_yet_do_not_go_to_their_wall(long_wall: Simu
     planes exist, the local step test sends their segments, a step off the wall's own segments of
     the same scan, to the pool instead of the wall, where they make their planes (12 s: 6 %
     confusions against 50 % without it)."""
-    assert SlamConfig().frontend.local_step_reach == 0.5  # on by default
-    res = _run(long_wall, tmp_path / "local", SlamConfig())
+    res = _run(long_wall, tmp_path / "local", SlamConfig.model_validate({"frontend": {"local_step_reach": 0.5}}))
     a = res.association
     assert a is not None and a.n_child_associated > 500
     assert a.confusion_fraction < 0.12
     assert a.fraction_correct_surface_of_associated > 0.98
-    off = _run(long_wall, tmp_path / "off", SlamConfig.model_validate({"frontend": {"local_step_reach": 0.0}}))
+    off = _run(long_wall, tmp_path / "off", SlamConfig())
     assert off.association is not None
     assert off.association.confusion_fraction > 3.0 * a.confusion_fraction
     assert res.trajectory.ate["start_aligned"].rmse < 0.003
