@@ -224,9 +224,9 @@ class FrontEndConfig(StrictModel):
         "mapped, or a segment across its edge, and goes to the pool instead, where such segments make the door's "
         "plane (office walk: most wall<->door confusions of single-surface segments happened before the door's "
         "plane existed; with it at 0.5 m the confusions fell 14.5 -> 6.5 % and 15.9 -> 6.9 % on the office seeds, 19.1 -> 1.5 % "
-        "on the long wall, 21.8 -> 2.2 % on the demo). Off by default until the "
-        "hour's crash with it on is understood (session 26: the hour's final stage died in the planes' covariance "
-        "Cholesky, twice); 0 = off")
+        "on the long wall, 21.8 -> 2.2 % on the demo). Off by default: the hour "
+        "with it on was lost at 3,440 s (session 27, README: a corridor's association decays lap after lap); "
+        "0 = off")
     local_step_gate: float = Field(3.0, gt=0, description="sigmas of the local step test")
     local_step_sigma: float = Field(
         0.001, gt=0, description="m, what two neighbouring segments of one wall in one scan may differ by beyond "
