@@ -22,6 +22,7 @@ IMU: gtsam's ``PreintegratedImuMeasurements``/``ImuFactor`` between knots, with 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -146,14 +147,22 @@ class ImuConfig:
     T_body_imu: tuple[tuple[float, ...], ...] | None
 
     def params(self) -> gtsam.PreintegrationParams:
-        """gtsam preintegration parameters (z-up world)."""
-        p = gtsam.PreintegrationParams.MakeSharedU(self.gravity)
-        p.setAccelerometerCovariance(np.eye(3) * self.accel_noise_density**2)
-        p.setGyroscopeCovariance(np.eye(3) * self.gyro_noise_density**2)
-        p.setIntegrationCovariance(np.eye(3) * self.integration_sigma**2)
-        if self.T_body_imu is not None:
-            p.setBodyPSensor(gtsam.Pose3(np.asarray(self.T_body_imu, dtype=float)))
-        return p
+        """gtsam preintegration parameters (z-up world); one shared object per configuration (an
+        hour's final batch preintegrates every interval again, 16 us each to make them; callers
+        must not change it)."""
+        return _preintegration_params(self)
+
+
+@functools.lru_cache(maxsize=8)
+def _preintegration_params(config: ImuConfig) -> gtsam.PreintegrationParams:
+    """:meth:`ImuConfig.params`, made once per configuration."""
+    p = gtsam.PreintegrationParams.MakeSharedU(config.gravity)
+    p.setAccelerometerCovariance(np.eye(3) * config.accel_noise_density**2)
+    p.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density**2)
+    p.setIntegrationCovariance(np.eye(3) * config.integration_sigma**2)
+    if config.T_body_imu is not None:
+        p.setBodyPSensor(gtsam.Pose3(np.asarray(config.T_body_imu, dtype=float)))
+    return p
 
 
 def preintegrate(
