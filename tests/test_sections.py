@@ -260,6 +260,7 @@ def test_a_plane_one_section_sees_is_eliminated_with_it(scene: Scene) -> None:
     assert sorted(cov) == [0, 3, 99]
     for j in (0, 3, 99):
         assert np.allclose(cov[j], whole.plane_covariance(j), rtol=1e-5, atol=1e-14), j
+    assert sorted(be.plane_covariances([0, 12345])) == [0]  # an unknown plane has none
     assert sorted(be.sections.plane_covariances([0])) == [0]  # only the planes asked for
     assert 99 in be.sections.plane_covariances()  # None: every plane
     # a plane tied to another (a factor on planes alone) stays in the separator

@@ -268,7 +268,12 @@ class Backend:
         indeterminate system) left out. A sectioned walk computes them all at once, the other
         planes that one section alone sees eliminated with it."""
         if self.sections.needed():
-            ids = {int(j): self.blocks.check_plane(int(j)) for j in plane_ids}
+            ids: dict[int, int] = {}
+            for j in plane_ids:
+                try:
+                    ids[int(j)] = self.blocks.check_plane(int(j))
+                except ValueError:  # no such plane: no covariance
+                    continue
             got = self.sections.plane_covariances(sorted(set(ids.values())))
             return {j: got[i] for j, i in ids.items() if i in got}
         out: dict[int, FloatArray] = {}
