@@ -91,8 +91,8 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     if target.exists() and (target.is_symlink() or not target.is_dir()):
         raise OutputFileError(f"{target}: exists and is not a folder; not replacing it")
     tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir(parents=True)
-    try:
+    try:  # made inside: an interrupt right after the mkdir still removes it
+        tmp.mkdir(parents=True)
         yield tmp
         commit(tmp, target)
     except BaseException:

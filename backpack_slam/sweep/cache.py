@@ -58,8 +58,8 @@ def cached_simulation(cache_dir: str | Path, sim_key: str, sim_config: dict[str,
         if entry.is_dir():  # simulated by another worker while we waited
             return CachedSimulation(bag, gt_dir_for(bag), True, time.perf_counter() - t0)
         tmp = root / f".{sim_key}.tmp-{uuid.uuid4().hex[:8]}"
-        tmp.mkdir()
-        try:
+        try:  # made inside: an interrupt right after the mkdir still removes it
+            tmp.mkdir()
             simulate(cfg.world, cfg.rig, out=tmp / BAG_NAME, config=cfg, progress=False)
             os.replace(tmp, entry)
         except BaseException:
