@@ -11,6 +11,7 @@ import json
 import math
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -44,12 +45,18 @@ def commit(tmp: Path, target: Path) -> None:
     os.replace(tmp, target)
 
 
-def discard(tmp: Path) -> None:
-    """Remove a temporary file or folder if it is still there."""
-    if tmp.is_dir() and not tmp.is_symlink():
-        shutil.rmtree(tmp, ignore_errors=True)
-    else:
+def discard(tmp: Path, attempts: int = 20) -> None:
+    """Remove a temporary file or folder if it is still there. A folder is tried again (every
+    0.1 s, ``attempts`` times) while files still appear in it: a helper process that was writing
+    into it when an interrupt arrived may finish its last file after the first removal."""
+    if not (tmp.is_dir() and not tmp.is_symlink()):
         tmp.unlink(missing_ok=True)
+        return
+    for _ in range(attempts):
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not tmp.exists():
+            return
+        time.sleep(0.1)
 
 
 def check_target(target: Path, folder: bool = False) -> None:

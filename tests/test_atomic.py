@@ -48,3 +48,34 @@ def test_an_interrupt_right_after_the_temporary_folder_is_made_removes_it(tmp_pa
             pass
     monkeypatch.undo()
     assert _left(tmp_path) == []
+
+
+
+def test_a_folder_a_helper_still_writes_into_is_removed_all_the_same(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """discard tries again while files still appear: here a helper's last file lands in the
+    folder just as the first removal ends."""
+    import shutil
+
+    import common.atomic as atomic
+
+    real = shutil.rmtree
+    calls: list[int] = []
+
+    def rmtree_then_late_write(path: Path, ignore_errors: bool = False) -> None:
+        real(path, ignore_errors=ignore_errors)
+        calls.append(1)
+        if len(calls) == 1:  # the helper's late file: the folder is back with it
+            path.mkdir()
+            (path / "part_7.bin").write_bytes(b"x")
+
+    monkeypatch.setattr(atomic.shutil, "rmtree", rmtree_then_late_write)
+    once = tmp_path / ".once.tmp-x"
+    once.mkdir()
+    atomic.discard(once, attempts=1)
+    assert once.exists()  # one removal is not enough
+    calls.clear()
+    tmp = tmp_path / ".run.tmp-x"
+    tmp.mkdir()
+    atomic.discard(tmp)
+    assert not tmp.exists() and len(calls) == 2
