@@ -268,7 +268,7 @@ class SectionedBatch:
                 lin = self.factors(a, b, kernel).linearize(values)
                 keys = [int(k) for k in lin.keyVector()]
                 err += lin.error(_zeros(keys, dims))
-                interior = [k for k in keys if _is_interior(k, a, b, sep) or local.get(k) == i]
+                interior = _interior(keys, i, sections, sep, local)
                 bn, rest = self._eliminate(lin, interior, dims, damping)
                 inner = set(interior)
                 sep_keys.update(k for k in keys if k not in inner)
@@ -316,8 +316,7 @@ class SectionedBatch:
                 net = nets[i] if nets is not None else None
                 if net is None:
                     lin = self.factors(a, b, kernel).linearize(values)
-                    interior = [int(k) for k in lin.keyVector()
-                                if _is_interior(int(k), a, b, sep) or local.get(int(k)) == i]
+                    interior = _interior([int(k) for k in lin.keyVector()], i, sections, sep, local)
                     bn, _ = self._eliminate(lin, interior, dims, damping)
                     net = pack(bn, dims)
                     del lin, bn
@@ -522,6 +521,14 @@ def _local_planes(graph: FactorGraph, block_ids: NDArray[np.int64], block_knot: 
 def _knot_indices(keys: tuple[int, ...]) -> list[int]:
     """Knot indices of the knot keys (X, V, B) among ``keys``."""
     return [t for t in (top_knot((k,)) for k in keys) if t is not None]
+
+
+def _interior(keys: list[int], i: int, sections: list[tuple[int, int]], sep: set[int],
+              local: dict[int, int]) -> list[int]:
+    """The keys among ``keys`` that section ``i`` eliminates: its interior knots' variables and
+    the planes it alone sees (``local``, :meth:`SectionedBatch.local_planes`)."""
+    a, b = sections[i]
+    return [k for k in keys if _is_interior(k, a, b, sep) or local.get(k) == i]
 
 
 def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:

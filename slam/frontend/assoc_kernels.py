@@ -525,7 +525,7 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
         c = col[k]
         if c < 0:
             continue
-        if not has_med[c] or not np.isfinite(med[c]):
+        if not has_med[c]:
             # the wall's offset in this scan: the point-weighted median of the distances from c
             # of the segments on c and on walls parallel to it near c (k itself among them)
             m = 0
