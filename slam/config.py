@@ -365,7 +365,11 @@ class BackEndConfig(StrictModel):
     plane_relinearize_factor: float = Field(
         10.0, gt=0, description="iSAM2: relinearisation threshold of planes, a multiple of relinearize_threshold")
     lm_max_iterations: int = Field(50, ge=1, description="Levenberg-Marquardt iterations per stage of a batch solve")
-    lm_relative_tolerance: float = Field(1e-4, gt=0, description="a batch stage stops below this relative error decrease")
+    lm_relative_tolerance: float = Field(1e-4, gt=0, description="a window solve stops below this relative error decrease")
+    batch_relative_tolerance: float = Field(
+        1e-3, gt=0, description="a solve of the final batch (the first and the one after each trim) stops below this "
+        "relative error decrease: 1e-3 ends the 10-minute office walk's first solve after 5 iterations instead of 8 "
+        "(1e-4), the trajectory within 0.01 mm of it (docs/speed.md, session 28)")
     robust_schedule: tuple[float, ...] = Field(
         (30.0, 10.0, 3.0), description="kernel-width multipliers of the graduated stages before the nominal one")
     update_every: int = Field(40, ge=1, description="knots between back-end updates (window solves or iSAM2 steps; 40: every 2 s at 20 Hz, docs/speed.md session 22)")

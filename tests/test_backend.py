@@ -679,6 +679,49 @@ def test_release_lets_go_of_the_solves_caches_and_keeps_the_estimates(clean_scen
     assert np.allclose(be.plane_covariance(2), cov, rtol=1e-9, atol=0.0)  # built again when asked
 
 
+def test_the_final_batch_stops_at_its_own_tolerance_not_the_windows(clean_scene: Scene) -> None:
+    """Backend.batch_optimize's solves stop at batch_relative_tolerance; lm_relative_tolerance
+    (the window's) does not change them."""
+    its = {}
+    for name, lm, batch in (("tight", 1e-12, 1e-12), ("loose_window", 0.5, 1e-12), ("loose_batch", 1e-12, 0.5)):
+        cfg = replace(backend_defaults(), lm_relative_tolerance=lm, batch_relative_tolerance=batch)
+        be = _build(clean_scene, cfg, seed=6)
+        its[name] = be.batch_optimize(max_iterations=30, graduated=False).iterations
+    assert its["loose_window"] == its["tight"] > its["loose_batch"] >= 1
+    with pytest.raises(ValueError, match="batch_relative_tolerance"):
+        replace(backend_defaults(), batch_relative_tolerance=0.0)
+
+
+def test_the_final_batch_keeps_the_motion_factors_it_built_again_until_release(clean_scene: Scene) -> None:
+    """The released (rebuildable) motion factors the final batch builds again are kept for its
+    later solves (the same objects), give the same solve as building them each time, and are let
+    go by release()."""
+    results = []
+    for keep in (True, False):
+        be = _build(clean_scene, backend_defaults(), seed=7)
+        rebuildable = [f for f, r in be.graph.records.items() if r.rebuildable]
+        assert rebuildable
+        for k in range(len(be.graph.times)):
+            be.graph.release(k)
+        assert all(be.graph.records[f].factor is None for f in rebuildable)
+        if not keep:
+            be.graph.keep_rebuilt = lambda on: None  # type: ignore[method-assign]
+        s1 = be.batch_optimize(max_iterations=3, graduated=False)
+        s2 = be.batch_optimize(max_iterations=3, graduated=False)
+        results.append((s1.final_error, s2.final_error, be.poses()))
+        if keep:
+            assert be.graph.rebuilt is not None and set(rebuildable) <= set(be.graph.rebuilt)
+            assert be.graph.factor(rebuildable[0]) is be.graph.factor(rebuildable[0])
+            be.release()
+            assert be.graph.rebuilt is None
+            assert be.graph.factor(rebuildable[0]) is not be.graph.factor(rebuildable[0])
+        else:
+            assert be.graph.rebuilt is None
+    (a1, a2, pa), (b1, b2, pb) = results
+    assert a1 == b1 and a2 == b2
+    assert np.array_equal(pa, pb)
+
+
 def test_a_window_step_folds_the_links_so_a_revisited_wall_stays_one_plane(clean_scene: Scene) -> None:
     """With ``fold_links_in_window`` a step merges the planes linked since the last step: the
     copies of a wall become one variable with all their blocks, their ties to the wall's door

@@ -30,13 +30,14 @@ class BatchSolver:
         self.singular_systems: list[str] = []  # singular linear systems the solves met (retried damped)
 
     def solve(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int | None,
-              fixed: Sequence[int] = ()) -> Solution:
+              fixed: Sequence[int] = (), relative_tolerance: float | None = None) -> Solution:
         """:func:`slam.backend.solver.solve` with the configured iterations (unless given) and
-        tolerance, ``fixed`` keys held; a failure of its Levenberg-Marquardt fallback is a
-        ValueError naming the variable."""
+        tolerance (unless given: the window's ``lm_relative_tolerance``), ``fixed`` keys held; a
+        failure of its Levenberg-Marquardt fallback is a ValueError naming the variable."""
         n_max = max_iterations or self.config.lm_max_iterations
+        tol = self.config.lm_relative_tolerance if relative_tolerance is None else relative_tolerance
         try:
-            sol = solve(graph, values, n_max, self.config.lm_relative_tolerance, fixed, self.blocks.planes)
+            sol = solve(graph, values, n_max, tol, fixed, self.blocks.planes)
             self.singular_systems.extend(name_keys(m) for m in sol.singular)
             return sol
         except RuntimeError as err2:
@@ -61,7 +62,7 @@ class BatchSolver:
             g = graph
             if scale != 1.0:
                 g = self.blocks.whole_graph(kernel=RobustKernel(kernel.name, kernel.threshold * scale))
-            sol = self.solve(g, values, max_iterations)
+            sol = self.solve(g, values, max_iterations, relative_tolerance=cfg.batch_relative_tolerance)
             values = sol.values
             iterations += sol.iterations
         self.graph.values.update(values)

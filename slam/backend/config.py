@@ -31,8 +31,10 @@ class BackendConfig:
     relinearize_threshold, relinearize_skip: iSAM2 relinearisation settings.
     plane_relinearize_factor: iSAM2 relinearisation threshold of planes, as a multiple of
         ``relinearize_threshold`` (the poses').
-    lm_max_iterations, lm_relative_tolerance: a batch's iterations and stopping rule (relative
+    lm_max_iterations, lm_relative_tolerance: a solve's iterations and stopping rule (relative
         error decrease), per stage.
+    batch_relative_tolerance: the stopping rule of :meth:`Backend.batch_optimize`'s solves (the
+        final batch), in place of ``lm_relative_tolerance`` (the window's).
     robust_schedule: kernel-threshold multipliers of the stages that precede the nominal one in a
         graduated batch (a redescending kernel at 3 sigma from an initial guess that is
         centimetres off would treat every point as an outlier).
@@ -83,6 +85,7 @@ class BackendConfig:
     batch_cache_bytes: int
     fold_links_in_window: bool
     batch_whole_knots: int
+    batch_relative_tolerance: float
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
@@ -90,7 +93,8 @@ class BackendConfig:
         if self.solver not in ("window", "isam2"):
             raise ValueError(f"solver: expected 'window' or 'isam2', got {self.solver!r}")
         for name in ("datum_sigma", "datum_tilt_sigma", "vertical_sigma", "horizontal_sigma",
-                     "relinearize_threshold", "plane_relinearize_factor", "lm_relative_tolerance"):
+                     "relinearize_threshold", "plane_relinearize_factor", "lm_relative_tolerance",
+                     "batch_relative_tolerance"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name}: must be > 0, got {v}")

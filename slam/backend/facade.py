@@ -185,6 +185,8 @@ class Backend:
         ``config.batch_section_knots`` knots is solved in sections (:mod:`slam.backend.sections`)."""
         if self.sections.needed():
             return self.sections.optimize(max_iterations, graduated, kernel)
+        if self.graph.rebuilt is None:  # the solves after it (trims) and the covariances reuse them
+            self.graph.keep_rebuilt(True)
         return self.batch.optimize(max_iterations, graduated, kernel)
 
     def error(self) -> float:
@@ -310,6 +312,7 @@ class Backend:
         self._marginals = None
         self._section_covariances = None
         self.blocks.drop_group_factors()
+        self.graph.keep_rebuilt(False)
 
     # ----------------------------------------------------------------- statistics
     def residual_statistics(self) -> dict[str, float]:

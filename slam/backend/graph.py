@@ -65,6 +65,9 @@ class FactorGraph:
         # builds a rebuildable record's factor again from its keys, the same (the knots' motion
         # factors: see slam.backend.knots)
         self.rebuild: Callable[[tuple[int, ...]], gtsam.NonlinearFactor] | None = None
+        # released factors built again and kept (None: not kept): the final batch's solves all
+        # need them, and building them again costs each solve the IMU's preintegration
+        self.rebuilt: dict[int, gtsam.NonlinearFactor] | None = None
 
     def add_factor(self, factor: gtsam.NonlinearFactor, rebuildable: bool = False) -> int:
         """Add ``factor`` (not an observation block's; ``rebuildable``: :attr:`rebuild` makes it
@@ -80,12 +83,23 @@ class FactorGraph:
         return fid
 
     def factor(self, fid: int) -> gtsam.NonlinearFactor:
-        """The factor of record ``fid``; a released one built again (not kept)."""
+        """The factor of record ``fid``; a released one built again (kept in :attr:`rebuilt`
+        while that is on, see :meth:`keep_rebuilt`)."""
         rec = self.records[fid]
         if rec.factor is not None:
             return rec.factor
         assert self.rebuild is not None
-        return self.rebuild(rec.keys)
+        if self.rebuilt is None:
+            return self.rebuild(rec.keys)
+        f = self.rebuilt.get(fid)
+        if f is None:
+            f = self.rebuilt[fid] = self.rebuild(rec.keys)
+        return f
+
+    def keep_rebuilt(self, keep: bool) -> None:
+        """Keep the released factors built again from now on (``keep``), or let go of those kept
+        and stop keeping them."""
+        self.rebuilt = {} if keep else None
 
     def release(self, knot: int) -> None:
         """Let go of the rebuildable factors whose highest knot is ``knot`` (the window has left it)."""

@@ -358,7 +358,7 @@ class SectionedBatch:
             self.clear_cache()
             self._caching = True
             try:
-                its, first, e1 = self.solve(k, n_max, cfg.lm_relative_tolerance)
+                its, first, e1 = self.solve(k, n_max, cfg.batch_relative_tolerance)
             except RuntimeError as err:
                 raise ValueError(f"sectioned batch optimisation failed ({' '.join(str(err).split())[:200]}); "
                                  "is every variable constrained by its factors?") from None
