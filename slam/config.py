@@ -379,6 +379,10 @@ class BackEndConfig(StrictModel):
         "works one update behind it (its estimates arrive one update later; deterministic: the same input gives the "
         "same output). None: on where a process can be forked (not inside a daemon pool worker), off otherwise; "
         "false: the back end in the front end's process")
+    pipelined_collect_after: int = Field(
+        40, ge=1, description="with pipelined: knots after a step was sent at which the front end takes its result "
+        "(waiting for it if need be); the front end then works with estimates this many knots old. update_every or "
+        "more: at the next step")
     relinearize_threshold: float = Field(0.005, gt=0, description="iSAM2: relinearise a variable whose update exceeds this")
     relinearize_skip: int = Field(5, ge=1, description="iSAM2: check for relinearisation every n updates")
     isam2_iterations: int = Field(1, ge=1, description="iSAM2 steps per update (more: nearer the optimum, slower)")

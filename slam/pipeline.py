@@ -228,8 +228,14 @@ class SlamRunner:
         self.edges.create(t_new)
         t = self._timer.add("plane_creation", t)
         self._since_update += 1
-        if self._since_update >= self.cfg.backend.update_every:
+        be = self.cfg.backend
+        if self._since_update >= be.update_every:
             self._update()
+            self._timer.add("backend", t)
+        elif self._since_update == be.pipelined_collect_after and isinstance(self.backend, BackendProcess):
+            # the outstanding step's result taken at a fixed knot (the same input gives the same
+            # output), sooner than the next step: the front end lags the back end by this many knots
+            self._apply(self.backend.collect())
             self._timer.add("backend", t)
 
     def _associate_and_observe(self, ready: list[PendingScan]) -> None:

@@ -395,6 +395,42 @@ def test_a_pipelined_walk_is_deterministic_and_close_to_the_synchronous_one(box_
     assert len(a.plane_ids) == len(sync.plane_ids)
 
 
+def test_a_pipelined_front_end_can_take_a_steps_result_before_the_next_step(box_walk: SimulationResult,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``pipelined_collect_after`` below ``update_every`` the front end takes each step's
+    result that many knots after sending it (not at the next step): deterministic, every step
+    applied, near the synchronous run."""
+    applied: list[int] = []
+    after = SlamRunner._after_update
+
+    def record(self: SlamRunner) -> None:
+        after(self)
+        applied.append(self.knots.n)
+
+    monkeypatch.setattr(SlamRunner, "_after_update", record)
+    runs, at = [], []
+    for _ in range(2):
+        applied.clear()
+        runs.append(_run(box_walk.bag, True, update_every=10, pipelined_collect_after=3))
+        at.append(list(applied))
+    applied.clear()
+    _run(box_walk.bag, True, update_every=10)  # each result taken at the next step
+    late = list(applied)
+    sync = _run(box_walk.bag, False, update_every=10)
+    a, b = runs
+    np.testing.assert_array_equal(a.T_world_body, b.T_world_body)
+    np.testing.assert_array_equal(a.plane_offsets, b.plane_offsets)
+    assert at[0] == at[1]
+    # every step's result taken 3 knots after it was sent instead of 10 (the last two: at the end)
+    assert len(late) == len(at[0]) >= 5
+    assert [n - m for n, m in zip(late[:-2], at[0][:-2], strict=True)] == [7] * (len(late) - 2), (late, at[0])
+    assert a.stats["updates"] == sync.stats["updates"]
+    gap = np.linalg.norm(a.T_world_body[:, :3, 3] - sync.T_world_body[:, :3, 3], axis=1)
+    assert gap.max() < 0.005, f"{1000 * gap.max():.2f} mm from the synchronous run"
+    with pytest.raises(ValueError, match="pipelined_collect_after"):
+        SlamConfig.model_validate({"backend": {"pipelined_collect_after": 0}})
+
+
 def test_a_pipelined_imu_walk_keeps_the_front_ends_velocities(box_imu_walk: SimulationResult,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """With an IMU the front end predicts every knot from its newest velocity: one update behind
