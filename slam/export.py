@@ -284,6 +284,11 @@ def _ply_vertex(intensity: bool) -> np.dtype[np.void]:
     return _PLY_VERTEX_INTENSITY if intensity else _PLY_VERTEX
 
 
+def cloud_row_bytes(intensity: bool = False) -> int:
+    """Bytes of one point's row in a cloud.ply (with the ``intensity`` property or without)."""
+    return int(_ply_vertex(intensity).itemsize)
+
+
 def _ply_header(n: int, intensity: bool = False) -> bytes:
     """The header of a binary little-endian PLY of ``n`` cloud points (with the ``intensity``
     property or without).

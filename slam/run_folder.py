@@ -6,6 +6,7 @@ with the run's counts as one :class:`RunCounts`).
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -13,11 +14,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from common.atomic import OutputFileError
 from common.rig import Rig
 from slam.cloud_pass import write_cloud
 from slam.config import SlamConfig
 from slam.export import (
     PlaneRecord,
+    cloud_row_bytes,
     make_segment_table,
     read_cloud_ply,
     write_cloud_ply,
@@ -99,6 +102,8 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
     if not (cfg.output.cloud or cfg.output.rerun):
         return CloudOutputs()
     v = voxel if voxel is not None else (cfg.output.voxel or None)
+    if index is not None:
+        check_cloud_space(out, index.points, index.intensities, cfg.parallel.export_processes, v is not None)
     # every point goes to a file as it is placed; the recording and the voxel thinning read it
     # back (the recording a chunk at a time)
     every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
@@ -115,6 +120,28 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
     if every.name != "cloud.ply":
         every.unlink()
     return CloudOutputs(n_cloud, view, lines)
+
+
+def cloud_bytes_needed(points: int, intensity: bool, processes: int, thinned: bool) -> int:
+    """Disk bytes the cloud pass needs at its peak for ``points`` points: the cloud.ply, beside it
+    the rows the other ``processes - 1`` parts wrote until they are joined, and with ``thinned``
+    (a voxel size) the thinned cloud beside the every-point file; 5 % and 64 MB of margin."""
+    rows = points * cloud_row_bytes(intensity)
+    peak = rows * (2.0 - 1.0 / max(1, processes)) + (rows if thinned else 0)
+    return int(1.05 * peak) + (64 << 20)
+
+
+def check_cloud_space(out: Path, points: int, intensity: bool, processes: int, thinned: bool) -> None:
+    """An ``OutputFileError`` naming ``out`` when its file system has less free space than the
+    cloud pass needs (:func:`cloud_bytes_needed`): at the start of the pass, not minutes into
+    writing it (the run's folder is then not made at all)."""
+    need = cloud_bytes_needed(points, intensity, processes, thinned)
+    free = shutil.disk_usage(out).free
+    if free < need:
+        raise OutputFileError(
+            f"{out}: not enough free disk space for the cloud: about {need / 1e9:.1f} GB needed ({points:,} points, "
+            f"cloud.ply and its parts' rows until they are joined), {free / 1e9:.1f} GB free; free space, write "
+            "elsewhere, or set output.cloud: false (or output.voxel)")
 
 
 @dataclass(frozen=True)

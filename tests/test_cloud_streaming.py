@@ -4,6 +4,7 @@ slam.rerun_map): the same numbers as holding it whole."""
 from __future__ import annotations
 
 import itertools
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -359,3 +360,37 @@ def test_run_records_its_peak_memory(walk: SimulationResult, tmp_path: Path) -> 
     assert summary["singular_systems"] == {"count": 0, "first": []}
     # the window solver has no iSAM2 updates to count
     assert cfg.backend.solver == "window" and "isam2_updates" not in summary["counts"]
+
+
+def test_the_stream_index_counts_the_clouds_points(walk: SimulationResult, estimate: SlamResult, tmp_path: Path) -> None:
+    """The index counts every valid return the stream yields; the cloud pass writes each of them
+    that lies within the knots (all of them on a walk whose knots span its scans)."""
+    with BagSource(walk.bag) as source:
+        stream = source.scans(rig=resolve_rig("itc_backpack"))
+        valid = sum(int(line.valid.sum()) for line in stream)
+        index = stream.index
+    assert index.points == valid > 0
+    n, _ = _streamed(walk, estimate, tmp_path / "cloud.ply", index)
+    assert 0.9 * index.points <= n <= index.points
+
+
+def test_a_run_without_room_for_its_cloud_fails_before_the_pass(walk: SimulationResult, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Too little free disk for the cloud (and the parts' rows until they are joined) is one
+    OutputFileError naming the output folder, raised before the pass writes anything; no run folder."""
+    from slam.export import cloud_row_bytes
+    from slam.run_folder import cloud_bytes_needed
+
+    need = cloud_bytes_needed(1_000_000, False, 2, False)
+    rows = 1_000_000 * cloud_row_bytes(False)
+    assert rows * 1.5 < need < rows * 1.5 * 1.1 + (64 << 20)  # the cloud and half of it in the other part's rows
+    assert cloud_bytes_needed(1_000_000, False, 1, True) > cloud_bytes_needed(1_000_000, False, 1, False)
+
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=10 << 20))
+    written: list[int] = []
+    monkeypatch.setattr(slam.cloud_pass, "cloud_part", lambda *a, **k: written.append(1))
+    with pytest.raises(OutputFileError, match=r"not enough free disk space for the cloud: about .* GB needed"):
+        slam.run.run_slam(walk.bag, resolve_rig("itc_backpack"), SlamConfig(), tmp_path / "run", progress=False)
+    assert not written
+    assert not (tmp_path / "run").exists() and not list(tmp_path.iterdir())

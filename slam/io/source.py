@@ -92,13 +92,15 @@ class StreamIndex:
     """What a :class:`ScanStream` yielded, in its order: each scan's stamp (s) and scanner id
     (left empty by a stream that does not ``record`` them); ``lag_ns``, the (least, greatest)
     log time minus header stamp (ns) over every scan message read (None before the first);
-    ``intensities``, whether any scan carried them; ``last_stamp``, the latest scan's stamp."""
+    ``intensities``, whether any scan carried them; ``last_stamp``, the latest scan's stamp;
+    ``points``, the valid returns of the scans yielded (the cloud's points)."""
 
     stamps: list[float] = field(default_factory=list)
     scanner_ids: list[str] = field(default_factory=list)
     lag_ns: tuple[int, int] | None = None
     intensities: bool = False
     last_stamp: float | None = None
+    points: int = 0
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -524,6 +526,7 @@ def _recorded(index: StreamIndex, line: Scanline, max_gap: float | None = None, 
         index.scanner_ids.append(line.scanner_id)
     index.last_stamp = line.stamp
     index.intensities = index.intensities or line.intensities is not None
+    index.points += int(line.points_xy.shape[0])
     return line
 
 
