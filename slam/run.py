@@ -32,7 +32,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from common.atomic import atomic_dir
+from common.atomic import OutputFileError, atomic_dir
 from common.rig import Rig
 from segmentation import Scanline
 from segmentation.noise import estimate as estimate_noise_model
@@ -52,13 +52,13 @@ from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.echoes import several_echoes_share
 from slam.io.errors import input_error
-from slam.io.source import BagSource
+from slam.io.source import SCAN_TYPES, BagSource
 from slam.pipeline import SlamRunner
 from slam.prefetch import PreparedScans, prepared_scans
 from slam.preflight import check_observability, check_rig
 from slam.rerun_map import MapOptions, write_map_rrd
 from slam.result import SlamResult
-from slam.run_folder import RunSummary, write_cloud_outputs, write_tables
+from slam.run_folder import RunSummary, check_cloud_space, write_cloud_outputs, write_tables
 
 # bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
 __all__ = ["bag_time_range", "estimate_noise", "load_imu", "peak_rss_gb", "run_slam", "trim_heap"]
@@ -156,6 +156,39 @@ def estimate_noise(source: BagSource, rig: Rig, cfg: SlamConfig) -> tuple[SlamCo
     return out, {"scanners": record, "shared_ratio": levels.shared, "reference": nc.reference}
 
 
+def cloud_space_note(source: BagSource, rig: Rig, plan: dict[str, str | None], cfg: SlamConfig, out_dir: Path,
+                     voxel: float | None) -> str | None:
+    """A warning when the output's file system looks too small for the cloud pass (before the
+    walk, so that an hour's estimate is not spent on a cloud that cannot be written): the points
+    estimated as each scan topic's message count times the valid returns of its first scan,
+    checked as the export will check the exact count (``slam.run_folder.check_cloud_space``);
+    None when it fits or there is no cloud."""
+    if not (cfg.output.cloud or cfg.output.rerun):
+        return None
+    per_scan: dict[str, int] = {}
+    stream = source.scans(rig=rig, echo=cfg.input.echo, record=False)
+    t0: float | None = None
+    for line in stream:
+        t0 = line.stamp if t0 is None else t0
+        per_scan.setdefault(line.scanner_id, int(line.points_xy.shape[0]))
+        if len(per_scan) == len(plan) or line.stamp - t0 > NOISE_READ_SECONDS:
+            break
+    stream.close()
+    points = 0
+    for topic, name in plan.items():
+        n = sum(c.msgcount for c in source.connections(topic, SCAN_TYPES))
+        points += n * per_scan.get(name or topic, max(per_scan.values(), default=0))
+    folder = out_dir.resolve()
+    while not folder.exists():
+        folder = folder.parent
+    v = voxel if voxel is not None else (cfg.output.voxel or None)
+    try:
+        check_cloud_space(folder, points, False, cfg.parallel.export_processes, v is not None)
+    except OutputFileError as e:
+        return f"warning: {e} (estimated from the scans' count; the export checks the exact count and stops there)"
+    return None
+
+
 def peak_rss_gb() -> float:
     """The peak resident memory of this process so far (GB): ``ru_maxrss``, KiB on Linux and
     bytes on macOS."""
@@ -191,6 +224,9 @@ def run_slam(
         t_range = source.time_range()
         imu = load_imu(source, cfg, *t_range, rig=rig)
         check.notes += check_observability(rig, source, imu_topic(cfg, rig) if imu is not None else None)
+        space = cloud_space_note(source, rig, plan, cfg, Path(out_dir), voxel)
+        if space is not None:
+            check.notes.append(space)
         for note in check.notes:
             if report is not None:
                 report(note)

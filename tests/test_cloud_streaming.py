@@ -394,3 +394,30 @@ def test_a_run_without_room_for_its_cloud_fails_before_the_pass(walk: Simulation
         slam.run.run_slam(walk.bag, resolve_rig("itc_backpack"), SlamConfig(), tmp_path / "run", progress=False)
     assert not written
     assert not (tmp_path / "run").exists() and not list(tmp_path.iterdir())
+
+
+def test_a_run_warns_before_the_walk_when_its_cloud_may_not_fit(walk: SimulationResult, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before the walk the cloud's points are estimated from the scans' count (the first scan of
+    each scanner): a file system too small for them is a warning naming the folder; one with
+    room gives none, and the estimate is near the cloud's real count."""
+    from slam.run import cloud_space_note
+
+    rig = resolve_rig("itc_backpack")
+    cfg = SlamConfig()
+    with BagSource(walk.bag) as source:
+        plan = source.scan_plan(rig=rig)
+        assert cloud_space_note(source, rig, plan, cfg, tmp_path / "new" / "run", None) is None
+        real = shutil.disk_usage
+        seen: list[int] = []
+        monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=1 << 20))
+        import slam.run as run_mod
+        check = run_mod.check_cloud_space
+        monkeypatch.setattr(run_mod, "check_cloud_space", lambda out, points, *a: (seen.append(points), check(out, points, *a)))
+        note = cloud_space_note(source, rig, plan, cfg, tmp_path / "new" / "run", None)
+        assert note is not None and note.startswith("warning: ") and str(tmp_path) in note
+        no_cloud = cfg.model_copy(update={"output": cfg.output.model_copy(update={"cloud": False, "rerun": False})})
+        assert cloud_space_note(source, rig, plan, no_cloud, tmp_path, None) is None
+        stream = source.scans(rig=rig)
+        valid = sum(int(line.valid.sum()) for line in stream)
+    assert 0.8 * valid < seen[0] < 1.25 * valid
