@@ -173,6 +173,7 @@ class Backend:
         earlier copy of a wall walked past again (whose number, and cost, grew with the walk)."""
         if self.config.fold_links_in_window and self.ties.links:
             self.ties.fold_links()
+        self.graph.keep_rebuilt(False)  # a batch solved mid-walk keeps nothing for the window
         return self.incremental.step()
 
     def batch_optimize(self, max_iterations: int | None = None, graduated: bool = True,
