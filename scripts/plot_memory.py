@@ -27,7 +27,8 @@ def _style(ax: Any, ylabel: str, fontsize: int, legend_loc: str) -> None:
     ax.set_xlim(0, 65)
     ax.set_ylim(0, None)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=fontsize, loc=legend_loc)
+    # below the axes: with a line per code revision the legend would cover the points
+    ax.legend(fontsize=fontsize, loc="upper left", bbox_to_anchor=(0.0, -0.14), frameon=False)
 
 
 def main() -> int:
@@ -44,8 +45,10 @@ def main() -> int:
     import matplotlib.pyplot as plt
 
     timed = [r for r in rows if "cpu_per_data_s" in r]
+    n_lines = max(len({r["label"] for r in rows}), 2 * len({r["label"] for r in timed}))
+    height = 4.2 + 0.16 * n_lines
     if timed:
-        fig, (ax, ax_t) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [1.4, 1.0]})
+        fig, (ax, ax_t) = plt.subplots(1, 2, figsize=(12, height), gridspec_kw={"width_ratios": [1.4, 1.0]})
         for label in dict.fromkeys(r["label"] for r in timed):
             mine = sorted((r for r in timed if r["label"] == label), key=lambda r: r["minutes"])
             m = [r["minutes"] for r in mine]
@@ -54,7 +57,7 @@ def main() -> int:
                 ax_t.plot(m, [r["wall_per_data_s"] for r in mine], "s:", label=f"wall s / data s: {label}")
         _style(ax_t, "seconds per data second", 7, "lower right")
     else:
-        fig, ax = plt.subplots(figsize=(7, 4.2))
+        fig, ax = plt.subplots(figsize=(7, height))
     for label in dict.fromkeys(r["label"] for r in rows):
         mine = [r for r in rows if r["label"] == label]
         pts = sorted((r["minutes"], r["peak_gb"]) for r in mine)
