@@ -64,6 +64,14 @@ def machine_throughput(n_scans: int = 200, repeats: int = 5) -> float:
     return float(out.strip().splitlines()[-1])
 
 
+def _cli_env() -> dict[str, str]:
+    """The environment a run gets from the command line (``backpack_slam``): numpy's BLAS and
+    OpenMP with one thread unless the caller chose otherwise, so that the benchmark measures
+    the run users get (BLAS threads spinning beside the reader and export processes on a
+    2-core machine)."""
+    return {**os.environ, **{v: os.environ.get(v, "1") for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}}
+
+
 def _child(bag: str, gt: str, method: str, out: str, config: str = "") -> None:
     """One SLAM run + evaluation in this process; prints one JSON line with the figures."""
     from common.rig import resolve_rig
@@ -423,7 +431,7 @@ def main() -> int:
         t0 = time.perf_counter()
         proc = subprocess.Popen(
             [sys.executable, __file__, "--child", str(bag), str(gt), m, str(out / m), str(args.config or "")],
-            stdout=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE, text=True, env=_cli_env(),
         )
         sampler = PssSampler(proc.pid)
         sampler.start()

@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import itertools
 import multiprocessing as mp
-from array import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,64 +24,131 @@ from tqdm import tqdm
 
 from common.rig import Rig
 from segmentation import Scanline
-from slam.export import CloudPlyWriter, cloud_ply_writer
+from slam import cloud_kernels as ck
+from slam.export import CloudPlyWriter, CloudRecord, cloud_ply_writer
 from slam.frontend.transients import TRANSIENT
 from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
 from slam.prefetch import can_fork_reader, get_from_children
-from slam.rerun_map import SegmentLines
+from slam.rerun_map import (
+    CloudView,
+    CloudViewPicker,
+    MapOptions,
+    SegmentLines,
+    joined_view,
+    view_of_cloud_ply,
+    view_strides,
+)
 from slam.trajectory.placement import place_points
 
 FloatArray = NDArray[np.float64]
 
-_PLACE_CHUNK = 4096  # cloud points per place_points call: its (m, 3, 3) temporaries stay in cache (~2x faster)
+_PLACE_CHUNK = 4096  # cloud points per place_points call: its poses and points stay in cache (~1.2x faster)
 _EXPORT_BATCH = 1 << 18  # cloud points placed and written at a time (~10 MB of body points)
 
 
-class _CloudBatch:
-    """Scans' points (body frame) gathered until there are enough to place together; then placed
-    in the world with the final trajectory, in chunks of ``_PLACE_CHUNK``, and written; after each
-    batch the heap is trimmed when the process's resident memory has crept up (``HeapKeeper``:
-    the pass's allocations, taken from an inherited, trimmed heap's free chunks, would otherwise
-    make it grow with the walk)."""
+class _SegmentRows:
+    """The run's associated segments (``SlamResult.segment_rows``) ordered by (scanner, scan
+    index), for the plane ids of a batch of scans' points (:func:`slam.cloud_kernels.segment_planes`)."""
 
-    def __init__(self, res: SlamResult, writer: CloudPlyWriter) -> None:
-        self._kt, self._T = res.knot_times, res.T_world_body
+    def __init__(self, rows: Mapping[str, NDArray[Any]]) -> None:
+        key = rows["scanner"].astype(np.int64) * (1 << 40) + rows["scan_index"].astype(np.int64)
+        self.order = np.argsort(key, kind="stable")
+        self.key_sorted = np.ascontiguousarray(key[self.order])
+        self.first = np.ascontiguousarray(rows["first_beam"], dtype=np.int64)
+        self.last = np.ascontiguousarray(rows["last_beam"], dtype=np.int64)
+        self.plane = np.ascontiguousarray(rows["plane_id"], dtype=np.int64)
+
+    def ranges(self, scanner: NDArray[np.int64], scan_index: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Each scan's rows: ``order[lo:hi]``."""
+        k = scanner * (1 << 40) + scan_index
+        return (np.searchsorted(self.key_sorted, k).astype(np.int64),
+                np.searchsorted(self.key_sorted, k + 1).astype(np.int64))
+
+
+class _CloudBatch:
+    """Scans gathered until they hold enough points to handle together: their valid points within
+    the knots lifted into the body frame (and deskewed), given the plane ids of their associated
+    segments, placed in the world with the final trajectory, written, and picked for the
+    recording's view; after each batch the heap is trimmed when the process's resident memory
+    has crept up (``HeapKeeper``: the pass's allocations, taken from an inherited, trimmed heap's
+    free chunks, would otherwise make it grow with the walk).
+
+    Every number is computed point by point (the body frame by one matrix product per scanner,
+    which gives each point the same bits however many points it holds), so the cloud is the same
+    however the scans are batched."""
+
+    def __init__(self, res: SlamResult, rig: Rig, writer: CloudPlyWriter, picker: CloudViewPicker | None) -> None:
+        self._kt, self._T, self._deskew = res.knot_times, res.T_world_body, res.deskew
+        self._T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
+        self._rows = _SegmentRows(res.segment_rows)
         self._writer = writer
-        self._cols: list[tuple[FloatArray, NDArray[np.uint8], FloatArray, NDArray[np.int32]]] = []
-        self._intensity: list[NDArray[np.float32]] = []
-        self._ends: list[int] = []  # the batch's segments' first and last point indices
-        self.n = 0  # points in the batch
+        self._picker = picker
+        self._scans: list[Scanline] = []
+        self._scanner: list[int] = []
+        self._scan_index: list[int] = []
+        self.n = 0  # valid returns in the batch
         self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
+        self.seg_stamp: list[FloatArray] = []
+        self.seg_pid: list[NDArray[np.int32]] = []
         self._heap = HeapKeeper()
 
-    def add(self, points_body: FloatArray, scanner: int, times: FloatArray, plane_id: NDArray[np.int32],
-            ends: list[int], intensity: NDArray[np.float32] | None = None) -> None:
-        """A scan's points (body frame) with their times (s), plane ids and, for a writer with
-        intensities, their intensities; ``ends`` indexes its segments' first and last points in
-        the scan."""
-        self._cols.append((points_body, np.full(times.shape[0], scanner, dtype=np.uint8), times, plane_id))
-        if self._writer.intensity:
-            self._intensity.append(intensity if intensity is not None
-                                   else np.full(times.shape[0], np.nan, dtype=np.float32))
-        self._ends.extend(self.n + e for e in ends)
-        self.n += times.shape[0]
+    def add(self, line: Scanline, scanner: int, scan_index: int) -> None:
+        """A scan (its scanner's index in the rig and the scan's ordinal among that scanner's)."""
+        if line.n_valid == 0:
+            return
+        self._scans.append(line)
+        self._scanner.append(scanner)
+        self._scan_index.append(scan_index)
+        self.n += line.n_valid
         if self.n >= _EXPORT_BATCH:
             self.flush()
 
     def flush(self) -> None:
-        if not self._cols:
+        scans = self._scans
+        if not scans:
             return
-        pb, sc, tm, pid = (np.concatenate(c) for c in zip(*self._cols, strict=True))
-        pw = np.empty_like(pb)
-        for a in range(0, self.n, _PLACE_CHUNK):
-            b = min(a + _PLACE_CHUNK, self.n)
-            pw[a:b] = place_points(self._kt, self._T, tm[a:b], pb[a:b])
-        self._writer.write(pw, sc, tm, pid, np.concatenate(self._intensity) if self._writer.intensity else None)
-        self.endpoints_world.append(pw[np.asarray(self._ends, dtype=np.int64)])
-        self._cols, self._ends, self._intensity, self.n = [], [], [], 0
-        del pb, sc, tm, pid, pw
+        counts = np.array([line.n_valid for line in scans], dtype=np.int64)
+        slot = np.repeat(np.arange(len(scans), dtype=np.int64), counts)
+        times = np.concatenate([line.times[line.valid_index] for line in scans])
+        beams = np.concatenate([line.valid_index for line in scans]).astype(np.int64, copy=False)
+        xy = np.concatenate([line.points_xy for line in scans])
+        scanner = np.repeat(np.array(self._scanner, dtype=np.int32), counts)
+        inten = None
+        if self._writer.intensity:
+            inten = np.concatenate([line.intensities[line.valid_index] if line.intensities is not None
+                                    else np.full(line.n_valid, np.nan, dtype=np.float32) for line in scans])
+        inside = (times >= self._kt[0]) & (times <= self._kt[-1])
+        if not inside.all():
+            slot, times, beams, xy, scanner = slot[inside], times[inside], beams[inside], xy[inside], scanner[inside]
+            inten = None if inten is None else inten[inside]
+        if times.size:
+            scan_start = np.searchsorted(slot, np.arange(len(scans) + 1)).astype(np.int64)
+            p_b = np.empty((times.size, 3))
+            # a product per scan: a small one gets the same bits from BLAS however many threads it
+            # has (a batch-sized one would start them: two export processes on two cores crawl)
+            for j, a, b in zip(self._scanner, scan_start[:-1].tolist(), scan_start[1:].tolist(), strict=True):
+                if b > a:
+                    T = self._T_bs[j]
+                    p_b[a:b] = np.column_stack((xy[a:b], np.zeros(b - a))) @ T[:3, :3].T + T[:3, 3]
+            if self._deskew is not None:
+                p_b = self._deskew.apply(p_b, times)
+            lo, hi = self._rows.ranges(np.array(self._scanner, dtype=np.int64), np.array(self._scan_index, dtype=np.int64))
+            plane, seg_scan, seg_pid, ends = ck.segment_planes(
+                beams, scan_start, lo, hi, self._rows.order, self._rows.first, self._rows.last, self._rows.plane,
+                TRANSIENT)
+            p_w = np.empty_like(p_b)
+            for a in range(0, times.size, _PLACE_CHUNK):
+                b = min(a + _PLACE_CHUNK, times.size)
+                p_w[a:b] = place_points(self._kt, self._T, times[a:b], p_b[a:b])
+            self._writer.write(p_w, scanner, times, plane, inten)
+            if self._picker is not None:
+                self._picker.take(CloudRecord(p_w, scanner, times, plane))
+            self.endpoints_world.append(p_w[ends])
+            self.seg_stamp.append(np.array([line.stamp for line in scans], dtype=np.float64)[seg_scan])
+            self.seg_pid.append(seg_pid.astype(np.int32))
+        self._scans, self._scanner, self._scan_index, self.n = [], [], [], 0
         self._heap.check()
 
 
@@ -100,13 +166,15 @@ class CloudPart:
 
 @dataclass
 class CloudPartResult:
-    """What one part of the cloud pass found: its points' count and its associated segments
-    (scan stamps, plane ids, end points in the world frame, (m, 3), two rows per segment)."""
+    """What one part of the cloud pass found: its points' count, its associated segments (scan
+    stamps, plane ids, end points in the world frame, (m, 3), two rows per segment) and, when
+    asked, the points it picked for the recording's view."""
 
     count: int
     seg_stamp: FloatArray  # (k,)
     seg_pid: NDArray[np.int32]  # (k,)
     endpoints_world: FloatArray
+    view: CloudViewPicker | None = None  # the recording's view of the part, when picked
 
 
 def plan_parts(index: StreamIndex | None, scanner_names: list[str], processes: int) -> list[CloudPart]:
@@ -137,81 +205,46 @@ def plan_parts(index: StreamIndex | None, scanner_names: list[str], processes: i
 
 
 def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamResult, writer: CloudPlyWriter,
-               bar: Any = None) -> CloudPartResult:
+               bar: Any = None, picker: CloudViewPicker | None = None) -> CloudPartResult:
     """The part's scans (``scans``, in stream order) placed in the world with the final trajectory
-    and written with ``writer`` as they come.
+    and written with ``writer`` as they come; with a ``picker``, the recording's view picked from
+    them.
 
-    Points are placed a batch of scans at a time, in chunks of ``_PLACE_CHUNK`` (``place_points``
-    gives every point the same numbers however the points are batched), so the parts of a split
-    pass, concatenated, are the whole pass's cloud byte for byte."""
-    names = res.scanner_names
-    index = {n: i for i, n in enumerate(names)}
-    T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
-    rows = res.segment_rows
-    # plane id per (scanner, scan index): beam ranges of its segments
-    key = rows["scanner"].astype(np.int64) * (1 << 40) + rows["scan_index"].astype(np.int64)
-    order = np.argsort(key, kind="stable")
-    key_sorted = key[order]
-    kt = res.knot_times
-    # typed buffers, not lists: an hour's walk has about 2.7 M associated segments (8 + 4 B each
-    # here, ~60 B as Python floats and ints in a list)
-    seg_stamp = array("d")
-    seg_pid = array("i")
+    Points are handled a batch of scans at a time (every point gets the same numbers however the
+    points are batched), so the parts of a split pass, concatenated, are the whole pass's cloud
+    byte for byte."""
+    index = {n: i for i, n in enumerate(res.scanner_names)}
     counters = list(part.first_scan_index)
-    batch = _CloudBatch(res, writer)
+    batch = _CloudBatch(res, rig, writer, picker)
     n_scans = 0
     for line in scans:
         n_scans += 1
         s = index[line.scanner_id]
-        si = counters[s]
+        batch.add(line, s, counters[s])
         counters[s] += 1
         if bar is not None:
             bar.update(1)
-        if line.n_valid == 0:
-            continue
-        times = line.times[line.valid_index]
-        inside = (times >= kt[0]) & (times <= kt[-1])
-        if not inside.any():
-            continue
-        p2 = line.points_xy[inside]
-        p_s = np.column_stack((p2, np.zeros(p2.shape[0])))
-        p_b = p_s @ T_bs[s][:3, :3].T + T_bs[s][:3, 3]
-        if res.deskew is not None:
-            p_b = res.deskew.apply(p_b, times[inside])
-        beams = line.valid_index[inside]
-        plane = np.full(beams.shape[0], -1, dtype=np.int32)
-        ends: list[int] = []  # the scan's segments' first and last points
-        k = s * (1 << 40) + si
-        lo_k, hi_k = np.searchsorted(key_sorted, [k, k + 1])
-        for r in order[lo_k:hi_k]:
-            if rows["plane_id"][r] == TRANSIENT:  # a thing that moved (a person): marked, in no plane
-                plane[(beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r])] = TRANSIENT
-            elif rows["plane_id"][r] >= 0:
-                m = np.flatnonzero((beams >= rows["first_beam"][r]) & (beams <= rows["last_beam"][r]))
-                if m.size:
-                    plane[m] = rows["plane_id"][r]
-                    seg_stamp.append(line.stamp)
-                    ends.extend((int(m[0]), int(m[-1])))
-                    seg_pid.append(int(rows["plane_id"][r]))
-        batch.add(p_b, s, times[inside], plane, ends,
-                  None if line.intensities is None else line.intensities[beams])
     batch.flush()
     if part.hi is not None and n_scans != part.hi - part.lo:
         raise RuntimeError(f"cloud pass: scans {part.lo}:{part.hi} of the stream came back as {n_scans} scans")
     endpoints = np.concatenate(batch.endpoints_world) if batch.endpoints_world else np.zeros((0, 3))
-    return CloudPartResult(writer.count, np.frombuffer(seg_stamp, dtype=np.float64).copy(),
-                           np.frombuffer(seg_pid, dtype=np.int32).copy(), endpoints)
+    seg_stamp = np.concatenate(batch.seg_stamp) if batch.seg_stamp else np.zeros(0)
+    seg_pid = np.concatenate(batch.seg_pid) if batch.seg_pid else np.zeros(0, dtype=np.int32)
+    return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints, picker)
 
 
 def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any,
-                  echo: Echo, intensity: bool) -> None:
+                  echo: Echo, intensity: bool, strides: tuple[int, int] | None) -> None:
     """A forked export process: part ``i`` of the cloud pass, read from its own ``BagSource`` of
-    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path``; ``(i, its
-    CloudPartResult or the exception)`` goes on ``q``."""
+    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path``, its view
+    picked at ``strides`` (None: none); ``(i, its CloudPartResult or the exception)`` goes on
+    ``q``."""
     try:
         with BagSource(bag) as source, rows_path.open("wb") as f:
             writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
-            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo, record=False), part, rig, res, writer)))
+            picker = None if strides is None else CloudViewPicker(*strides)
+            q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo, record=False), part, rig, res,
+                                 writer, picker=picker)))
     except BaseException as e:  # raised in the parent
         q.put((i, e))
 
@@ -238,13 +271,16 @@ def scans_have_intensities(source: BagSource, rig: Rig, echo: Echo) -> bool:
 
 
 def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: StreamIndex | None,
-                progress: bool, processes: int = 1, *, echo: Echo) -> tuple[int, SegmentLines]:
+                progress: bool, processes: int = 1, *, echo: Echo,
+                view: MapOptions | None = None) -> tuple[int, SegmentLines, CloudView | None]:
     """The second pass over ``source``'s scans (their stream's ``index``, see :func:`plan_parts`;
     a MultiEchoLaserScan's ``echo`` of each beam, the run's ``input.echo``): every valid point
     placed in the world and written to the cloud.ply ``ply``, with an intensity property when the
     scans carry intensities (``index.intensities``; without an index, when the first scan of a
-    topic does); returns the number of points and the associated segments' end points (world
-    frame).
+    topic does); returns the number of points, the associated segments' end points (world
+    frame) and, with ``view``'s caps, the recording's :class:`CloudView` (picked as the points
+    are written when the ``index`` tells how many there can be, at strides from that count; else
+    from the file after the pass).
 
     With ``processes`` > 1 (and fork available, see ``slam.prefetch.can_fork_reader``) the pass
     is cut into that many parts, the first written here and the others by forked processes."""
@@ -257,11 +293,12 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     q: Any = ctx.Queue() if ctx is not None else None
     procs = []
     row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") for i in range(1, len(parts))]
+    strides = None if view is None or index is None else view_strides(index.points, view)
     try:
         if ctx is not None:
             for i, path in enumerate(row_files, start=1):
-                p = ctx.Process(target=_part_process, args=(i, parts[i], source.path, rig, res, path, q, echo, intensity),
-                                name=f"backpack-slam-cloud-{i}", daemon=True)
+                p = ctx.Process(target=_part_process, name=f"backpack-slam-cloud-{i}", daemon=True,
+                                args=(i, parts[i], source.path, rig, res, path, q, echo, intensity, strides))
                 p.start()
                 procs.append(p)
         with cloud_ply_writer(ply, intensity=intensity) as writer:
@@ -270,7 +307,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
             total = None if first.hi is None else first.hi - first.lo
             with tqdm(total=total, desc=desc, disable=not progress, leave=False) as bar:
                 scans = source.scans(rig=rig, window=first.window, echo=echo, record=False)  # no per-scan index
-                found = [cloud_part(scans, first, rig, res, writer, bar)]
+                found = [cloud_part(scans, first, rig, res, writer, bar,
+                                    picker=None if strides is None else CloudViewPicker(*strides))]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
             for i in range(1, len(parts)):
                 writer.append_rows(row_files[i - 1], others[i].count)
@@ -288,4 +326,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
         np.concatenate([part.endpoints_world for part in found]).reshape(-1, 2, 3),
         np.concatenate([part.seg_pid for part in found]).astype(np.int32),
     )
-    return n_points, lines
+    shown = None
+    if view is not None and n_points:
+        pickers = [part.view for part in found if part.view is not None and part.view.n]
+        shown = joined_view(pickers) if strides is not None else view_of_cloud_ply(ply, view)
+    return n_points, lines, shown

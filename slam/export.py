@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from common.atomic import OutputFileError, atomic_path, read_json, write_json
+from slam import cloud_kernels as ck
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
@@ -308,13 +309,11 @@ def _ply_header(n: int, intensity: bool = False) -> bytes:
 def _write_ply_rows(f: BinaryIO, cloud: CloudRecord, start: int, stop: int, buf: NDArray[np.void]) -> None:
     """Pack points ``start:stop`` of the cloud (world frame) into PLY rows and write them."""
     rows = buf[: stop - start]
-    for axis, name in enumerate("xyz"):
-        rows[name] = cloud.points_world[start:stop, axis]
-    rows["scanner"] = cloud.scanner[start:stop]
-    rows["time"] = cloud.time[start:stop]
-    rows["plane_id"] = cloud.plane_id[start:stop]
     if cloud.intensity is not None:
-        rows["intensity"] = cloud.intensity[start:stop]
+        ck.pack_rows_intensity(rows, cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id, cloud.intensity,
+                               start)
+    else:
+        ck.pack_rows(rows, cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id, start)
     f.write(rows.data)
 
 

@@ -134,36 +134,81 @@ def view_of_cloud(cloud: CloudRecord, options: MapOptions | None = None) -> Clou
                      _take(cloud, slice(None, None, _stride(len(cloud), opt.max_cloud_points))))
 
 
+class CloudViewPicker:
+    """Picks a :class:`CloudView` out of a cloud that comes a chunk at a time (in its order): every
+    ``cloud_step``-th point of the whole, and of each scanner every ``step``-th of its points, as
+    :func:`view_of_cloud` picks them from the cloud held whole (when the scanner's points come in
+    time order; see :attr:`unsorted`)."""
+
+    def __init__(self, step: int, cloud_step: int) -> None:
+        self.step, self.cloud_step = step, cloud_step
+        self.t0 = math.inf
+        self.count: dict[int, int] = {}  # points of each scanner so far
+        self.last: dict[int, float] = {}  # time of its last point
+        self.parts: dict[int, list[CloudRecord]] = {}
+        self.unsorted: set[int] = set()  # scanners whose points did not come in time order
+        self.cloud_parts: list[CloudRecord] = []
+        self.n = 0  # points seen
+
+    def take(self, c: CloudRecord) -> None:
+        """The next chunk of the cloud (copies of its picked points are kept, not the chunk)."""
+        if not len(c):
+            return
+        self.t0 = min(self.t0, float(np.min(c.time)))
+        self.cloud_parts.append(_copy(c, slice((-self.n) % self.cloud_step, None, self.cloud_step)))
+        self.n += len(c)
+        for s in np.unique(c.scanner).tolist():
+            sel = np.flatnonzero(c.scanner == s)
+            t = c.time[sel]
+            if not np.all(t[1:] >= t[:-1]) or t[0] < self.last.get(s, -math.inf):
+                self.unsorted.add(s)
+            k = self.count.get(s, 0)
+            self.parts.setdefault(s, []).append(_copy(c, sel[(-k) % self.step :: self.step]))
+            self.count[s], self.last[s] = k + sel.size, float(t[-1])
+
+    def view(self) -> CloudView:
+        """The view of the points taken (the scanners in :attr:`unsorted` as picked, not in time
+        order: the caller's to mend)."""
+        scans = tuple((s, _concat(self.parts[s])) for s in sorted(self.parts))
+        return CloudView(self.t0, scans, _concat(self.cloud_parts))
+
+
+def view_strides(n: int, options: MapOptions) -> tuple[int, int]:
+    """The strides (per scanner, over the whole) at which a view of a cloud of ``n`` points is
+    picked (:class:`MapOptions`' caps)."""
+    return _stride(n, options.max_scan_points), _stride(n, options.max_cloud_points)
+
+
+def joined_view(pickers: Sequence[CloudViewPicker]) -> CloudView:
+    """One view of a cloud picked in consecutive parts (each by its own :class:`CloudViewPicker`,
+    at the same strides, from the part's first point): the parts' picks in order, and a scanner
+    whose picked points are not in time order sorted by time (stable)."""
+    parts: dict[int, list[CloudRecord]] = {}
+    for p in pickers:
+        for s in p.parts:
+            parts.setdefault(s, []).extend(p.parts[s])
+    scans = []
+    for s in sorted(parts):
+        c = _concat(parts[s])
+        if not np.all(c.time[1:] >= c.time[:-1]):
+            c = _take(c, np.argsort(c.time, kind="stable"))
+        scans.append((s, c))
+    cloud = _concat([c for p in pickers for c in p.cloud_parts])
+    return CloudView(min(p.t0 for p in pickers), tuple(scans), cloud)
+
+
 def view_of_cloud_ply(path: str | Path, options: MapOptions | None = None, chunk: int = 1 << 20) -> CloudView:
     """The :class:`CloudView` of a (non-empty) cloud.ply, the same as :func:`view_of_cloud` of the
     cloud read whole, from one pass over the file ``chunk`` points at a time (only the shown
     points are kept); a scanner whose points are not in time order takes two more passes."""
     opt = options or MapOptions()
     n, _ = cloud_ply_layout(path)
-    step, cloud_step = _stride(n, opt.max_scan_points), _stride(n, opt.max_cloud_points)
-    t0 = math.inf
-    count: dict[int, int] = {}  # points of each scanner so far
-    last: dict[int, float] = {}  # time of its last point
-    parts: dict[int, list[CloudRecord]] = {}
-    unsorted: set[int] = set()
-    cloud_parts = []
-    start = 0
+    picker = CloudViewPicker(*view_strides(n, opt))
     for c in iter_cloud_ply(path, chunk):
-        t0 = min(t0, float(np.min(c.time)))
-        cloud_parts.append(_copy(c, slice((-start) % cloud_step, None, cloud_step)))
-        start += len(c)
-        for s in np.unique(c.scanner).tolist():
-            sel = np.flatnonzero(c.scanner == s)
-            t = c.time[sel]
-            if not np.all(t[1:] >= t[:-1]) or t[0] < last.get(s, -math.inf):
-                unsorted.add(s)
-            k = count.get(s, 0)
-            parts.setdefault(s, []).append(_copy(c, sel[(-k) % step :: step]))
-            count[s], last[s] = k + sel.size, float(t[-1])
-    for s in unsorted:
-        parts[s] = [_time_ordered(path, s, step, chunk)]
-    scans = tuple((s, _concat(parts[s])) for s in sorted(parts))
-    return CloudView(t0, scans, _concat(cloud_parts))
+        picker.take(c)
+    for s in picker.unsorted:
+        picker.parts[s] = [_time_ordered(path, s, picker.step, chunk)]
+    return picker.view()
 
 
 def _copy(cloud: CloudRecord, sel: NDArray[np.integer] | slice) -> CloudRecord:

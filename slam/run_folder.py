@@ -32,7 +32,7 @@ from slam.frontend.planemap import KIND_NAMES
 from slam.health import Health
 from slam.io.source import BagSource, StreamIndex
 from slam.pipeline import SlamResult
-from slam.rerun_map import CloudView, MapOptions, SegmentLines, view_of_cloud_ply
+from slam.rerun_map import CloudView, MapOptions, SegmentLines
 
 FloatArray = NDArray[np.float64]
 
@@ -104,12 +104,11 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
     v = voxel if voxel is not None else (cfg.output.voxel or None)
     if index is not None:
         check_cloud_space(out, index.points, index.intensities, cfg.parallel.export_processes, v is not None)
-    # every point goes to a file as it is placed; the recording and the voxel thinning read it
-    # back (the recording a chunk at a time)
+    # every point goes to a file as it is placed (the recording's view picked on the way); the
+    # voxel thinning reads it back
     every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
-    n_every, lines = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes,
-                                 echo=cfg.input.echo)
-    view = view_of_cloud_ply(every, MapOptions()) if cfg.output.rerun and n_every > 0 else None
+    n_every, lines, view = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes,
+                                       echo=cfg.input.echo, view=MapOptions() if cfg.output.rerun else None)
     n_cloud = 0
     if cfg.output.cloud:
         n_cloud = n_every

@@ -31,7 +31,14 @@ from slam.export import (
 from slam.io.bag import read_scans
 from slam.io.source import BagSource, StreamIndex
 from slam.pipeline import SlamResult, SlamRunner
-from slam.rerun_map import CloudView, MapOptions, view_of_cloud, view_of_cloud_ply
+from slam.rerun_map import (
+    CloudView,
+    CloudViewPicker,
+    MapOptions,
+    view_of_cloud,
+    view_of_cloud_ply,
+    view_strides,
+)
 from slam.trajectory.placement import place_points
 from tests.test_slam_pipeline import BOX_WORLD
 
@@ -258,8 +265,9 @@ def _reference_cloud(bag: Path, res: SlamResult) -> tuple[CloudRecord, np.ndarra
 def _streamed(walk: SimulationResult, res: SlamResult, ply: Path, index: StreamIndex | None = None,
               processes: int = 1) -> tuple[int, Any]:
     with BagSource(walk.bag) as source:
-        return slam.cloud_pass.write_cloud(source, resolve_rig("itc_backpack"), res, ply, index, False, processes,
-                                           echo="first")
+        n, lines, _ = slam.cloud_pass.write_cloud(source, resolve_rig("itc_backpack"), res, ply, index, False,
+                                                  processes, echo="first")
+        return n, lines
 
 
 def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, estimate: SlamResult, tmp_path: Path,
@@ -271,7 +279,7 @@ def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, esti
     _same(read_cloud_ply(tmp_path / "default.ply"), ref)
     np.testing.assert_array_equal(lines.endpoints_world.reshape(-1, 3), ref_ends)
     assert lines.stamp.shape[0] == lines.plane_id.shape[0] == ref_ends.shape[0] // 2
-    # batches that end inside a scan's worth of points, placed in odd chunks: the same file
+    # batches of a few scans, placed in odd chunks: the same file
     monkeypatch.setattr(slam.cloud_pass, "_EXPORT_BATCH", 1500)
     monkeypatch.setattr(slam.cloud_pass, "_PLACE_CHUNK", 333)
     _, small = _streamed(walk, estimate, tmp_path / "small.ply")
@@ -294,6 +302,43 @@ def test_a_cloud_cut_by_stamp_windows_is_the_same_file(walk: SimulationResult, e
     np.testing.assert_array_equal(one.endpoints_world, cut.endpoints_world)
     np.testing.assert_array_equal(one.stamp, cut.stamp)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ply", "one.ply"]
+
+
+def test_the_pass_picks_the_recordings_view_as_it_writes(walk: SimulationResult, estimate: SlamResult,
+                                                         tmp_path: Path) -> None:
+    """The view for map.rrd is picked while the points are written, at strides from the stream's
+    count of returns (no second pass over the file): in one part it is the file's view at those
+    strides; cut into parts, every part picks from its own first point, and the joined view holds
+    cloud points only, each scanner's in time order, about as many as in one part."""
+    stream = read_scans(walk.bag, rig=resolve_rig("itc_backpack"))
+    for _ in stream:
+        pass
+    opt = MapOptions(max_scan_points=5_000, max_cloud_points=3_000)
+    rig = resolve_rig("itc_backpack")
+    with BagSource(walk.bag) as source:
+        n, _, one = slam.cloud_pass.write_cloud(source, rig, estimate, tmp_path / "one.ply", stream.index, False, 1,
+                                                echo="first", view=opt)
+        _, _, cut = slam.cloud_pass.write_cloud(source, rig, estimate, tmp_path / "cut.ply", stream.index, False, 3,
+                                                echo="first", view=opt)
+        _, _, unindexed = slam.cloud_pass.write_cloud(source, rig, estimate, tmp_path / "bare.ply", None, False, 1,
+                                                      echo="first", view=opt)
+    assert one is not None and cut is not None and unindexed is not None
+    step, cloud_step = view_strides(stream.index.points, opt)
+    assert n <= stream.index.points and step > 1 and cloud_step > 1
+    picker = CloudViewPicker(step, cloud_step)
+    for c in iter_cloud_ply(tmp_path / "one.ply", 4096):
+        picker.take(c)
+    _same_view(one, picker.view())
+    _same_view(unindexed, view_of_cloud_ply(tmp_path / "bare.ply", opt))  # no count known: from the file
+    whole = read_cloud_ply(tmp_path / "cut.ply")
+    assert cut.t0 == one.t0 == float(whole.time.min())
+    keys = {(float(t), int(s)) for t, s in zip(whole.time, whole.scanner, strict=True)}
+    assert [s for s, _ in cut.scans] == [s for s, _ in one.scans]
+    for (_, a), (_, b) in zip(cut.scans, one.scans, strict=True):
+        assert abs(len(a) - len(b)) <= 3 and np.all(np.diff(a.time) >= 0)
+        assert all((float(t), int(s)) in keys for t, s in zip(a.time, a.scanner, strict=True))
+    assert abs(len(cut.cloud) - len(one.cloud)) <= 3
+    assert len(one.cloud) <= opt.max_cloud_points and sum(len(c) for _, c in one.scans) <= opt.max_scan_points + 3
 
 
 def test_the_cloud_pass_keeps_its_heap_from_creeping_up(walk: SimulationResult, estimate: SlamResult,

@@ -157,10 +157,10 @@ def test_an_error_in_an_export_process_leaves_no_output(walk: SimulationResult, 
 
     original = cloud_mod.cloud_part
 
-    def failing(scans: Any, part: Any, rig: Any, res: Any, writer: Any, bar: Any = None) -> Any:
+    def failing(scans: Any, part: Any, rig: Any, res: Any, writer: Any, bar: Any = None, **kw: Any) -> Any:
         if part.lo > 0:  # the forked parts only
             raise OSError("disk full")
-        return original(scans, part, rig, res, writer, bar)
+        return original(scans, part, rig, res, writer, bar, **kw)
 
     monkeypatch.setattr(cloud_mod, "cloud_part", failing)
     out = tmp_path / "run"
