@@ -151,7 +151,8 @@ def test_the_result_is_complete(box_noisy: SimulationResult, rig: Any) -> None:
     assert sorted(res.plane_covariances) == sorted(map(int, res.plane_ids))
     for pid, cov in res.plane_covariances.items():
         assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0.0), pid
-        np.testing.assert_array_equal(cov, runner.backend.plane_covariance(pid))
+        # all from one elimination with the planes last, as gtsam.Marginals gives them one by one
+        np.testing.assert_allclose(cov, runner.backend.plane_covariance(pid), rtol=1e-7, atol=1e-16)
     d = res.stats.to_dict()
     assert d["knots"] == len(res.knot_times) and d["planes"] == len(res.plane_ids) and d["scans"] > 0
     assert d["batch"]["iterations"] >= 1 and res.stats["batch"] == d["batch"]

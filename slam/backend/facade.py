@@ -39,6 +39,7 @@ from slam.backend.factors import RobustKernel, robust_weights
 from slam.backend.graph import FactorGraph
 from slam.backend.incremental import IncrementalSolver, make_incremental
 from slam.backend.knots import Knots, is_imu_keys
+from slam.backend.marginals import root_marginals
 from slam.backend.sections import SectionedBatch
 from slam.backend.ties import PlaneTies
 from slam.trajectory.interpolation import interpolate_trajectory
@@ -268,21 +269,28 @@ class Backend:
 
     def plane_covariances(self, plane_ids: Sequence[int]) -> dict[int, FloatArray]:
         """:meth:`plane_covariance` of each of ``plane_ids``, a plane without one (an
-        indeterminate system) left out. A sectioned walk computes them all at once, the other
-        planes that one section alone sees eliminated with it."""
-        if self.sections.needed():
-            ids: dict[int, int] = {}
-            for j in plane_ids:
-                try:
-                    ids[int(j)] = self.blocks.check_plane(int(j))
-                except ValueError:  # no such plane: no covariance
-                    continue
-            got = self.sections.plane_covariances(sorted(set(ids.values())))
-            return {j: got[i] for j, i in ids.items() if i in got}
-        out: dict[int, FloatArray] = {}
+        indeterminate system) left out, all from one elimination: with the planes ordered last
+        (:func:`slam.backend.marginals.root_marginals`), or a sectioned walk's (the other planes
+        that one section alone sees eliminated with it); plane by plane where neither can."""
+        ids: dict[int, int] = {}
         for j in plane_ids:
             try:
-                out[int(j)] = self.plane_covariance(int(j))
+                ids[int(j)] = self.blocks.check_plane(int(j))
+            except ValueError:  # no such plane: no covariance
+                continue
+        if self.sections.needed():
+            got = self.sections.plane_covariances(sorted(set(ids.values())))
+            return {j: got[i] for j, i in ids.items() if i in got}
+        if ids and self.incremental.marginal_covariance(P(next(iter(ids.values())))) is None:
+            graph = self.blocks.whole_graph()
+            joint = root_marginals(graph, self.graph.used_values(graph), sorted({P(i) for i in ids.values()}),
+                                   self.blocks.planes)
+            if joint is not None:
+                return {j: joint[P(i)] for j, i in ids.items()}
+        out: dict[int, FloatArray] = {}
+        for j in ids:
+            try:
+                out[j] = self.plane_covariance(j)
             except (ValueError, RuntimeError):
                 continue
         return out
