@@ -145,10 +145,7 @@ class FactorGraph:
         keys = graph.keyVector()
         if len(keys) == self.values.size():  # every variable (its keys are the estimate's): one copy
             return gtsam.Values(self.values)
-        out = gtsam.Values()
-        for k in keys:
-            copy_value(out, self.values, int(k))
-        return out
+        return self.values.extract([int(k) for k in keys])
 
 
 def top_knot(keys: Sequence[int]) -> int | None:

@@ -122,13 +122,10 @@ class WindowSolver:
                     self._summaries[j] = hit
                 graph.add(hit[1])
         fg.knotless = [fid for fid in fg.knotless if fid in fg.records]
-        values = gtsam.Values()
-        for k in used:
-            copy_value(values, fg.values, k)
+        values = fg.values.extract(sorted(used))
         fixed = sorted(used - active)
         sol = self.batch.solve(graph, values, max_iterations, fixed=fixed)
-        for k in active & used:
-            copy_value(fg.values, sol.values, k, update=True)
+        fg.values.update(sol.values.extract(sorted(active & used)))
         fg.pending, fg.pending_removals = [], []
         fg.restructure()
         return OptimizeSummary(float(sol.initial_error), float(sol.final_error), sol.iterations,

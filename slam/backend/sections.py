@@ -63,7 +63,7 @@ from numpy.typing import NDArray
 from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
-from slam.backend.graph import FactorGraph, copy_value, plane_indices, top_knot
+from slam.backend.graph import FactorGraph, plane_indices, top_knot
 from slam.backend.packed_net import PackedNet, pack
 from slam.backend.packed_net import solve as solve_net
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
@@ -480,10 +480,7 @@ class SectionedBatch:
     @staticmethod
     def _plane_covariances_one_by_one(graph: gtsam.GaussianFactorGraph, values: gtsam.Values,
                                       wanted: set[int] | None) -> dict[int, FloatArray]:
-        sep = gtsam.Values()
-        for k in graph.keyVector():
-            copy_value(sep, values, int(k))
-        marg = gtsam.Marginals(graph, sep)
+        marg = gtsam.Marginals(graph, values.extract([int(k) for k in graph.keyVector()]))
         out: dict[int, FloatArray] = {}
         for k in graph.keyVector():
             sym = gtsam.Symbol(int(k))
