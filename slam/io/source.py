@@ -32,6 +32,7 @@ from common.rig import Rig
 from segmentation import Scanline
 from slam.io.compact_index import open_compact
 from slam.io.errors import InputError, input_error
+from slam.io.imu_raw import ImuColumns, imu_columns
 
 LASERSCAN = "sensor_msgs/msg/LaserScan"
 MULTIECHO = "sensor_msgs/msg/MultiEchoLaserScan"
@@ -351,10 +352,22 @@ class BagSource:
                           MAX_SCAN_GAP if rig is not None else None, record)
 
     def imu(self, topic: str = "/imu") -> ImuSeries:
-        """All ``sensor_msgs/Imu`` messages of ``topic`` as arrays, in log order."""
+        """All ``sensor_msgs/Imu`` messages of ``topic`` as arrays, in log order: read as columns
+        from their bytes when they share one layout (:mod:`slam.io.imu_raw`; checked against the
+        deserialised first, middle and last messages), else message by message."""
+        connections = self.connections(topic, IMU)
+        try:
+            raws = [(c, raw) for c, _, raw in self._reader.messages(connections=connections)]
+        except Exception as e:
+            raise input_error(self.path, f"corrupt or truncated bag ({_describe(e)})", topic) from None
+        cols = imu_columns([raw for _, raw in raws], self._reader.is2)
+        if cols is not None and all(self._same_imu(cols, i, *raws[i]) for i in {0, len(raws) // 2, len(raws) - 1}):
+            return ImuSeries(np.multiply(cols.stamp_ns, 1e-9, dtype=np.float64), cols.angular_velocity, cols.linear_acceleration,
+                             cols.orientation_xyzw, cols.frame_id)
+        del raws
         times, gyro, acc, quat = [], [], [], []
         frame = ""
-        for _, _, msg in self.messages(self.connections(topic, IMU)):
+        for _, _, msg in self.messages(connections):
             times.append(stamp_ns(msg.header) * 1e-9)
             w, a, q = msg.angular_velocity, msg.linear_acceleration, msg.orientation
             gyro.append((w.x, w.y, w.z))
@@ -368,6 +381,18 @@ class BagSource:
             np.array(quat).reshape(-1, 4),
             frame,
         )
+
+    def _same_imu(self, cols: ImuColumns, i: int, conn: Any, raw: bytes) -> bool:
+        """Whether row ``i`` of ``cols`` is message ``raw`` as rosbags deserialises it."""
+        try:
+            msg: Any = self._reader.deserialize(raw, conn.msgtype)
+        except Exception:
+            return False
+        w, a, q = msg.angular_velocity, msg.linear_acceleration, msg.orientation
+        return (stamp_ns(msg.header) == int(cols.stamp_ns[i]) and str(msg.header.frame_id) == cols.frame_id
+                and (w.x, w.y, w.z) == tuple(cols.angular_velocity[i].tolist())
+                and (a.x, a.y, a.z) == tuple(cols.linear_acceleration[i].tolist())
+                and (q.x, q.y, q.z, q.w) == tuple(cols.orientation_xyzw[i].tolist()))
 
     def message_counts(self) -> dict[str, int]:
         """Topic -> number of messages."""
