@@ -151,10 +151,13 @@ class SlamRunner:
         t_start = _time.perf_counter()
         self.stats.scans += 1
         if self.knots.t0 is None:
-            # the deskew table the runner's own preparer built for this stream, else (scans
-            # prepared in another process) the same one built here
+            # the deskew table the preparer built for this stream (the runner's own, or one in
+            # another process, which hands it on with the first scan), else the same one built here
             own = self.preparer.t0 == scan.stamp
-            self.knots.start(scan.stamp, self.preparer.deskew if own else knot_deskew(self.cfg, self.imu, scan.stamp))
+            table = self.preparer.deskew if own else scan.deskew
+            if table is None and not own:
+                table = knot_deskew(self.cfg, self.imu, scan.stamp)
+            self.knots.start(scan.stamp, table)
             self._start_scans = []
         self._timer.add_seconds("segmentation", scan.seconds_segmentation)
         self._timer.add_seconds("frontend", scan.seconds_lift)

@@ -16,7 +16,7 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
-from slam.frontend.scan_prep import ScanPreparer
+from slam.frontend.scan_prep import ScanPreparer, knot_deskew
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import InputError
 from slam.io.source import BagSource
@@ -92,6 +92,11 @@ def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig:
                          "virtual_sigma", "line_direction"):
                 np.testing.assert_array_equal(getattr(a.segs, name), getattr(b.segs, name), err_msg=name)
     assert n_segs > 1000 and n_tests > 100
+    # the first scan hands on the reader's deskew table (the runner does not build it again)
+    table = knot_deskew(cfg, imu, here[0].stamp)
+    assert table is not None and there[0].deskew is not None and all(s.deskew is None for s in there[1:])
+    np.testing.assert_array_equal(there[0].deskew.rotvec, table.rotvec)
+    np.testing.assert_array_equal(there[0].deskew.times, table.times)
 
 
 def test_an_error_in_the_reader_process_is_raised_here(walk: SimulationResult, rig: Any,

@@ -37,7 +37,8 @@ class PreparedScan:
     (``skipped``: fewer than two valid beams, before the first scan's stamp, or refused by the
     segmenter) and for a scan without segments. ``seconds`` are the segmentation's and the
     lifting's (with the deskew and the edge tests) times spent on it. ``edge_tests`` holds
-    :func:`scan_edge_tests` (empty with ``edges.use`` off).
+    :func:`scan_edge_tests` (empty with ``edges.use`` off). The stream's first scan carries
+    the preparer's deskew table (``deskew``; None without an IMU or deskewing).
     """
 
     scanner: int
@@ -48,6 +49,7 @@ class PreparedScan:
     seconds_segmentation: float
     seconds_lift: float
     edge_tests: dict[tuple[int, int], Any] = field(default_factory=dict)
+    deskew: DeskewTable | None = None  # the stream's first scan: the preparer's deskew table (None without one)
 
 
 class ScanPreparer:
@@ -87,15 +89,17 @@ class ScanPreparer:
         s = self.scanner_index(line)
         scan_index = self._counter[s]
         self._counter[s] += 1
+        table = None  # handed on with the stream's first scan (a runner in another process need not build it again)
         if self.t0 is None:
             self.t0 = line.stamp
-            self.deskew = knot_deskew(self.cfg, self.imu, line.stamp)
+            self.deskew = table = knot_deskew(self.cfg, self.imu, line.stamp)
         if line.n_valid < 2 or line.stamp < self.t0:
-            return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0)
+            return PreparedScan(s, scan_index, line.stamp, True, None, 0.0, 0.0, deskew=table)
         try:
             seg = self.segmenters[s].segment(line)
         except ValueError:
-            return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0)
+            return PreparedScan(s, scan_index, line.stamp, True, None, time.perf_counter() - t_start, 0.0,
+                                deskew=table)
         sc = self.cfg.segmenter
         if sc.split_steps:
             seg = split_at_steps(line, seg, self._range_sigma[s], sc.step_chi2, sc.step_min,
@@ -111,7 +115,7 @@ class ScanPreparer:
         tests = scan_edge_tests(segs, self._edges, self._range_sigma[s]) if self._edges is not None and segs.n_segments else {}
         t_end = time.perf_counter()
         return PreparedScan(s, scan_index, line.stamp, False, segs if segs.n_segments else None,
-                            t_seg - t_start, t_end - t_seg, tests)
+                            t_seg - t_start, t_end - t_seg, tests, table)
 
 
 def scan_edge_tests(segs: ScanSegments, ep: EdgeParams, range_sigma: float) -> dict[tuple[int, int], Any]:
