@@ -111,8 +111,9 @@ class PlaneMap:
         self._active: list[Plane] | None = None  # the active planes, kept until a plane is added or merged
         self._version = 0  # bumped by every change of a plane's estimate, a new plane and a merge
         self._rows: tuple[int, FloatArray, NDArray[np.bool_]] | None = None
-        # per plane: its cell centres (world frame) with the version and cell set they are of
-        self._centres: dict[int, tuple[int, set[tuple[int, int]], int, FloatArray]] = {}
+        # per plane: its cell set, their count, its frame (u, v, normal, d), the cells' centres in
+        # the plane's (u, v) frame (+0.5) and in the world
+        self._centres: dict[int, tuple[set[tuple[int, int]], int, FloatArray, FloatArray, FloatArray]] = {}
         # every plane's extent cells in one compiled index (the dilated-extent tests), grown with
         # the planes' cell sets (``extend``, ``observe_segments``: the only places they grow)
         self.extents = ExtentIndex()
@@ -292,12 +293,18 @@ class PlaneMap:
         p = self.planes[pid]
         if not p.cells:
             return np.empty((0, 3))
+        # kept while the plane keeps its cells (they only grow: the same set and count) and its
+        # frame, whatever else of the map changed
+        frame = np.concatenate((p.u, p.v, p.normal, [p.d]))
         hit = self._centres.get(pid)
-        if hit is not None and hit[0] == self._version and hit[1] is p.cells and hit[2] == len(p.cells):
-            return hit[3]
-        c = np.array(list(p.cells), dtype=np.float64) + 0.5
-        out = (c[:, :1] * p.u + c[:, 1:] * p.v) * self.cell_size - p.d * p.normal
-        self._centres[pid] = (self._version, p.cells, len(p.cells), out)
+        if hit is not None and hit[0] is p.cells and hit[1] == len(p.cells):
+            if np.array_equal(hit[2], frame):
+                return hit[4]
+            cells = hit[3]
+        else:
+            cells = np.array(list(p.cells), dtype=np.float64) + 0.5
+        out = (cells[:, :1] * p.u + cells[:, 1:] * p.v) * self.cell_size - p.d * p.normal
+        self._centres[pid] = (p.cells, len(p.cells), frame, cells, out)
         return out
 
     def extent_length(self, pid: int) -> float:
