@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import gtsam
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -89,24 +90,59 @@ class ImuSamples:
         gtsam holds over them (see the module doc)."""
         if not t_b > t_a:
             raise ValueError(f"imu interval: need t_b > t_a, got [{t_a}, {t_b}]")
-        i0 = max(int(np.searchsorted(self.times, t_a, side="right")) - 1, 0)
-        i1 = max(int(np.searchsorted(self.times, t_b, side="left")), i0 + 1)
-        idx = np.arange(i0, i1)
-        start = np.maximum(self.times[idx], t_a)
-        nxt = np.append(self.times[idx[1:]], t_b)
-        end = np.minimum(nxt, t_b)
-        dt = end - start
-        if self.times[i0] > t_a + MAX_GAP or np.any(dt > MAX_GAP):
+        ok, acc, gyr, dt = _interval(self.times, self.accel, self.gyro, float(t_a), float(t_b), self.instantaneous,
+                                     MAX_GAP)
+        if not ok:
             raise ValueError(f"imu: no samples for {MAX_GAP * 1e3:.0f} ms or more within [{t_a:.3f}, {t_b:.3f}] s")
-        keep = dt > 0
-        if not self.instantaneous:
-            return self.accel[idx[keep]], self.gyro[idx[keep]], dt[keep]
-        mid = 0.5 * (start[keep] + end[keep])
-        j = np.clip(np.searchsorted(self.times, mid, side="right") - 1, 0, self.times.size - 2)
-        w = np.clip((mid - self.times[j]) / (self.times[j + 1] - self.times[j]), 0.0, 1.0)[:, None]
-        acc = (1.0 - w) * self.accel[j] + w * self.accel[j + 1]
-        gyr = (1.0 - w) * self.gyro[j] + w * self.gyro[j + 1]
-        return acc, gyr, dt[keep]
+        return acc, gyr, dt
+
+
+@nb.njit(cache=True)
+def _interval(times: FloatArray, accel: FloatArray, gyro: FloatArray, t_a: float, t_b: float, instantaneous: bool,
+              max_gap: float) -> tuple[bool, FloatArray, FloatArray, FloatArray]:  # pragma: no cover
+    """:meth:`ImuSamples.interval` (False: a gap over ``max_gap``): the pieces' start and end
+    clipped to the interval, the pieces of zero length left out, the readings held or (with
+    ``instantaneous``) interpolated at each piece's midpoint, in one compiled pass (per element
+    the operations of the numpy version it replaced)."""
+    n = times.shape[0]
+    i0 = max(int(np.searchsorted(times, t_a, side="right")) - 1, 0)
+    i1 = max(int(np.searchsorted(times, t_b, side="left")), i0 + 1)
+    m = i1 - i0
+    start = np.empty(m)
+    end = np.empty(m)
+    ok = not times[i0] > t_a + max_gap
+    kept = 0
+    for q in range(m):
+        start[q] = max(times[i0 + q], t_a)
+        end[q] = min(times[i0 + q + 1] if q + 1 < m else t_b, t_b)
+        d = end[q] - start[q]
+        if d > max_gap:
+            ok = False
+        if d > 0:
+            kept += 1
+    acc = np.empty((kept, 3))
+    gyr = np.empty((kept, 3))
+    dt = np.empty(kept)
+    if not ok:
+        return False, acc, gyr, dt
+    r = 0
+    for q in range(m):
+        d = end[q] - start[q]
+        if not d > 0:
+            continue
+        dt[r] = d
+        if not instantaneous:
+            acc[r] = accel[i0 + q]
+            gyr[r] = gyro[i0 + q]
+        else:
+            mid = 0.5 * (start[q] + end[q])
+            j = min(max(int(np.searchsorted(times, mid, side="right")) - 1, 0), n - 2)
+            w = min(max((mid - times[j]) / (times[j + 1] - times[j]), 0.0), 1.0)
+            for c in range(3):
+                acc[r, c] = (1.0 - w) * accel[j, c] + w * accel[j + 1, c]
+                gyr[r, c] = (1.0 - w) * gyro[j, c] + w * gyro[j + 1, c]
+        r += 1
+    return True, acc, gyr, dt
 
 
 def predict_navstate(

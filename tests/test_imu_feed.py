@@ -72,6 +72,35 @@ def test_midpoint_rule_follows_a_swaying_torso() -> None:
     assert errs[True] < 5e-5 and errs[False] > 1e-3, errs
 
 
+def _numpy_interval(s: ImuSamples, t_a: float, t_b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The interval as numpy computed it before the compiled pass (the reference)."""
+    i0 = max(int(np.searchsorted(s.times, t_a, side="right")) - 1, 0)
+    i1 = max(int(np.searchsorted(s.times, t_b, side="left")), i0 + 1)
+    idx = np.arange(i0, i1)
+    start = np.maximum(s.times[idx], t_a)
+    end = np.minimum(np.append(s.times[idx[1:]], t_b), t_b)
+    dt = end - start
+    keep = dt > 0
+    if not s.instantaneous:
+        return s.accel[idx[keep]], s.gyro[idx[keep]], dt[keep]
+    mid = 0.5 * (start[keep] + end[keep])
+    j = np.clip(np.searchsorted(s.times, mid, side="right") - 1, 0, s.times.size - 2)
+    w = np.clip((mid - s.times[j]) / (s.times[j + 1] - s.times[j]), 0.0, 1.0)[:, None]
+    return (1.0 - w) * s.accel[j] + w * s.accel[j + 1], (1.0 - w) * s.gyro[j] + w * s.gyro[j + 1], dt[keep]
+
+
+@pytest.mark.parametrize("instantaneous", [False, True])
+def test_the_compiled_interval_is_the_numpy_one_bit_for_bit(instantaneous: bool) -> None:
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.004, 0.006, 600))
+    s = ImuSamples(t, rng.normal(0, 3, (600, 3)), rng.normal(0, 1, (600, 3)), instantaneous=instantaneous)
+    starts = np.concatenate((rng.uniform(t[0], t[-1] - 0.1, 200), t[10:20]))  # on sample stamps too
+    for t_a, width in zip(starts, rng.uniform(0.001, 0.08, starts.size), strict=True):
+        got, ref = s.interval(float(t_a), float(t_a + width)), _numpy_interval(s, float(t_a), float(t_a + width))
+        for x, y in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
 def test_gaps_are_errors_and_coverage_is_checked() -> None:
     t = np.concatenate((np.arange(0.0, 1.0, 0.005), np.arange(1.5, 2.0, 0.005)))
     s = ImuSamples(t, np.zeros((t.size, 3)), np.zeros((t.size, 3)))
