@@ -422,6 +422,9 @@ class BackEndConfig(StrictModel):
     final_trim_iterations: int = Field(4, ge=1, description="iterations of the solve after each trim")
     final_trim_rounds: int = Field(3, ge=1, description="trims, each followed by a solve (a plane that took another "
                                    "surface's segments moves onto its own with each round)")
+    final_trim_min_fraction: float = Field(
+        0.01, ge=0, le=1, description="a trim after the first that detaches fewer points than this fraction of the "
+        "first's ends the trims without solving again (too few to move the estimate; 0: every round solves)")
 
 
 class ImuSection(StrictModel):

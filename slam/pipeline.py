@@ -304,12 +304,14 @@ class SlamRunner:
             be = self.cfg.backend
             final = None if be.final_robust == "same" else RobustKernel(be.final_robust, be.robust_k)
             summary = self.backend.batch_optimize(be.batch_iterations, graduated=False, kernel=final)
+            first_round = 0
             for _ in range(be.final_trim_rounds if be.final_trim_sigmas > 0 else 0):
                 n_pts, n_blk = self.backend.trim_observations(be.final_trim_sigmas, be.final_trim_distance)
                 self.stats.trimmed_points += n_pts
                 self.stats.trimmed_blocks += n_blk
-                if not n_pts:
-                    break
+                if not n_pts or n_pts < be.final_trim_min_fraction * first_round:
+                    break  # nothing, or too little to move the estimate: not solved again
+                first_round = first_round or n_pts
                 summary = self.backend.batch_optimize(be.final_trim_iterations, graduated=False, kernel=final)
         self._timer.add("batch", t)
         poses = self.backend.poses()

@@ -206,6 +206,39 @@ def test_loop_closes_onto_the_start_planes(ring: SimulationResult, rig: Any, tmp
     assert res.trajectory.ate["start_aligned"].rmse < 0.01
 
 
+@pytest.mark.parametrize(("fraction", "solves"), [(0.01, 3), (0.0, 4), (0.6, 2)])
+def test_a_trim_round_that_detaches_too_little_is_not_solved_again(box_noisy: SimulationResult, rig: Any,
+                                                                    fraction: float, solves: int) -> None:
+    """The final batch's solve, then trims detaching 1000, 500 and 5 points: a round detaching fewer
+    than backend.final_trim_min_fraction of the first round's points ends the trims unsolved."""
+    from slam.io.bag import read_scans
+
+    cfg = _fast()
+    cfg = cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"final_trim_min_fraction": fraction})})
+    runner = SlamRunner(rig, cfg)
+    for line in read_scans(box_noisy.bag, rig=rig):
+        runner.add_scan(line)
+    runner.finish()
+    rounds = iter([(1000, 5), (500, 3), (5, 1)])
+    calls: list[str] = []
+    solve = runner.backend.batch_optimize
+
+    def trim(*args: Any) -> tuple[int, int]:
+        calls.append("trim")
+        return next(rounds)
+
+    def optimize(*args: Any, **kwargs: Any) -> Any:
+        calls.append("solve")
+        return solve(*args, **kwargs)
+
+    runner.backend.trim_observations = trim  # type: ignore[method-assign]
+    runner.backend.batch_optimize = optimize  # type: ignore[method-assign]
+    res = runner.result(covariances=False)
+    assert calls.count("solve") == solves and calls[0] == "solve"
+    assert calls.count("trim") == (2 if fraction == 0.6 else 3)
+    assert res.stats["trimmed_points"] == (1500 if fraction == 0.6 else 1505)
+
+
 @pytest.fixture(scope="module")
 def corridor_imu(tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
     return _simulate(tmp_path_factory.mktemp("corridor"), "corridor", LONG_CORRIDOR_WORLD, 5.0, None, imu=True)
