@@ -92,6 +92,10 @@ def test_the_reader_process_prepares_the_same_scans(walk: SimulationResult, rig:
                          "virtual_sigma", "line_direction"):
                 np.testing.assert_array_equal(getattr(a.segs, name), getattr(b.segs, name), err_msg=name)
     assert n_segs > 1000 and n_tests > 100
+    # a scanner's equal beam angles come as one array (sent once per chunk)
+    for s in {b.scanner for b in there if b.segs is not None}:
+        arrays = [b.segs.beam_angles for b in there[:7] if b.segs is not None and b.scanner == s]
+        assert len(arrays) >= 2 and all(a is arrays[0] for a in arrays), s
     # the first scan hands on the reader's deskew table (the runner does not build it again)
     table = knot_deskew(cfg, imu, here[0].stamp)
     assert table is not None and there[0].deskew is not None and all(s.deskew is None for s in there[1:])
