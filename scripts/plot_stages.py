@@ -3,8 +3,8 @@ per ``scripts/bench_slam.py`` table (its first method's column).
 
 The estimator's stages (tracking, association, plane creation, back end, final batch, export) run
 one after another in its process; the rest of the wall time (reading the IMU, the noise estimate,
-waiting for the reader, the planes' covariances and the residual statistics after the batch) is
-shown as "other". The reader process's segmentation and lifting run beside them and are not part
+taking the reader's scans off its queue, the planes' covariances and the residual statistics
+after the batch) is shown as "other". The reader process's segmentation and lifting run beside them and are not part
 of the bar.
 
 Usage:
@@ -22,7 +22,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
 STAGES = ("tracking", "association", "plane_creation", "backend", "batch", "export")
 
@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     fig, ax = plt.subplots(figsize=(9, 0.55 * len(rows) + 1.6))
     colors = plt.get_cmap("tab10").colors
-    for i, (label, t) in enumerate(rows):
+    for i, (_, t) in enumerate(rows):
         left = 0.0
         parts = [(s, t[s]) for s in STAGES] + [("other", max(0.0, t["wall"] - sum(t[s] for s in STAGES)))]
         for j, (stage, v) in enumerate(parts):
@@ -76,8 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     ax.invert_yaxis()
     ax.set_xlabel("wall time (s)")
     ax.set_title(args.title, fontsize=10)
-    ax.legend(ncol=7, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.25 if len(rows) > 2 else -0.4))
-    fig.tight_layout()
+    fig.legend(ncol=7, fontsize=7, loc="lower center")
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_name(f".{args.out.name}.tmp.png")
     fig.savefig(tmp, dpi=110)
