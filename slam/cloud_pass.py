@@ -75,9 +75,8 @@ class _CloudBatch:
     has crept up (``HeapKeeper``: the pass's allocations, taken from an inherited, trimmed heap's
     free chunks, would otherwise make it grow with the walk).
 
-    Every number is computed point by point (the body frame by one matrix product per scanner,
-    which gives each point the same bits however many points it holds), so the cloud is the same
-    however the scans are batched."""
+    Every number is computed point by point (the body frame by one small matrix product per
+    scan, as before), so the cloud is the same however the scans are batched."""
 
     def __init__(self, res: SlamResult, rig: Rig, writer: CloudPlyWriter, picker: CloudViewPicker | None) -> None:
         self._kt, self._T, self._deskew = res.knot_times, res.T_world_body, res.deskew
