@@ -38,16 +38,9 @@ def pack_rows_intensity(rows: NDArray[np.void], points_world: FloatArray, scanne
                         time: FloatArray, plane_id: NDArray[np.integer], intensity: NDArray[np.float32],
                         start: int) -> None:  # pragma: no cover
     """:func:`pack_rows` for a cloud.ply with the ``intensity`` property."""
+    pack_rows(rows, points_world, scanner, time, plane_id, start)
     for i in range(rows.shape[0]):
-        k = start + i
-        r = rows[i]
-        r.x = points_world[k, 0]
-        r.y = points_world[k, 1]
-        r.z = points_world[k, 2]
-        r.scanner = scanner[k]
-        r.time = time[k]
-        r.plane_id = plane_id[k]
-        r.intensity = intensity[k]
+        rows[i].intensity = intensity[start + i]
 
 
 @nb.njit(cache=True)

@@ -357,11 +357,11 @@ class BagSource:
         deserialised first, middle and last messages), else message by message."""
         connections = self.connections(topic, IMU)
         try:
-            raws = [(c, raw) for c, _, raw in self._reader.messages(connections=connections)]
+            raws = [raw for _, _, raw in self._reader.messages(connections=connections)]
         except Exception as e:
             raise input_error(self.path, f"corrupt or truncated bag ({_describe(e)})", topic) from None
-        cols = imu_columns([raw for _, raw in raws], self._reader.is2)
-        if cols is not None and all(self._same_imu(cols, i, *raws[i]) for i in {0, len(raws) // 2, len(raws) - 1}):
+        cols = imu_columns(raws, self._reader.is2)
+        if cols is not None and all(self._same_imu(cols, i, raws[i]) for i in {0, len(raws) // 2, len(raws) - 1}):
             return ImuSeries(np.multiply(cols.stamp_ns, 1e-9, dtype=np.float64), cols.angular_velocity, cols.linear_acceleration,
                              cols.orientation_xyzw, cols.frame_id)
         del raws
@@ -382,10 +382,11 @@ class BagSource:
             frame,
         )
 
-    def _same_imu(self, cols: ImuColumns, i: int, conn: Any, raw: bytes) -> bool:
-        """Whether row ``i`` of ``cols`` is message ``raw`` as rosbags deserialises it."""
+    def _same_imu(self, cols: ImuColumns, i: int, raw: bytes) -> bool:
+        """Whether row ``i`` of ``cols`` is the ``sensor_msgs/Imu`` message ``raw`` as rosbags
+        deserialises it."""
         try:
-            msg: Any = self._reader.deserialize(raw, conn.msgtype)
+            msg: Any = self._reader.deserialize(raw, IMU)
         except Exception:
             return False
         w, a, q = msg.angular_velocity, msg.linear_acceleration, msg.orientation
