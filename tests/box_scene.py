@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slam.backend import Backend, BackendConfig
 from slam.trajectory.interpolation import interpolate_trajectory, knot_fractions, se3_exp
 
 FloatArray = NDArray[np.float64]
@@ -129,3 +130,17 @@ def perturb_pose(T: FloatArray, rng: np.random.Generator, sigma_t: float, sigma_
     """``T Exp(delta)`` with Gaussian rotation [rad] and translation [m] perturbations."""
     d = np.concatenate([rng.normal(0, sigma_r, 3), rng.normal(0, sigma_t, 3)])
     return T @ se3_exp(d)
+
+
+def perturbed_backend(scene: Scene, config: BackendConfig, seed: int = 3) -> Backend:
+    """A back end holding ``scene``'s observations, its poses (all but the first) perturbed by
+    1 cm / 0.3 deg and its planes by 0.01 (normal) / 2 cm (offset); the first two planes horizontal."""
+    rng = np.random.default_rng(seed)
+    be = Backend(config)
+    for i, (t, T) in enumerate(zip(scene.knot_times, scene.knot_poses, strict=True)):
+        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * np.pi / 180.0))
+    for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
+        be.add_plane(j, n0 + rng.normal(0.0, 0.01, 3), d0 + rng.normal(0.0, 0.02), horizontal=j < 2)
+    for b in scene.blocks:
+        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
+    return be

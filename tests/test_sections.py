@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 from backend_defaults import backend_defaults
-from box_scene import Scene, make_scene, perturb_pose
+from box_scene import Scene, make_scene, perturbed_backend
 
 from slam.backend import Backend, BackendConfig
 from slam.backend.sections import plan_sections, separator_knots
@@ -26,15 +26,19 @@ def scene() -> Scene:
 
 
 def _build(scene: Scene, config: BackendConfig, seed: int = 3) -> Backend:
-    rng = np.random.default_rng(seed)
-    be = Backend(config)
-    for i, (t, T) in enumerate(zip(scene.knot_times, scene.knot_poses, strict=True)):
-        be.add_pose(t, T if i == 0 else perturb_pose(T, rng, 0.01, 0.3 * DEG))
-    for j, (n0, d0) in enumerate(zip(scene.planes[:, :3], scene.planes[:, 3], strict=True)):
-        be.add_plane(j, n0 + rng.normal(0.0, 0.01, 3), d0 + rng.normal(0.0, 0.02), horizontal=j < 2)
-    for b in scene.blocks:
-        be.add_observations(b["knot"], b["plane"], b["points_body"], b["alphas"], b["sigmas"])
-    return be
+    return perturbed_backend(scene, config, seed)
+
+
+def _whole_linear_model(be: Backend, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+    """The whole graph linearised at ``values`` with the solves' damping rows."""
+    whole = be.blocks.whole_graph()
+    be.blocks.planes.at(values)
+    try:
+        lin = whole.linearize(values)
+    finally:
+        be.blocks.planes.at(None)
+    lin.push_back(damping_rows([(int(k), int(d)) for k, d in values.dims().items()], set(), DAMPING))
+    return lin
 
 
 @pytest.mark.parametrize("n,size", [(10, 20), (100, 20), (101, 20), (7, 1), (1000, 333)])
@@ -91,13 +95,7 @@ def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
     delta = be.sections.back_substitute(values, be.config.kernel, DAMPING, red.graph.optimize())
     assert not be.blocks._groups and not be.blocks._factors  # nothing of a section kept
     assert red.error == pytest.approx(be.batch.error(), rel=1e-12)
-    whole = be.blocks.whole_graph()
-    be.blocks.planes.at(values)
-    try:
-        lin = whole.linearize(values)
-    finally:
-        be.blocks.planes.at(None)
-    lin.push_back(damping_rows([(int(k), int(d)) for k, d in values.dims().items()], set(), DAMPING))
+    lin = _whole_linear_model(be, values)
     ref = lin.optimize()
     for k in values.keys():
         assert np.allclose(delta.at(k), ref.at(k), rtol=1e-7, atol=1e-10), gtsam.DefaultKeyFormatter(k)
@@ -132,6 +130,19 @@ def test_a_sectioned_step_is_the_whole_graphs_step(scene: Scene) -> None:
     import gc
     gc.collect()
     assert not folder.exists()
+
+
+def test_the_separators_error_at_its_step_is_the_linear_models(scene: Scene) -> None:
+    """What the sectioned solve predicts a step to lower the error by (the separator system's
+    error at its step, the interiors' conditionals holding) is the whole linear model's."""
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0))
+    values = gtsam.Values(be.graph.values)
+    red = be.sections.reduce(values, be.config.kernel, DAMPING)
+    sep = red.graph.optimize()
+    lin = _whole_linear_model(be, values)
+    ref = lin.optimize()
+    assert red.graph.error(sep) == pytest.approx(lin.error(ref), rel=1e-9)
+    assert red.graph.error(sep) < 0.9 * red.error  # from the perturbed start the model lowers the error
 
 
 def test_sectioned_batch_reaches_the_whole_batchs_estimate(scene: Scene) -> None:

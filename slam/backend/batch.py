@@ -81,26 +81,22 @@ class BatchSolver:
         if not (max_whitened > 0.0 and min_distance >= 0.0):
             raise ValueError(f"trim thresholds: expected > 0 and >= 0, got {max_whitened}, {min_distance}")
         n_points = n_blocks = 0
-        residuals = self.blocks.all_whitened_residuals()
-        if not residuals:
+        # every block's test in one pass over its gathered rows (elementwise: the same numbers as
+        # block by block); the blocks with a point out are changed in id order
+        bids, e_all, pts, al, sigmas, starts = self.blocks.whitened_rows()
+        if not bids.shape[0]:
             return 0, 0
-        # every block's test in one pass (elementwise: the same numbers as block by block); the
-        # blocks with a point out are changed in id order as before
-        e_all = np.concatenate([e for _, e in residuals])
-        bids = np.array([b for b, _ in residuals], dtype=np.int64)
-        sigmas, starts = self.blocks.cols.gather(bids)[2:]
         out_all = (np.abs(e_all) > max_whitened) & (np.abs(e_all) * sigmas > min_distance)
         hit = np.logical_or.reduceat(out_all, starts[:-1])
+        two = self.blocks.cols.two[bids]
         for i in np.flatnonzero(hit).tolist():
             bid = int(bids[i])
-            blk = self.blocks.blocks[bid]
-            out = out_all[starts[i]:starts[i + 1]]
-            n_points += int(out.sum())
+            s, e = int(starts[i]), int(starts[i + 1])
+            keep = ~out_all[s:e]
+            n_points += int(e - s - keep.sum())
             n_blocks += 1
-            keep = ~out
             if not keep.any():
                 self.blocks.remove(bid)
             else:
-                self.blocks.replace(bid, blk.points[keep], None if blk.alphas is None else blk.alphas[keep],
-                                    blk.sigmas[keep])
+                self.blocks.replace(bid, pts[s:e][keep], al[s:e][keep] if two[i] else None, sigmas[s:e][keep])
         return n_points, n_blocks

@@ -413,8 +413,9 @@ class BlockStore:
 
     def replace(self, block_id: int, points: ArrayLike, alphas: ArrayLike | None, sigmas: ArrayLike) -> int:
         """Replace a block's points (same knot and plane); returns the new block id."""
-        old = self.get(block_id)
-        new = self._make(old.knot, old.plane_id, points, alphas, sigmas)
+        if not self.cols.has(block_id):
+            raise ValueError(f"block_id: no observation block {block_id}")
+        new = self._make(int(self.cols.knot[block_id]), int(self.cols.plane[block_id]), points, alphas, sigmas)
         self.remove(block_id)
         return self._insert(new)
 
@@ -476,30 +477,45 @@ class BlockStore:
                                   blk.alphas, jacobians=False, anchor=a)
         return np.asarray(terms.residuals / blk.sigmas)
 
-    def all_whitened_residuals(self) -> list[tuple[int, FloatArray]]:
-        """(block id, :meth:`whitened_residuals`) of every block, in the store's order: the
-        two-pose blocks in one compiled pass (each knot and plane read once), the same numbers."""
+    def whitened_rows(self) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
+        """Every live block's whitened residuals at the current estimate (:meth:`whitened_residuals`,
+        the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
+        sigmas, starts)``, the blocks in id order, block ``ids[i]``'s in ``[starts[i], starts[i + 1])``
+        (its alphas zero if it has none). The two-pose blocks in one compiled pass (each knot and
+        plane read once)."""
         v = self.graph.values
         cols = self.cols
         ids = cols.ids()
-        two = ids[cols.two[ids]]
-        out: dict[int, FloatArray] = {}
-        if two.shape[0]:
+        pts, al, sg, starts = cols.gather(ids)
+        e = np.empty(pts.shape[0])
+        sizes = np.diff(starts)
+        is_two = cols.two[ids]
+        if is_two.any():
+            two = ids[is_two]
+            rows = np.repeat(is_two, sizes)
             bknot, bplane = cols.knot[two], cols.plane[two]
             knots = np.unique(np.concatenate((bknot, bknot + 1)))
             M = np.array([v.atPose3(X(int(k))).matrix() for k in knots])
             planes = np.unique(bplane)
-            rows = [plane_row(v, P(int(j))) for j in planes]
-            pts, al, sg, starts = cols.gather(two)
+            prow = [plane_row(v, P(int(j))) for j in planes]
+            sub = np.zeros(two.shape[0] + 1, dtype=np.int64)
+            np.cumsum(sizes[is_two], out=sub[1:])
             res = _fk.blocks_residuals(
                 np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
                 np.searchsorted(knots, bknot).astype(np.int64),
-                np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                np.array([r[0] for r in prow]), np.array([r[1] for r in prow]), np.array([r[2] for r in prow]),
                 np.searchsorted(planes, bplane).astype(np.int64),
-                np.array([self.graph.anchors[int(j)] for j in planes]), pts, al, starts)
-            for b, s, e in zip(two.tolist(), starts[:-1], starts[1:], strict=True):
-                out[b] = res[s:e] / sg[s:e]
-        return [(b, out[b] if b in out else self.whitened_residuals(cols.block(b))) for b in ids.tolist()]
+                np.array([self.graph.anchors[int(j)] for j in planes]), pts[rows], al[rows], sub)
+            e[rows] = res / sg[rows]
+        for i in np.flatnonzero(~is_two).tolist():
+            e[starts[i]:starts[i + 1]] = self.whitened_residuals(cols.block(int(ids[i])))
+        return ids, e, pts, al, sg, starts
+
+    def all_whitened_residuals(self) -> list[tuple[int, FloatArray]]:
+        """(block id, :meth:`whitened_residuals`) of every block, in the store's order
+        (:meth:`whitened_rows` split by block)."""
+        ids, e, _, _, _, starts = self.whitened_rows()
+        return [(b, e[s:t]) for b, s, t in zip(ids.tolist(), starts[:-1].tolist(), starts[1:].tolist(), strict=True)]
 
     def residuals(self, block_id: int) -> tuple[FloatArray, FloatArray]:
         """Whitened residuals (N,) of a block and the robust weights (N,) its kernel gives them."""
@@ -598,10 +614,40 @@ class BlockStore:
         order = np.argsort(knots, kind="stable")
         uniq, first, counts = np.unique(knots, return_index=True, return_counts=True)
         bounds = np.concatenate(([0], np.cumsum(counts)))
-        for u in np.argsort(first, kind="stable").tolist():
-            bids = two_ids[order[bounds[u]:bounds[u + 1]]].tolist()
-            graph.add(self.group_factor(int(uniq[u]), bids, kernel))
+        intervals = [(int(uniq[u]), two_ids[order[bounds[u]:bounds[u + 1]]].tolist())
+                     for u in np.argsort(first, kind="stable").tolist()]
+        for factor in self._group_factors(intervals, kernel):
+            graph.add(factor)
         return graph
+
+    def _group_factors(self, intervals: list[tuple[int, list[int]]],
+                       kernel: RobustKernel | None) -> list[gtsam.NonlinearFactor]:
+        """:meth:`group_factor` of each ``(knot, bids)`` in turn (kept likewise), the rows of the
+        intervals not kept gathered at once: one read of the spill files instead of one per
+        interval (each factor gets its own copy of its rows, so that none keeps the others')."""
+        out: list[gtsam.NonlinearFactor | None] = []
+        todo: list[tuple[int, int, NDArray[np.int64]]] = []  # (position, knot, sorted ids)
+        for knot, bids in intervals:
+            key = tuple(sorted(bids))
+            hit = self._groups.get(knot) if kernel is None else None
+            if (hit is not None and hit[0] == key) or (len(key) == 1 and kernel is None):
+                out.append(self.group_factor(knot, bids, kernel))
+            else:
+                todo.append((len(out), knot, np.array(key, dtype=np.int64)))
+                out.append(None)
+        if todo:
+            pts, al, sg, starts = self.cols.gather(np.concatenate([ids for _, _, ids in todo]))
+            i = 0
+            for pos, knot, ids in todo:
+                n = ids.shape[0]
+                lo, hi = int(starts[i]), int(starts[i + n])
+                factor = interval_factor(self, knot, ids, pts[lo:hi].copy(), al[lo:hi].copy(), sg[lo:hi].copy(),
+                                         starts[i:i + n + 1] - lo, kernel)
+                if kernel is None:
+                    self._groups[knot] = (tuple(ids.tolist()), factor)
+                out[pos] = factor
+                i += n
+        return [f for f in out if f is not None]
 
     def drop_group_factors(self) -> None:
         """Forget the interval factors and blocks' factors kept for the next solve (a final

@@ -328,8 +328,7 @@ class Backend:
         """Counts, RMS of whitened residuals and the share of down-weighted points (w < 0.5);
         with IMU factors also their count and whitened RMS (``imu_factors``, ``imu_rms_whitened``:
         how far the trajectory is from what the IMU measured, in units of its noise)."""
-        es = [e for _, e in self.blocks.all_whitened_residuals()]
-        e = np.concatenate(es) if es else np.zeros(0)
+        e = self.blocks.whitened_rows()[1]
         w = robust_weights(e, self.config.kernel)
         out = {
             "blocks": float(len(self.blocks.blocks)),

@@ -66,7 +66,7 @@ from slam.backend.factors import RobustKernel
 from slam.backend.graph import FactorGraph, plane_indices, top_knot
 from slam.backend.packed_net import PackedNet, pack
 from slam.backend.packed_net import solve as solve_net
-from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows
+from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows, predicted_end
 from slam.heap import trim_heap
 
 FloatArray = NDArray[np.float64]
@@ -384,22 +384,30 @@ class SectionedBatch:
         it = 0
         for it in range(1, max_iterations + 1):
             delta = None
+            model_err = err
             while delta is None:
                 try:
                     if red is None:
                         red = self.reduce(values, kernel, damping, keep=True)
-                    delta = self.back_substitute(values, kernel, damping, red.graph.optimize(), red.nets)
+                    sep_delta = red.graph.optimize()
+                    # the interiors' conditionals hold at the step: the model's error there is the
+                    # separator system's
+                    model_err = red.graph.error(sep_delta)
+                    delta = self.back_substitute(values, kernel, damping, sep_delta, red.nets)
                 except RuntimeError:
                     if damping * 100.0 > MAX_DAMPING:
                         raise
                     damping *= 100.0
                 red = None
+            # a step the linear model says ends the solve is judged by the error alone (a pass over
+            # the sections that reduces at it would be thrown away), as in solver.solve
+            last = it == max_iterations or predicted_end(err, err - model_err, relative_tolerance)
             step = 1.0
             next_damping = max(DAMPING, damping / 10.0)
             for _ in range(10):
                 trial = values.retract(delta if step == 1.0 else delta.scale(step))
                 red_trial: Reduced | None = None
-                if step == 1.0 and it < max_iterations:
+                if step == 1.0 and not last:
                     try:
                         red_trial = self.reduce(trial, kernel, next_damping, keep=True)
                         new_err = red_trial.error
