@@ -257,6 +257,7 @@ class SectionedBatch:
         sep = separator_knots(sections)
         local = self.local_planes(sections, keep_planes)
         dims = {int(k): int(d) for k, d in values.dims().items()}
+        zero = values.zeroVectors()  # every variable's: a linearisation's error at zero is its 0.5 ||b||^2
         out = gtsam.GaussianFactorGraph()
         err = 0.0
         sep_keys: set[int] = set()
@@ -267,7 +268,7 @@ class SectionedBatch:
             for i, (a, b) in enumerate(sections):
                 lin = self.factors(a, b, kernel).linearize(values)
                 keys = [int(k) for k in lin.keyVector()]
-                err += lin.error(_zeros(keys, dims))
+                err += lin.error(zero)
                 interior = _interior(keys, i, sections, sep, local)
                 bn, rest = self._eliminate(lin, interior, dims, damping)
                 inner = set(interior)
@@ -289,7 +290,7 @@ class SectionedBatch:
             planes = self.plane_factors()
             if planes.size():
                 lin = planes.linearize(values)
-                err += lin.error(_zeros([int(k) for k in lin.keyVector()], dims))
+                err += lin.error(zero)
                 out.push_back(lin)
                 sep_keys.update(int(k) for k in lin.keyVector())
         if damping > 0.0:
@@ -546,10 +547,3 @@ def _graph_bytes(graph: gtsam.GaussianFactorGraph) -> int:
     """Bytes of a linear graph's Jacobian factors' augmented matrices (other factors not counted)."""
     factors = (graph.at(i) for i in range(graph.size()))
     return 8 * sum(int(f.rows()) * int(f.cols()) for f in factors if isinstance(f, gtsam.JacobianFactor))
-
-
-def _zeros(keys: list[int], dims: dict[int, int]) -> gtsam.VectorValues:
-    z = gtsam.VectorValues()
-    for k in keys:
-        z.insert(k, np.zeros(dims[k]))
-    return z
