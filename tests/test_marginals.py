@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 from gtsam.symbol_shorthand import L, X
 
-from slam.backend.marginals import root_marginals
+from slam.backend.marginals import dense_marginals, eliminated_marginals, root_marginals
 
 _LANDMARKS = [np.array([5.0, 2.0, 1.0]), np.array([3.0, -4.0, 0.5]), np.array([9.0, 0.0, 2.0]),
               np.array([1.0, 6.0, -1.0])]
@@ -75,3 +76,68 @@ def test_no_marginals_from_an_indeterminate_or_split_graph() -> None:
     va.insert(vb)
     assert root_marginals(a, va, [L(0), X(100)]) is None
     assert root_marginals(a, va, [L(0), L(1)]) is not None  # those two are in one piece
+
+
+def test_dense_marginals_are_the_inverses_blocks() -> None:
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(40, 12))
+    info = A.T @ A
+    spans = [(0, 3), (3, 6), (9, 12)]
+    got = dense_marginals(info, spans)
+    inv = np.linalg.inv(info)
+    for (a, b), c in zip(spans, got, strict=True):
+        assert c is not None
+        np.testing.assert_allclose(c, inv[a:b, a:b], rtol=1e-9)
+
+
+def test_a_singular_systems_determined_spans_keep_their_marginals() -> None:
+    """A variable (coordinates 6-8) observed along one direction only, with the first: the system
+    is singular; that variable has no covariance, the others the covariance they have in any
+    completion (the same with its undetermined directions pinned by a prior)."""
+    rng = np.random.default_rng(5)
+    J = np.zeros((60, 9))
+    J[:30, :6] = rng.normal(size=(30, 6))  # the first two variables observed fully
+    u = np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)
+    J[30:, 6:] = np.outer(rng.normal(size=30), u)  # the third seen along u only, with the first
+    J[30:, :3] = rng.normal(size=(30, 3))
+    info = J.T @ J
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(info)
+    got = dense_marginals(info, [(0, 3), (3, 6), (6, 9)])
+    assert got[2] is None
+    pinned = info.copy()
+    pinned[6:, 6:] += 1e3 * (np.eye(3) - np.outer(u, u))  # any prior on its undetermined directions
+    ref = np.linalg.inv(pinned)
+    for i, (a, b) in enumerate([(0, 3), (3, 6)]):
+        c = got[i]
+        assert c is not None
+        np.testing.assert_allclose(c, ref[a:b, a:b], rtol=1e-8)
+    assert dense_marginals(np.full((3, 3), np.nan), [(0, 3)]) == [None]
+
+
+def test_eliminated_marginals_where_the_root_cannot() -> None:
+    """A landmark seen from one pose along its line of sight only (singular): root_marginals
+    gives up; eliminated_marginals gives the other landmarks' covariances (gtsam's, from the graph
+    with the indeterminate landmark pinned along its undetermined directions) and leaves it out."""
+    g, v = _walk(8)
+    assert root_marginals(g, v, [L(0), L(1), L(2)]) is not None
+    bad = L(3)
+    v.insert(bad, _LANDMARKS[3])
+    u = np.array([1.0, 0.0, 0.0])
+
+    def along(f: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        q = values.atPoint3(bad)
+        if H is not None:
+            H[0] = u.reshape(1, 3)
+        return np.array([u @ (q - _LANDMARKS[3])])
+
+    g.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, 0.01), [bad], along))
+    keys = [L(0), L(1), L(2), bad]
+    assert root_marginals(g, v, keys) is None
+    got = eliminated_marginals(g, v, keys)
+    assert got is not None and bad not in got and sorted(got) == sorted(keys[:3])
+    pinned = gtsam.NonlinearFactorGraph(g)
+    pinned.add(gtsam.PriorFactorPoint3(bad, _LANDMARKS[3], gtsam.noiseModel.Diagonal.Sigmas(np.array([1e3, 0.1, 0.1]))))
+    ref = gtsam.Marginals(pinned, v)
+    for k in keys[:3]:
+        np.testing.assert_allclose(got[k], ref.marginalCovariance(k), rtol=1e-6)

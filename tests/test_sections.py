@@ -217,12 +217,12 @@ def test_the_budget_bounds_eliminations_and_factors_together(scene: Scene) -> No
 def test_plane_covariances_in_chunks_are_the_same(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
     """The inverse's columns solved a few planes at a time (the hour's separator is large) give
     the covariances of one solve for all planes."""
-    import slam.backend.sections as sections
+    import slam.backend.marginals as marginals
 
     cut = _build(scene, replace(backend_defaults(), batch_section_knots=40, batch_whole_knots=0))
     cut.batch_optimize(graduated=False)
     whole = cut.sections.plane_covariances()
-    monkeypatch.setattr(sections, "_COVARIANCE_CHUNK", 2)
+    monkeypatch.setattr(marginals, "_CHUNK", 2)
     parts = cut.sections.plane_covariances()
     assert sorted(parts) == sorted(whole) and len(whole) >= 5
     for j, c in whole.items():
@@ -278,3 +278,18 @@ def test_a_plane_one_section_sees_is_eliminated_with_it(scene: Scene) -> None:
     tied = _with_local_plane(scene, cfg, 15)
     tied.add_parallel(2, 99, 0.01)
     assert tied.sections.local_planes(tied.sections.plan()) == {}
+
+
+def test_a_plane_the_system_leaves_indeterminate_has_no_covariance(scene: Scene) -> None:
+    """A plane seen by two points only (its third direction undetermined: the separator's system
+    is singular) is left out of the covariances; the others still get theirs, no error raised."""
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0))
+    n0, d0 = scene.planes[2, :3], scene.planes[2, 3]
+    be.add_plane(98, n0, d0 + 0.05)
+    b = next(b for b in scene.blocks if b["plane"] == 2 and b["alphas"] is not None)
+    be.add_observations(b["knot"], 98, b["points_body"][:2], b["alphas"][:2], b["sigmas"][:2])
+    be.batch_optimize(graduated=False)
+    covs = be.sections.plane_covariances()
+    assert 98 not in covs
+    assert set(covs) == set(range(len(scene.planes)))
+    assert all(np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) > 0) for c in covs.values())

@@ -39,7 +39,7 @@ from slam.backend.factors import RobustKernel, robust_weights
 from slam.backend.graph import FactorGraph
 from slam.backend.incremental import IncrementalSolver, make_incremental
 from slam.backend.knots import Knots, is_imu_keys
-from slam.backend.marginals import root_marginals
+from slam.backend.marginals import eliminated_marginals, root_marginals
 from slam.backend.sections import SectionedBatch
 from slam.backend.ties import PlaneTies
 from slam.trajectory.interpolation import interpolate_trajectory
@@ -59,7 +59,7 @@ class Backend:
         self.batch = BatchSolver(self.graph, self.blocks, config)
         self.incremental: IncrementalSolver = make_incremental(config, self.graph, self.blocks, self.batch)
         self.sections = SectionedBatch(self.graph, self.blocks, config)
-        self._marginals: tuple[int, gtsam.Marginals] | None = None  # (graph version, marginals)
+        self._marginals: tuple[int, gtsam.Marginals | None] | None = None  # (graph version, marginals; None: indeterminate)
         self._section_covariances: tuple[int, dict[int, FloatArray]] | None = None  # (graph version, by plane)
 
     # ----------------------------------------------------------------- variables
@@ -287,6 +287,11 @@ class Backend:
                                    self.blocks.planes)
             if joint is not None:
                 return {j: joint[P(i)] for j, i in ids.items()}
+            # singular (a plane left indeterminate) or in pieces: the planes' dense system
+            part = eliminated_marginals(graph, self.graph.used_values(graph), sorted({P(i) for i in ids.values()}),
+                                        self.blocks.planes)
+            if part is not None:
+                return {j: part[P(i)] for j, i in ids.items() if P(i) in part}
         out: dict[int, FloatArray] = {}
         for j in ids:
             try:
@@ -311,7 +316,13 @@ class Backend:
             return self._section_covariances[1][j]
         if self._marginals is None or self._marginals[0] != self.graph.version:
             graph = self.blocks.whole_graph()
-            self._marginals = (self.graph.version, gtsam.Marginals(graph, self.graph.used_values(graph)))
+            try:
+                marg: gtsam.Marginals | None = gtsam.Marginals(graph, self.graph.used_values(graph))
+            except RuntimeError:  # indeterminate: not tried again until the graph or estimate changes
+                marg = None
+            self._marginals = (self.graph.version, marg)
+        if self._marginals[1] is None:
+            raise ValueError(f"{gtsam.DefaultKeyFormatter(key)}: no marginal covariance (the system is indeterminate)")
         return np.asarray(self._marginals[1].marginalCovariance(key))
 
     def release(self) -> None:

@@ -56,7 +56,6 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-import scipy.linalg
 from gtsam.symbol_shorthand import P
 from numpy.typing import NDArray
 
@@ -64,6 +63,7 @@ from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
 from slam.backend.graph import FactorGraph, plane_indices, top_knot
+from slam.backend.marginals import dense_marginals
 from slam.backend.packed_net import PackedNet, pack
 from slam.backend.packed_net import solve as solve_net
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows, predicted_end
@@ -73,7 +73,6 @@ FloatArray = NDArray[np.float64]
 # a cached interval factor's points (body point, fraction, sigma, plane index, their copies in the
 # factor's arrays) and the factor's own objects, estimated
 _BYTES_PER_POINT, _BYTES_PER_FACTOR = 48, 2048
-_COVARIANCE_CHUNK = 256  # planes whose columns of the separator's inverse are solved at once
 _REACH = 2  # a factor spans at most this many knots below its highest (the constant-velocity prior: 3 knots)
 
 
@@ -448,9 +447,9 @@ class SectionedBatch:
         coordinates about its anchor) from the separator's undamped system: the whole graph's
         marginals. The planes asked for stay in the separator, the others that one section alone
         sees are eliminated with it. The separator's information matrix is dense (each section's
-        reduced factor spans all its planes), so it is inverted once, by Cholesky, for all planes;
-        if it is singular, each plane's marginal is asked of gtsam in turn and a plane the system
-        leaves indeterminate is left out."""
+        reduced factor spans all its planes), so it is inverted once for all planes
+        (:func:`slam.backend.marginals.dense_marginals`: by Cholesky; if it is singular, through
+        its eigenvectors, and a plane the null space reaches is left out)."""
         try:
             return self._plane_covariances(plane_ids)
         finally:
@@ -465,40 +464,9 @@ class SectionedBatch:
         wanted = None if plane_ids is None else {int(P(int(j))) for j in plane_ids}
         planes = [(i, k) for i, k in enumerate(keys) if plane_indices((k,)) and (wanted is None or k in wanted)]
         info, _ = red.graph.hessian(gtsam.Ordering(keys))
-        if not np.isfinite(info).all():  # LAPACK's behaviour on a non-finite matrix is undefined
-            return self._plane_covariances_one_by_one(red.graph, values, wanted)
-        try:  # factored in place
-            factor = scipy.linalg.cho_factor(info, lower=True, overwrite_a=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            return self._plane_covariances_one_by_one(red.graph, values, wanted)
         del red
-        out: dict[int, FloatArray] = {}
-        n = info.shape[0]
-        for lo in range(0, len(planes), _COVARIANCE_CHUNK):  # a chunk of planes' columns of the inverse at a time
-            chunk = planes[lo:lo + _COVARIANCE_CHUNK]
-            cols = np.concatenate([np.arange(first[i], first[i + 1]) for i, _ in chunk])
-            unit = np.zeros((n, cols.shape[0]))
-            unit[cols, np.arange(cols.shape[0])] = 1.0
-            inv = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
-            for m, (_, k) in enumerate(chunk):
-                block = inv[3 * m:3 * m + 3, 3 * m:3 * m + 3]
-                out[int(gtsam.Symbol(k).index())] = 0.5 * (block + block.T)
-            del unit, inv
-        return out
-
-    @staticmethod
-    def _plane_covariances_one_by_one(graph: gtsam.GaussianFactorGraph, values: gtsam.Values,
-                                      wanted: set[int] | None) -> dict[int, FloatArray]:
-        marg = gtsam.Marginals(graph, values.extract([int(k) for k in graph.keyVector()]))
-        out: dict[int, FloatArray] = {}
-        for k in graph.keyVector():
-            sym = gtsam.Symbol(int(k))
-            if chr(sym.chr()) == "p" and (wanted is None or int(k) in wanted):
-                try:
-                    out[int(sym.index())] = np.asarray(marg.marginalCovariance(int(k)))
-                except RuntimeError:
-                    continue
-        return out
+        covs = dense_marginals(info, [(int(first[i]), int(first[i + 1])) for i, _ in planes])
+        return {int(gtsam.Symbol(k).index()): c for (_, k), c in zip(planes, covs, strict=True) if c is not None}
 
 
 def _local_planes(graph: FactorGraph, block_ids: NDArray[np.int64], block_knot: NDArray[np.int64],
