@@ -478,38 +478,8 @@ class BlockStore:
         return np.asarray(terms.residuals / blk.sigmas)
 
     def whitened_rows(self) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
-        """Every live block's whitened residuals at the current estimate (:meth:`whitened_residuals`,
-        the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
-        sigmas, starts)``, the blocks in id order, block ``ids[i]``'s in ``[starts[i], starts[i + 1])``
-        (its alphas zero if it has none). The two-pose blocks in one compiled pass (each knot and
-        plane read once)."""
-        v = self.graph.values
-        cols = self.cols
-        ids = cols.ids()
-        pts, al, sg, starts = cols.gather(ids)
-        e = np.empty(pts.shape[0])
-        sizes = np.diff(starts)
-        is_two = cols.two[ids]
-        if is_two.any():
-            two = ids[is_two]
-            rows = np.repeat(is_two, sizes)
-            bknot, bplane = cols.knot[two], cols.plane[two]
-            knots = np.unique(np.concatenate((bknot, bknot + 1)))
-            M = np.array([v.atPose3(X(int(k))).matrix() for k in knots])
-            planes = np.unique(bplane)
-            prow = [plane_row(v, P(int(j))) for j in planes]
-            sub = np.zeros(two.shape[0] + 1, dtype=np.int64)
-            np.cumsum(sizes[is_two], out=sub[1:])
-            res = _fk.blocks_residuals(
-                np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
-                np.searchsorted(knots, bknot).astype(np.int64),
-                np.array([r[0] for r in prow]), np.array([r[1] for r in prow]), np.array([r[2] for r in prow]),
-                np.searchsorted(planes, bplane).astype(np.int64),
-                np.array([self.graph.anchors[int(j)] for j in planes]), pts[rows], al[rows], sub)
-            e[rows] = res / sg[rows]
-        for i in np.flatnonzero(~is_two).tolist():
-            e[starts[i]:starts[i + 1]] = self.whitened_residuals(cols.block(int(ids[i])))
-        return ids, e, pts, al, sg, starts
+        """Every live block's whitened residuals with its rows (:func:`whitened_rows`)."""
+        return whitened_rows(self)
 
     def all_whitened_residuals(self) -> list[tuple[int, FloatArray]]:
         """(block id, :meth:`whitened_residuals`) of every block, in the store's order
@@ -616,38 +586,9 @@ class BlockStore:
         bounds = np.concatenate(([0], np.cumsum(counts)))
         intervals = [(int(uniq[u]), two_ids[order[bounds[u]:bounds[u + 1]]].tolist())
                      for u in np.argsort(first, kind="stable").tolist()]
-        for factor in self._group_factors(intervals, kernel):
+        for factor in group_factors(self, intervals, kernel):
             graph.add(factor)
         return graph
-
-    def _group_factors(self, intervals: list[tuple[int, list[int]]],
-                       kernel: RobustKernel | None) -> list[gtsam.NonlinearFactor]:
-        """:meth:`group_factor` of each ``(knot, bids)`` in turn (kept likewise), the rows of the
-        intervals not kept gathered at once: one read of the spill files instead of one per
-        interval (each factor gets its own copy of its rows, so that none keeps the others')."""
-        out: list[gtsam.NonlinearFactor | None] = []
-        todo: list[tuple[int, int, NDArray[np.int64]]] = []  # (position, knot, sorted ids)
-        for knot, bids in intervals:
-            key = tuple(sorted(bids))
-            hit = self._groups.get(knot) if kernel is None else None
-            if (hit is not None and hit[0] == key) or (len(key) == 1 and kernel is None):
-                out.append(self.group_factor(knot, bids, kernel))
-            else:
-                todo.append((len(out), knot, np.array(key, dtype=np.int64)))
-                out.append(None)
-        if todo:
-            pts, al, sg, starts = self.cols.gather(np.concatenate([ids for _, _, ids in todo]))
-            i = 0
-            for pos, knot, ids in todo:
-                n = ids.shape[0]
-                lo, hi = int(starts[i]), int(starts[i + n])
-                factor = interval_factor(self, knot, ids, pts[lo:hi].copy(), al[lo:hi].copy(), sg[lo:hi].copy(),
-                                         starts[i:i + n + 1] - lo, kernel)
-                if kernel is None:
-                    self._groups[knot] = (tuple(ids.tolist()), factor)
-                out[pos] = factor
-                i += n
-        return [f for f in out if f is not None]
 
     def drop_group_factors(self) -> None:
         """Forget the interval factors and blocks' factors kept for the next solve (a final
@@ -748,6 +689,71 @@ class BlockStore:
         key = (blk.knot, j, blk.alphas is not None)
         if self._open.get(key) == bid:
             del self._open[key]
+
+
+def whitened_rows(store: BlockStore) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
+    """Every live block's whitened residuals at the current estimate (:meth:`whitened_residuals`,
+    the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
+    sigmas, starts)``, the blocks in id order, block ``ids[i]``'s in ``[starts[i], starts[i + 1])``
+    (its alphas zero if it has none). The two-pose blocks in one compiled pass (each knot and
+    plane read once)."""
+    v = store.graph.values
+    cols = store.cols
+    ids = cols.ids()
+    pts, al, sg, starts = cols.gather(ids)
+    e = np.empty(pts.shape[0])
+    sizes = np.diff(starts)
+    is_two = cols.two[ids]
+    if is_two.any():
+        two = ids[is_two]
+        rows = np.repeat(is_two, sizes)
+        bknot, bplane = cols.knot[two], cols.plane[two]
+        knots = np.unique(np.concatenate((bknot, bknot + 1)))
+        M = np.array([v.atPose3(X(int(k))).matrix() for k in knots])
+        planes = np.unique(bplane)
+        prow = [plane_row(v, P(int(j))) for j in planes]
+        sub = np.zeros(two.shape[0] + 1, dtype=np.int64)
+        np.cumsum(sizes[is_two], out=sub[1:])
+        res = _fk.blocks_residuals(
+            np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
+            np.searchsorted(knots, bknot).astype(np.int64),
+            np.array([r[0] for r in prow]), np.array([r[1] for r in prow]), np.array([r[2] for r in prow]),
+            np.searchsorted(planes, bplane).astype(np.int64),
+            np.array([store.graph.anchors[int(j)] for j in planes]), pts[rows], al[rows], sub)
+        e[rows] = res / sg[rows]
+    for i in np.flatnonzero(~is_two).tolist():
+        e[starts[i]:starts[i + 1]] = store.whitened_residuals(cols.block(int(ids[i])))
+    return ids, e, pts, al, sg, starts
+
+
+def group_factors(store: BlockStore, intervals: list[tuple[int, list[int]]],
+                  kernel: RobustKernel | None) -> list[gtsam.NonlinearFactor]:
+    """:meth:`BlockStore.group_factor` of each ``(knot, bids)`` in turn (kept likewise), the rows
+    of the intervals not kept gathered at once: one read of the spill files instead of one per
+    interval (each factor gets its own copy of its rows, so that none keeps the others')."""
+    out: list[gtsam.NonlinearFactor | None] = []
+    todo: list[tuple[int, int, NDArray[np.int64]]] = []  # (position, knot, sorted ids)
+    for knot, bids in intervals:
+        key = tuple(sorted(bids))
+        hit = store._groups.get(knot) if kernel is None else None
+        if (hit is not None and hit[0] == key) or (len(key) == 1 and kernel is None):
+            out.append(store.group_factor(knot, bids, kernel))
+        else:
+            todo.append((len(out), knot, np.array(key, dtype=np.int64)))
+            out.append(None)
+    if todo:
+        pts, al, sg, starts = store.cols.gather(np.concatenate([ids for _, _, ids in todo]))
+        i = 0
+        for pos, knot, ids in todo:
+            n = ids.shape[0]
+            lo, hi = int(starts[i]), int(starts[i + n])
+            factor = interval_factor(store, knot, ids, pts[lo:hi].copy(), al[lo:hi].copy(), sg[lo:hi].copy(),
+                                     starts[i:i + n + 1] - lo, kernel)
+            if kernel is None:
+                store._groups[knot] = (tuple(ids.tolist()), factor)
+            out[pos] = factor
+            i += n
+    return [f for f in out if f is not None]
 
 
 def interval_factors(store: BlockStore, groups: dict[int, list[int]],
