@@ -692,8 +692,8 @@ class BlockStore:
 
 
 def whitened_rows(store: BlockStore) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
-    """Every live block's whitened residuals at the current estimate (:meth:`whitened_residuals`,
-    the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
+    """Every live block's whitened residuals at the current estimate
+    (:meth:`BlockStore.whitened_residuals`, the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
     sigmas, starts)``, the blocks in id order, block ``ids[i]``'s in ``[starts[i], starts[i + 1])``
     (its alphas zero if it has none). The two-pose blocks in one compiled pass (each knot and
     plane read once)."""

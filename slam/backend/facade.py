@@ -259,12 +259,13 @@ class Backend:
     # ----------------------------------------------------------------- covariances
     def pose_covariance(self, knot: int) -> FloatArray:
         """Marginal covariance (6, 6) of a knot's pose in gtsam's tangent order (rotation [rad],
-        then translation [m], both in the body frame)."""
+        then translation [m], both in the body frame); a ValueError when the system is indeterminate."""
         return self._covariance(X(self.graph.check_knot(knot)))
 
     def plane_covariance(self, plane_id: int) -> FloatArray:
         """Marginal covariance (3, 3) of a plane in its retract coordinates: normal direction in
-        the ``Unit3.basis()`` tangent (2, rad) and offset (m), about its anchor."""
+        the ``Unit3.basis()`` tangent (2, rad) and offset (m), about its anchor; a ValueError when
+        the system leaves it indeterminate."""
         return self._covariance(P(self.blocks.check_plane(plane_id)))
 
     def plane_covariances(self, plane_ids: Sequence[int]) -> dict[int, FloatArray]:
