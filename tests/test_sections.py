@@ -280,16 +280,20 @@ def test_a_plane_one_section_sees_is_eliminated_with_it(scene: Scene) -> None:
     assert tied.sections.local_planes(tied.sections.plan()) == {}
 
 
-def test_a_plane_the_system_leaves_indeterminate_has_no_covariance(scene: Scene) -> None:
-    """A plane seen by two points only (its third direction undetermined: the separator's system
-    is singular) is left out of the covariances; the others still get theirs, no error raised."""
-    be = _build(scene, replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0))
+@pytest.mark.parametrize("sectioned", [True, False])
+def test_a_plane_the_system_leaves_indeterminate_has_no_covariance(scene: Scene, sectioned: bool) -> None:
+    """A plane seen by two points only (its third direction undetermined: the separator's, or
+    the whole graph's, system is singular) is left out of the covariances; the others still get
+    theirs, no error raised."""
+    cfg = replace(backend_defaults(), batch_section_knots=23, batch_whole_knots=0) if sectioned else backend_defaults()
+    be = _build(scene, cfg)
+    assert be.sections.needed() == sectioned
     n0, d0 = scene.planes[2, :3], scene.planes[2, 3]
     be.add_plane(98, n0, d0 + 0.05)
     b = next(b for b in scene.blocks if b["plane"] == 2 and b["alphas"] is not None)
     be.add_observations(b["knot"], 98, b["points_body"][:2], b["alphas"][:2], b["sigmas"][:2])
     be.batch_optimize(graduated=False)
-    covs = be.sections.plane_covariances()
+    covs = be.plane_covariances([*range(len(scene.planes)), 98])
     assert 98 not in covs
     assert set(covs) == set(range(len(scene.planes)))
     assert all(np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) > 0) for c in covs.values())

@@ -270,7 +270,8 @@ class Backend:
 
     def plane_covariances(self, plane_ids: Sequence[int]) -> dict[int, FloatArray]:
         """:meth:`plane_covariance` of each of ``plane_ids``, a plane without one (an
-        indeterminate system) left out, all from one elimination: with the planes ordered last
+        indeterminate system; a variance over 1e6, a direction the elimination passed with a
+        rounding-sized pivot) left out, all from one elimination: with the planes ordered last
         (:func:`slam.backend.marginals.root_marginals`), or a sectioned walk's (the other planes
         that one section alone sees eliminated with it); plane by plane where neither can."""
         ids: dict[int, int] = {}
@@ -281,25 +282,25 @@ class Backend:
                 continue
         if self.sections.needed():
             got = self.sections.plane_covariances(sorted(set(ids.values())))
-            return {j: got[i] for j, i in ids.items() if i in got}
+            return _determined({j: got[i] for j, i in ids.items() if i in got})
         if ids and self.incremental.marginal_covariance(P(next(iter(ids.values())))) is None:
             graph = self.blocks.whole_graph()
             joint = root_marginals(graph, self.graph.used_values(graph), sorted({P(i) for i in ids.values()}),
                                    self.blocks.planes)
             if joint is not None:
-                return {j: joint[P(i)] for j, i in ids.items()}
+                return _determined({j: joint[P(i)] for j, i in ids.items()})
             # singular (a plane left indeterminate) or in pieces: the planes' dense system
             part = eliminated_marginals(graph, self.graph.used_values(graph), sorted({P(i) for i in ids.values()}),
                                         self.blocks.planes)
             if part is not None:
-                return {j: part[P(i)] for j, i in ids.items() if P(i) in part}
+                return _determined({j: part[P(i)] for j, i in ids.items() if P(i) in part})
         out: dict[int, FloatArray] = {}
         for j in ids:
             try:
                 out[j] = self.plane_covariance(j)
             except (ValueError, RuntimeError):
                 continue
-        return out
+        return _determined(out)
 
     def _covariance(self, key: int) -> FloatArray:
         """From the incremental solver if it holds the current graph, else from the whole graph
@@ -357,3 +358,15 @@ class Backend:
             out["imu_factors"] = float(len(imu))
             out["imu_rms_whitened"] = float(np.sqrt(chi2 / (9.0 * len(imu))))
         return out
+
+
+# a variance over this (a sigma over 1,000 rad or m) marks a direction the system leaves
+# undetermined that an elimination passed with a pivot of rounding size
+_UNDETERMINED_VARIANCE = 1e6
+
+
+def _determined(covs: dict[int, FloatArray]) -> dict[int, FloatArray]:
+    """The covariances whose every variance is finite and under ``_UNDETERMINED_VARIANCE``."""
+    return {j: c for j, c in covs.items()
+            if np.all(np.isfinite(c)) and float(np.max(np.diag(c))) < _UNDETERMINED_VARIANCE}
+
