@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 import types
 from pathlib import Path
@@ -12,16 +10,11 @@ from types import ModuleType
 import numpy as np
 import psutil
 import pytest
+from script_module import load_script
 
 
 def _script() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "memory_profile.py"
-    spec = importlib.util.spec_from_file_location("memory_profile", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["memory_profile"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("memory_profile")
 
 
 mp = _script()

@@ -2,23 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from script_module import load_script
 
 from slam.export import write_trajectory_tum
 
 
 def _script() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "plot_error_over_time.py"
-    spec = importlib.util.spec_from_file_location("plot_error_over_time", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("plot_error_over_time")
 
 
 def _walk(t: np.ndarray, drift_x: float = 0.0) -> np.ndarray:

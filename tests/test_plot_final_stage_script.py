@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+from script_module import load_script
 
 
 def _script() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "plot_final_stage.py"
-    spec = importlib.util.spec_from_file_location("plot_final_stage", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("plot_final_stage")
 
 
 def test_the_figure_is_written_from_the_json(tmp_path: Path) -> None:

@@ -693,10 +693,10 @@ class BlockStore:
 
 def whitened_rows(store: BlockStore) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
     """Every live block's whitened residuals at the current estimate
-    (:meth:`BlockStore.whitened_residuals`, the same numbers) with its rows, the blocks' rows gathered once: ``(ids, e, points, alphas,
-    sigmas, starts)``, the blocks in id order, block ``ids[i]``'s in ``[starts[i], starts[i + 1])``
-    (its alphas zero if it has none). The two-pose blocks in one compiled pass (each knot and
-    plane read once)."""
+    (:meth:`BlockStore.whitened_residuals`, the same numbers) with its rows, the blocks' rows
+    gathered once: ``(ids, e, points, alphas, sigmas, starts)``, the blocks in id order, block
+    ``ids[i]``'s in ``[starts[i], starts[i + 1])`` (its alphas zero if it has none). The two-pose
+    blocks in one compiled pass (each knot and plane read once)."""
     v = store.graph.values
     cols = store.cols
     ids = cols.ids()
@@ -706,14 +706,14 @@ def whitened_rows(store: BlockStore) -> tuple[IntArray, FloatArray, FloatArray, 
     is_two = cols.two[ids]
     if is_two.any():
         two = ids[is_two]
-        rows = np.repeat(is_two, sizes)
+        every = bool(is_two.all())  # the usual case: the rows as gathered (a view, no copy)
+        rows = slice(None) if every else np.repeat(is_two, sizes)
+        sub = starts if every else np.concatenate(([0], np.cumsum(sizes[is_two])))
         bknot, bplane = cols.knot[two], cols.plane[two]
         knots = np.unique(np.concatenate((bknot, bknot + 1)))
         M = np.array([v.atPose3(X(int(k))).matrix() for k in knots])
         planes = np.unique(bplane)
         prow = [plane_row(v, P(int(j))) for j in planes]
-        sub = np.zeros(two.shape[0] + 1, dtype=np.int64)
-        np.cumsum(sizes[is_two], out=sub[1:])
         res = _fk.blocks_residuals(
             np.ascontiguousarray(M[:, :3, :3]), np.ascontiguousarray(M[:, :3, 3]),
             np.searchsorted(knots, bknot).astype(np.int64),
@@ -721,8 +721,10 @@ def whitened_rows(store: BlockStore) -> tuple[IntArray, FloatArray, FloatArray, 
             np.searchsorted(planes, bplane).astype(np.int64),
             np.array([store.graph.anchors[int(j)] for j in planes]), pts[rows], al[rows], sub)
         e[rows] = res / sg[rows]
-    for i in np.flatnonzero(~is_two).tolist():
-        e[starts[i]:starts[i + 1]] = store.whitened_residuals(cols.block(int(ids[i])))
+    for i in np.flatnonzero(~is_two).tolist():  # from the rows gathered above, not read again
+        s, t = int(starts[i]), int(starts[i + 1])
+        blk = ObservationBlock(int(cols.knot[ids[i]]), int(cols.plane[ids[i]]), pts[s:t], None, sg[s:t])
+        e[s:t] = store.whitened_residuals(blk)
     return ids, e, pts, al, sg, starts
 
 

@@ -121,7 +121,7 @@ def eliminated_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
     lin = _linearize(graph, values, table)
     present = {int(k) for k in lin.keyVector()}
     kept = [k for k in wanted if k in present]
-    others = [k for k in present if k not in set(kept)]
+    others = sorted(present.difference(kept))
     try:
         rest = lin.eliminatePartialMultifrontal(gtsam.KeyVector(others))[1] if others else lin
     except RuntimeError:

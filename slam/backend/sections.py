@@ -384,7 +384,6 @@ class SectionedBatch:
         it = 0
         for it in range(1, max_iterations + 1):
             delta = None
-            model_err = err
             while delta is None:
                 try:
                     if red is None:
