@@ -29,6 +29,27 @@ def validity_mask(ranges: ArrayLike, range_min: float = 0.0, range_max: float = 
         return np.isfinite(r) & (r > 0.0) & (r >= range_min) & (r <= range_max)
 
 
+_TRIG_KEEP = 16  # distinct angle arrays whose cosines and sines are kept (a rig's scanners repeat theirs)
+_trig: dict[tuple[int, str, float, float], tuple[NDArray[Any], NDArray[Any], NDArray[Any]]] = {}
+
+
+def beam_cos_sin(angles: NDArray[Any]) -> tuple[NDArray[Any], NDArray[Any]]:
+    """``np.cos(angles)``, ``np.sin(angles)``, kept for the last few distinct angle arrays: a
+    scanner's angles are the same every scan. Each element is what numpy gives for any subset of
+    the angles (its loops compute element by element), so ``c[idx]`` is ``np.cos(angles[idx])``."""
+    n = angles.shape[0]
+    if n == 0:
+        return angles, angles
+    key = (n, angles.dtype.str, float(angles[0]), float(angles[-1]))
+    hit = _trig.get(key)
+    if hit is None or not (hit[0] is angles or np.array_equal(hit[0], angles)):
+        if len(_trig) >= _TRIG_KEEP:
+            _trig.pop(next(iter(_trig)))
+        hit = (angles.copy(), np.cos(angles), np.sin(angles))
+        _trig[key] = hit
+    return hit[1], hit[2]
+
+
 def _beam_intensities(msg: Any, n: int) -> NDArray[np.float32] | None:
     """A LaserScan-like record's intensities (float32), one per beam, or None."""
     raw = getattr(msg, "intensities", None)
@@ -65,8 +86,11 @@ class Scanline:
                 raise ValueError(f"Scanline.{name} has shape {arr.shape}, expected ({n},) like angles")
         idx = np.flatnonzero(self.valid)
         r = self.ranges[idx]
-        a = self.angles[idx]
-        pts = np.column_stack((r * np.cos(a), r * np.sin(a))) if idx.size else np.empty((0, 2))
+        if idx.size:
+            c, s = beam_cos_sin(np.asarray(self.angles))
+            pts = np.column_stack((r * c[idx], r * s[idx]))
+        else:
+            pts = np.empty((0, 2))
         if idx.size and not np.isfinite(pts).all():
             raise ValueError("Scanline: a beam marked valid has a NaN or inf range or angle")
         object.__setattr__(self, "points_xy", np.ascontiguousarray(pts, dtype=np.float64))

@@ -260,3 +260,50 @@ def test_lift_segments_matches_the_numpy_scan_segments() -> None:
                 assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f.name
             else:
                 assert a == b, f.name
+
+
+def _strided_beams_reference(angles: list, ranges: list, valid: list, T: list, step: int) -> tuple:
+    """The numpy code ``frontend.transients`` used per scan before ``strided_beams_world``."""
+    dirs, rs, origins, bounds = [], [], [], [0]
+    for a_all, r_all, v_all, T_i in zip(angles, ranges, valid, T, strict=True):
+        keep = np.flatnonzero(v_all)[::step]
+        if keep.size == 0:
+            continue
+        a = a_all[keep]
+        dirs.append(np.column_stack((np.cos(a), np.sin(a))) @ T_i[:3, :2].T)
+        rs.append(r_all[keep].astype(np.float64))
+        origins.append(T_i[:3, 3])
+        bounds.append(bounds[-1] + keep.size)
+    if not dirs:
+        return np.empty((0, 3)), np.empty(0), np.array(bounds), np.empty((0, 3))
+    return np.concatenate(dirs), np.concatenate(rs), np.array(bounds), np.array(origins)
+
+
+def test_strided_beams_world_is_the_per_scan_numpy_code_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n_scans, step = int(rng.integers(1, 7)), int(rng.integers(1, 4))
+        angles, ranges, valid, T = [], [], [], []
+        for i in range(n_scans):
+            n = int(rng.choice([0, 1, 2, 5, 300, 1081]))
+            a = np.linspace(-2.35, 2.35, n) if n > 1 else rng.uniform(-3, 3, n)
+            v = rng.random(n) < rng.choice([0.0, 0.002, 0.5, 1.0])
+            if trial == 0 and i == 0 and n:
+                v[:] = False
+                v[int(rng.integers(0, n))] = True  # one valid beam: numpy's dot product, not gemm
+            T_i = np.eye(4)
+            T_i[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            T_i[:3, 3] = rng.normal(size=3)
+            angles.append(a)
+            ranges.append(rng.uniform(0.1, 30.0, n).astype(rng.choice([np.float32, np.float64])))
+            valid.append(v)
+            T.append(T_i)
+        ranges = [r.astype(ranges[0].dtype) for r in ranges]
+        start = np.zeros(n_scans + 1, dtype=np.int64)
+        np.cumsum([a.shape[0] for a in angles], out=start[1:])
+        cat = np.concatenate
+        got = bk.strided_beams_world(cat([np.cos(a) for a in angles]), cat([np.sin(a) for a in angles]),
+                                     cat(ranges), cat(valid), start, np.array(T), step)
+        ref = _strided_beams_reference(angles, ranges, valid, T, step)
+        for g, r in zip(got, ref, strict=True):
+            assert g.shape == r.shape and np.array_equal(g, r)

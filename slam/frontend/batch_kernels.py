@@ -182,6 +182,58 @@ def _near_any(su: FloatArray, sv: FloatArray, qu: float, qv: float, near: float)
 
 
 @nb.njit(cache=True)
+def strided_beams_world(
+    cos_a: FloatArray, sin_a: FloatArray, ranges: NDArray[np.float32] | FloatArray, valid: NDArray[np.bool_],
+    beam_start: IntArray, T_world_scanner: FloatArray, step: int,
+) -> tuple[FloatArray, FloatArray, IntArray, FloatArray]:
+    """The beams ``frontend.transients`` tests, of S scans at once: scan i's beams are entries
+    ``beam_start[i]`` to ``beam_start[i + 1] - 1`` of ``cos_a``/``sin_a`` (of its beam angles,
+    scanner frame), ``ranges`` and ``valid``; of its valid beams every ``step``-th from the first
+    (``np.flatnonzero(valid)[::step]``). Returns their unit directions (world frame, by
+    ``T_world_scanner[i]`` (4, 4)), ranges (float64), the row bounds of the scans that have any
+    (k + 1,) and those scans' origins (k, 3), world frame: bit for bit numpy's
+    ``np.column_stack((cos, sin)) @ T[:3, :2].T`` (a dot product for one beam, OpenBLAS's fused
+    multiply-add for more)."""
+    n_scans = beam_start.shape[0] - 1
+    total = 0
+    for i in range(n_scans):
+        total += beam_start[i + 1] - beam_start[i]
+    dirs = np.empty((total // step + n_scans, 3))
+    out_r = np.empty(total // step + n_scans)
+    bounds = np.zeros(n_scans + 1, dtype=np.int64)
+    origins = np.empty((n_scans, 3))
+    o = 0
+    k = 0
+    for i in range(n_scans):
+        lo, hi = beam_start[i], beam_start[i + 1]
+        rows = np.empty(hi - lo, dtype=np.int64)
+        m = 0
+        c = 0
+        for b in range(lo, hi):
+            if valid[b]:
+                if c % step == 0:
+                    rows[m] = b
+                    m += 1
+                c += 1
+        if m == 0:
+            continue
+        T = T_world_scanner[i]
+        for q in range(m):
+            b = rows[q]
+            for j in range(3):
+                if m == 1:
+                    dirs[o + q, j] = _fma(cos_a[b], T[j, 0], sin_a[b] * T[j, 1])  # type: ignore[call-arg]
+                else:
+                    dirs[o + q, j] = _fma(sin_a[b], T[j, 1], cos_a[b] * T[j, 0])  # type: ignore[call-arg]
+            out_r[o + q] = np.float64(ranges[b])
+        origins[k, 0], origins[k, 1], origins[k, 2] = T[0, 3], T[1, 3], T[2, 3]
+        o += m
+        k += 1
+        bounds[k] = o
+    return dirs[:o], out_r[:o], bounds[: k + 1], origins[:k]
+
+
+@nb.njit(cache=True)
 def see_through_counts(
     dirs_world: FloatArray, ranges: FloatArray, scan_start: IntArray, origins_world: FloatArray, normals: FloatArray,
     offsets: FloatArray, us: FloatArray, vs: FloatArray, sample_u: FloatArray, sample_v: FloatArray,

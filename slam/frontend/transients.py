@@ -73,6 +73,8 @@ class TransientFilter:
         self.returned: dict[int, int] = {}
         # per plane: its samples in its (u, v) frame, sorted by u (``_samples_uv``)
         self._samples: dict[int, tuple[int, FloatArray, FloatArray, FloatArray]] = {}
+        # per scanner: its last beam angles with their cosines and sines
+        self._angles: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
 
     def _samples_uv(self, plane: Plane) -> tuple[FloatArray, FloatArray]:
         """The points the plane's extent was grown by in its (u, v) frame, sorted by u (the
@@ -87,6 +89,15 @@ class TransientFilter:
             hit = (n, plane.u, su[order], sv[order])
             self._samples[plane.id] = hit
         return hit[2], hit[3]
+
+    def _cos_sin(self, scanner: int, angles: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``np.cos``/``np.sin`` of a scanner's beam angles, kept while its scans' angles stay the
+        same (each element as numpy computes it for any subset of them)."""
+        hit = self._angles.get(scanner)
+        if hit is None or not (hit[0] is angles or (hit[0].shape == angles.shape and np.array_equal(hit[0], angles))):
+            hit = (angles, np.cos(angles), np.sin(angles))
+            self._angles[scanner] = hit
+        return hit[1], hit[2]
 
     def candidates(self) -> list[int]:
         """The planes on probation."""
@@ -112,19 +123,16 @@ class TransientFilter:
         us = np.array([pl.u for pl in planes]).reshape(-1, 3)
         vs = np.array([pl.v for pl in planes]).reshape(-1, 3)
         # the beams to test of every scan, in the world frame
-        dirs, ranges, origins, bounds = [], [], [], [0]
-        for p in scans:
-            segs = p.segs
-            valid = np.flatnonzero(segs.beam_valid)[:: pr.beam_step]
-            if valid.size == 0:
-                continue
-            T = self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner]
-            a = segs.beam_angles[valid]
-            dirs.append(np.column_stack((np.cos(a), np.sin(a))) @ T[:3, :2].T)  # (m, 3) world frame
-            ranges.append(segs.beam_ranges[valid].astype(np.float64))
-            origins.append(T[:3, 3])
-            bounds.append(bounds[-1] + valid.size)
-        if not dirs:
+        segs_list = [p.segs for p in scans]
+        cos_a, sin_a = zip(*(self._cos_sin(segs.scanner, segs.beam_angles) for segs in segs_list), strict=True)
+        beam_start = np.zeros(len(segs_list) + 1, dtype=np.int64)
+        np.cumsum([segs.beam_angles.shape[0] for segs in segs_list], out=beam_start[1:])
+        T_world_scanner = np.array([self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner]
+                                    for segs in segs_list])
+        dirs, ranges, bounds, origins = bk.strided_beams_world(
+            np.concatenate(cos_a), np.concatenate(sin_a), np.concatenate([segs.beam_ranges for segs in segs_list]),
+            np.concatenate([segs.beam_valid for segs in segs_list]), beam_start, T_world_scanner, pr.beam_step)
+        if bounds.shape[0] == 1:
             return []
         # per scan and plane: the crossings, and those within ``near`` of one of the plane's
         # samples whose return lies beyond the margin (through) or not (on)
@@ -132,8 +140,7 @@ class TransientFilter:
         sample_start = np.zeros(len(planes) + 1, dtype=np.int64)
         np.cumsum(np.array([su.size for su, _ in samples], dtype=np.int64), out=sample_start[1:])
         n_cross, through, on = bk.see_through_counts(
-            np.ascontiguousarray(np.concatenate(dirs)), np.concatenate(ranges), np.array(bounds, dtype=np.int64),
-            np.array(origins).reshape(-1, 3), normals, offsets, us, vs,
+            dirs, ranges, bounds, origins, normals, offsets, us, vs,
             np.concatenate([np.empty(0), *(su for su, _ in samples)]),
             np.concatenate([np.empty(0), *(sv for _, sv in samples)]), sample_start,
             pr.margin, pr.near, MIN_RANGE, MIN_COS)
