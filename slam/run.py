@@ -47,7 +47,7 @@ from slam.health import (
     silent_scanners,
     start_problems,
 )
-from slam.heap import trim_heap
+from slam.heap import fewer_collections, trim_heap
 from slam.imu_feed import ImuSamples
 from slam.io.bag import time_range as bag_time_range
 from slam.io.echoes import several_echoes_share
@@ -216,7 +216,7 @@ def run_slam(
     ``slam.config.NoiseSection``). A recording without a
     single line segment is an ``InputError`` (no usable returns), with no output written."""
     t_wall = time.perf_counter()
-    with BagSource(bag) as source:
+    with fewer_collections(), BagSource(bag) as source:
         check = check_rig(source, rig, urdf, cfg.input.echo)
         rig = check.rig
         plan = source.scan_plan(rig=rig)  # checks the bag and its topics before anything is written

@@ -147,3 +147,18 @@ def test_heap_keeper_trims_once_resident_memory_crept_up_by_its_slack() -> None:
     unknown = HeapKeeper(slack=0, rss=lambda: None, trim=trim)
     unknown.check()
     assert keeper.trims == 2 and len(trims) == 2
+
+
+def test_fewer_collections_sets_the_thresholds_for_its_block_and_restores_them() -> None:
+    import gc
+
+    from slam.heap import RUN_GC_THRESHOLDS, fewer_collections
+
+    before = gc.get_threshold()
+    with fewer_collections():
+        assert gc.get_threshold() == RUN_GC_THRESHOLDS
+    assert gc.get_threshold() == before
+    with pytest.raises(RuntimeError), fewer_collections((5_000, 5, 5)):
+        assert gc.get_threshold() == (5_000, 5, 5)
+        raise RuntimeError("inside")
+    assert gc.get_threshold() == before
