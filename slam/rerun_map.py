@@ -157,7 +157,11 @@ class CloudViewPicker:
         self.t0 = min(self.t0, float(np.min(c.time)))
         self.cloud_parts.append(_copy(c, slice((-self.n) % self.cloud_step, None, self.cloud_step)))
         self.n += len(c)
-        for s in np.unique(c.scanner).tolist():
+        sc = c.scanner
+        # np.unique sorts every point; a count per index finds the same scanners, in order
+        present = (np.flatnonzero(np.bincount(sc)) if sc.dtype.kind in "iu" and int(sc.min()) >= 0
+                   else np.unique(sc))
+        for s in present.tolist():
             sel = np.flatnonzero(c.scanner == s)
             t = c.time[sel]
             if not np.all(t[1:] >= t[:-1]) or t[0] < self.last.get(s, -math.inf):
