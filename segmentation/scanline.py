@@ -43,8 +43,8 @@ def beam_cos_sin(angles: NDArray[Any]) -> tuple[NDArray[Any], NDArray[Any]]:
     key = (n, angles.dtype.str, float(angles[0]), float(angles[-1]))
     hit = _trig.get(key)
     if hit is None or not (hit[0] is angles or np.array_equal(hit[0], angles)):
-        if len(_trig) >= _TRIG_KEEP:
-            _trig.pop(next(iter(_trig)))
+        if len(_trig) >= _TRIG_KEEP:  # (clearing is safe where threads share the cache; popping one may not be)
+            _trig.clear()
         hit = (angles.copy(), np.cos(angles), np.sin(angles))
         _trig[key] = hit
     return hit[1], hit[2]

@@ -159,8 +159,9 @@ class CloudViewPicker:
         self.n += len(c)
         sc = c.scanner
         # np.unique sorts every point; a count per index finds the same scanners, in order
-        present = (np.flatnonzero(np.bincount(sc)) if sc.dtype.kind in "iu" and int(sc.min()) >= 0
-                   else np.unique(sc))
+        small = (sc.dtype.kind == "i" or (sc.dtype.kind == "u" and sc.dtype.itemsize < 8)) and (
+            0 <= int(sc.min()) and int(sc.max()) < 1 << 16)
+        present = np.flatnonzero(np.bincount(sc)) if small else np.unique(sc)
         for s in present.tolist():
             sel = np.flatnonzero(c.scanner == s)
             t = c.time[sel]

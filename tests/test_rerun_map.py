@@ -189,3 +189,26 @@ def test_segments_as_one_array_log_what_a_list_of_strips_logs() -> None:
     as_array = rr.LineStrips3D.columns(strips=ends.astype(np.float32)).partition([20, 30])
     for a, b in zip(as_list, as_array, strict=True):
         assert a.as_arrow_array().equals(b.as_arrow_array())
+
+
+def test_the_view_picker_takes_each_scanners_points_whatever_their_index_type() -> None:
+    """Small non-negative scanner indices go through a count per index, others (negative, huge,
+    unsigned 64-bit) through a sort: the same picks either way."""
+    from slam.rerun_map import CloudViewPicker
+
+    rng = np.random.default_rng(4)
+    n = 500
+    base = rng.integers(0, 3, n)
+    views = []
+    for ids in (base.astype(np.int32), base.astype(np.uint8), base.astype(np.uint64), base.astype(np.int64) - 1,
+                np.where(base == 2, 1 << 40, base).astype(np.int64)):
+        c = CloudRecord(np.repeat(np.arange(n, dtype=np.float64)[:, None], 3, axis=1), ids, np.arange(n) * 0.01,
+                        np.zeros(n, dtype=np.int32))
+        picker = CloudViewPicker(3, 7)
+        for lo in range(0, n, 128):
+            picker.take(CloudRecord(c.points_world[lo:lo + 128], c.scanner[lo:lo + 128], c.time[lo:lo + 128],
+                                    c.plane_id[lo:lo + 128]))
+        view = picker.view()
+        assert [s for s, _ in view.scans] == sorted(np.unique(ids).tolist())
+        views.append([part.points_world[:, 0].tolist() for _, part in view.scans])
+    assert all(v == views[0] for v in views)

@@ -94,8 +94,8 @@ class TransientFilter:
         """``np.cos``/``np.sin`` of a scanner's beam angles, kept while its scans' angles stay the
         same (each element as numpy computes it for any subset of them)."""
         hit = self._angles.get(scanner)
-        if hit is None or not (hit[0] is angles or (hit[0].shape == angles.shape and np.array_equal(hit[0], angles))):
-            hit = (angles, np.cos(angles), np.sin(angles))
+        if hit is None or not (hit[0].shape == angles.shape and np.array_equal(hit[0], angles)):
+            hit = (angles.copy(), np.cos(angles), np.sin(angles))
             self._angles[scanner] = hit
         return hit[1], hit[2]
 
