@@ -153,6 +153,35 @@ def test_match_with_an_index_follows_merges_and_new_edges() -> None:
     assert em.match(_break(3.01, 0)) is None  # a merged edge is not matched
 
 
+def test_the_index_matches_what_testing_every_edge_matches() -> None:
+    """Edges added one by one (the index extended), edges merged (left in it, passed over) and
+    walls merged (the index rebuilt without the merged edges): every break matches the edge an
+    index-free map finds, in a random sequence of them."""
+    rng = np.random.default_rng(8)
+    merged: dict[int, int] = {}
+    gen = [0]
+    indexed = EdgeMap(_params(gate=0.05), resolve=lambda i: merged.get(i, i), generation=lambda: gen[0])
+    plain = EdgeMap(_params(gate=0.05), resolve=lambda i: merged.get(i, i))
+    for step in range(400):
+        action = rng.random()
+        if action < 0.3:
+            host, st, side, u = int(rng.integers(1, 6)), int(rng.choice([-1, 1])), int(rng.choice([-1, 1])), rng.uniform(0, 4)
+            for em in (indexed, plain):
+                em.add(host, st, side, along_wall(WALL_N), u=float(u), time=float(step))
+        elif action < 0.4 and len(indexed.edges) > 1:
+            drop, keep = (int(x) for x in rng.choice(list(indexed.edges), 2, replace=False))
+            for em in (indexed, plain):
+                em.edges[drop].merged_into = keep
+        elif action < 0.45:
+            a, b = (int(x) for x in rng.choice(np.arange(1, 6), 2, replace=False))
+            merged[a] = merged.get(b, b)
+            gen[0] += 1
+        b = _break(float(rng.uniform(0, 4)), step, host=int(rng.integers(1, 6)), step=int(rng.choice([-1, 1])),
+                   side=int(rng.choice([-1, 1])))
+        got, want = indexed.match(b), plain.match(b)
+        assert (got and got.id) == (want and want.id)
+
+
 def test_match_keeps_to_the_heights_the_edge_was_seen_at() -> None:
     em = EdgeMap(_params(gate=0.15, height_margin=0.1), resolve=lambda i: i)
     e = em.add(1, -1, 1, along_wall(WALL_N), u=2.0, time=0.0, z_range=(0.5, 1.8))

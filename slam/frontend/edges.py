@@ -38,6 +38,7 @@ to such an edge can put a few of them close together.
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 from collections.abc import Callable
@@ -407,10 +408,18 @@ class EdgeMap:
         if self.generation is None:
             return list(self.edges.values())
         state = (self.generation(), len(self.edges))
-        if self._index is None or self._index[0] != state:
-            index: dict[tuple[int, int, int], list[Edge]] = {}
-            for e in self.edges.values():
+        if self._index is not None and self._index[0][0] == state[0] and self._index[0][1] < state[1]:
+            # only edges added since (the dict keeps their order): each to the end of its key's list
+            index = self._index[1]
+            for e in itertools.islice(self.edges.values(), self._index[0][1], None):
                 index.setdefault(self.key(e.host, e.step, e.side), []).append(e)
+            self._index = (state, index)
+        elif self._index is None or self._index[0] != state:
+            index = {}
+            for e in self.edges.values():
+                # a merged edge stays merged (match passes over it): an hour's walk merges half its edges
+                if e.merged_into is None:
+                    index.setdefault(self.key(e.host, e.step, e.side), []).append(e)
             self._index = (state, index)
         return self._index[1].get(key, [])
 
