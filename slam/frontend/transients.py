@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from segmentation.scanline import beam_cos_sin
 from slam.frontend import batch_kernels as bk
 from slam.frontend.knots import KnotMirror
 from slam.frontend.pending import PendingScan
@@ -73,8 +74,6 @@ class TransientFilter:
         self.returned: dict[int, int] = {}
         # per plane: its samples in its (u, v) frame, sorted by u (``_samples_uv``)
         self._samples: dict[int, tuple[int, FloatArray, FloatArray, FloatArray]] = {}
-        # per scanner: its last beam angles with their cosines and sines
-        self._angles: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
 
     def _samples_uv(self, plane: Plane) -> tuple[FloatArray, FloatArray]:
         """The points the plane's extent was grown by in its (u, v) frame, sorted by u (the
@@ -89,15 +88,6 @@ class TransientFilter:
             hit = (n, plane.u, su[order], sv[order])
             self._samples[plane.id] = hit
         return hit[2], hit[3]
-
-    def _cos_sin(self, scanner: int, angles: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """``np.cos``/``np.sin`` of a scanner's beam angles, kept while its scans' angles stay the
-        same (each element as numpy computes it for any subset of them)."""
-        hit = self._angles.get(scanner)
-        if hit is None or not (hit[0].shape == angles.shape and np.array_equal(hit[0], angles)):
-            hit = (angles.copy(), np.cos(angles), np.sin(angles))
-            self._angles[scanner] = hit
-        return hit[1], hit[2]
 
     def candidates(self) -> list[int]:
         """The planes on probation."""
@@ -124,7 +114,7 @@ class TransientFilter:
         vs = np.array([pl.v for pl in planes]).reshape(-1, 3)
         # the beams to test of every scan, in the world frame
         segs_list = [p.segs for p in scans]
-        cos_a, sin_a = zip(*(self._cos_sin(segs.scanner, segs.beam_angles) for segs in segs_list), strict=True)
+        cos_a, sin_a = zip(*(beam_cos_sin(segs.beam_angles) for segs in segs_list), strict=True)
         beam_start = np.zeros(len(segs_list) + 1, dtype=np.int64)
         np.cumsum([segs.beam_angles.shape[0] for segs in segs_list], out=beam_start[1:])
         T_world_scanner = np.array([self._knots.pose_at(segs.stamp) @ self._T_body_scanner[segs.scanner]
