@@ -82,6 +82,7 @@ class _CloudBatch:
         self._kt, self._T, self._deskew = res.knot_times, res.T_world_body, res.deskew
         self._T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
         self._rows = _SegmentRows(res.segment_rows)
+        self._normals, self._offsets = plane_table(res)
         self._writer = writer
         self._picker = picker
         self._scans: list[Scanline] = []
@@ -91,6 +92,7 @@ class _CloudBatch:
         self.endpoints_world: list[FloatArray] = []  # (m, 3) per flushed batch
         self.seg_stamp: list[FloatArray] = []
         self.seg_pid: list[NDArray[np.int32]] = []
+        self.seg_rms: list[NDArray[np.float32]] = []
         self._heap = HeapKeeper()
 
     def add(self, line: Scanline, scanner: int, scan_index: int) -> None:
@@ -147,6 +149,7 @@ class _CloudBatch:
             self.endpoints_world.append(p_w[ends])
             self.seg_stamp.append(np.array([line.stamp for line in scans], dtype=np.float64)[seg_scan])
             self.seg_pid.append(seg_pid.astype(np.int32))
+            self.seg_rms.append(ck.segment_rms(p_w, ends, seg_pid, self._normals, self._offsets))
         self._scans, self._scanner, self._scan_index, self.n = [], [], [], 0
         self._heap.check()
 
@@ -166,14 +169,28 @@ class CloudPart:
 @dataclass
 class CloudPartResult:
     """What one part of the cloud pass found: its points' count, its associated segments (scan
-    stamps, plane ids, end points in the world frame, (m, 3), two rows per segment) and, when
+    stamps, plane ids, end points in the world frame, (m, 3), two rows per segment, their points'
+    RMS distance to their plane) and, when
     asked, the points it picked for the recording's view."""
 
     count: int
     seg_stamp: FloatArray  # (k,)
     seg_pid: NDArray[np.int32]  # (k,)
     endpoints_world: FloatArray
+    seg_rms: NDArray[np.float32]  # (k,) m, each segment's points' RMS distance to its plane
     view: CloudViewPicker | None = None  # the recording's view of the part, when picked
+
+
+def plane_table(res: SlamResult) -> tuple[FloatArray, FloatArray]:
+    """The final planes' normals (P, 3) and offsets (P,) (world frame) as rows indexed by plane
+    id, NaN for the ids without an estimate (merged or taken out)."""
+    ids = np.asarray(res.plane_ids, dtype=np.int64)
+    n = int(ids.max()) + 1 if ids.size else 0
+    normals, offsets = np.full((n, 3), np.nan), np.full(n, np.nan)
+    if ids.size:
+        normals[ids] = np.asarray(res.plane_normals, dtype=np.float64).reshape(-1, 3)
+        offsets[ids] = np.asarray(res.plane_offsets, dtype=np.float64)
+    return normals, offsets
 
 
 def plan_parts(index: StreamIndex | None, scanner_names: list[str], processes: int) -> list[CloudPart]:
@@ -229,7 +246,8 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
     endpoints = np.concatenate(batch.endpoints_world) if batch.endpoints_world else np.zeros((0, 3))
     seg_stamp = np.concatenate(batch.seg_stamp) if batch.seg_stamp else np.zeros(0)
     seg_pid = np.concatenate(batch.seg_pid) if batch.seg_pid else np.zeros(0, dtype=np.int32)
-    return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints, picker)
+    seg_rms = np.concatenate(batch.seg_rms) if batch.seg_rms else np.zeros(0, dtype=np.float32)
+    return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints, seg_rms, picker)
 
 
 def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any,
@@ -324,6 +342,7 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
         np.concatenate([part.seg_stamp for part in found]).astype(np.float64),
         np.concatenate([part.endpoints_world for part in found]).reshape(-1, 2, 3),
         np.concatenate([part.seg_pid for part in found]).astype(np.int32),
+        np.concatenate([part.seg_rms for part in found]).astype(np.float32),
     )
     shown = None
     if view is not None and n_points:

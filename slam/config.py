@@ -470,8 +470,8 @@ class NoiseSection(StrictModel):
     The rule: every noise-dependent value of this configuration (``NOISE_SCALED`` in
     ``slam.params``: the front end's point_sigma, coplanar_distance, merge_distance and
     max_endpoint_distance, the edges' sigma, min_step, step_tolerance and cluster_width, the
-    back end's final_trim_distance, and the segmenter's thresholds) is stated as written for
-    ``reference`` noise. A scanner's noise is ``scanners[name]`` when given (fixed), else estimated
+    back end's final_trim_distance, the outlines' extent_gate and extent_rms, and the segmenter's thresholds) is
+    stated as written for ``reference`` noise. A scanner's noise is ``scanners[name]`` when given (fixed), else estimated
     from its first ``estimate_scans`` scans (``estimate``; ``segmentation.noise``: the effective
     range noise at the samples' median range), else its rig model's ``range_sigma``. A scanner up
     to ``scale_above`` times as noisy as the reference (or quieter) keeps the values as written;
@@ -510,6 +510,18 @@ class OutputConfig(StrictModel):
     voxel: float = Field(0.0, ge=0, description="voxel size of cloud.ply (m), 0 = every point")
     rerun: bool = True
     rerun_scan_every: int = Field(8, ge=1, description="log every n-th scan in map.rrd")
+    # the planes' outlines in planes.json and map.rrd from the final map (slam.plane_extents), when
+    # the cloud pass runs (cloud or rerun on); else the front end's outlines
+    extent_cell: float = Field(0.05, gt=0, description="m, the square the planes' outlines are rasterised in")
+    extent_min_segments: int = Field(
+        3, ge=1, description="segments of a plane that must cross a square for it to be part of the plane's outline")
+    extent_gate: float = Field(
+        0.009, gt=0, description="m, how far a segment's end points may lie off its plane's final estimate and still "
+        "count for the plane's outline (noise-scaled)")
+    extent_rms: float = Field(
+        0.006, gt=0, description="m, the largest RMS distance of a segment's points to its plane's final estimate for "
+        "the segment to count for the plane's outline (noise-scaled: a segment run across a door's edge onto its wall "
+        "does not count)")
 
 
 class ParallelSection(StrictModel):

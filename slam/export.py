@@ -3,8 +3,9 @@
 Files of a run folder ``DIR``:
 
 - ``trajectory.tum``: ``T_world_body`` as TUM lines ``t tx ty tz qx qy qz qw`` (evo's format).
-- ``planes.json``: planes ``n . x + d = 0`` (world frame, metres) with extent polygon,
-  number of segments, covariance over (Unit3 tangent of the normal (2), d) and a kind guess.
+- ``planes.json``: planes ``n . x + d = 0`` (world frame, metres) with extent polygon (and
+  where it came from, ``outline``: the final map or the front end), number of segments,
+  covariance over (Unit3 tangent of the normal (2), d) and a kind guess.
   The ground truth's ``planes.json`` reads with the same reader.
 - ``cloud.ply``: every valid point in the world frame with per-point ``scanner`` (int32),
   ``time`` (float64, s) and ``plane_id`` (int32, -1 = unassociated): a binary PLY in open3d's
@@ -118,7 +119,9 @@ class PlaneRecord:
     """A plane ``normal . x + d = 0`` in the world frame with its extent.
 
     ``polygon`` (k,3) is the extent in the world frame (may be empty); ``covariance`` (3,3) is
-    over (Unit3 tangent of the normal, d), or None when unknown (ground truth).
+    over (Unit3 tangent of the normal, d), or None when unknown (ground truth); ``outline`` says
+    where the polygon came from: ``final_map`` (the segments placed with the final trajectory,
+    ``slam.plane_extents``), ``front_end`` (the extent grown during the walk) or "" (unknown).
     """
 
     id: int
@@ -128,6 +131,7 @@ class PlaneRecord:
     kind: str = ""
     n_segments: int = 0
     covariance: FloatArray | None = None
+    outline: str = ""
 
 
 def _plane_to_dict(p: PlaneRecord) -> dict[str, Any]:
@@ -141,6 +145,8 @@ def _plane_to_dict(p: PlaneRecord) -> dict[str, Any]:
     }
     if p.covariance is not None:
         out["covariance"] = np.asarray(p.covariance, dtype=float).reshape(3, 3).tolist()
+    if p.outline:
+        out["outline"] = p.outline
     return out
 
 
@@ -188,6 +194,7 @@ def read_planes_json(path: str | Path) -> list[PlaneRecord]:
                     covariance=None
                     if cov is None
                     else np.asarray(cov, dtype=np.float64).reshape(3, 3),
+                    outline=str(rec.get("outline", "")),
                 )
             )
         except (KeyError, TypeError, ValueError) as e:

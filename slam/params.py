@@ -38,6 +38,7 @@ NOISE_SCALED: dict[str, tuple[str, ...]] = {
     "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma"),
     "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
     "backend": ("final_trim_distance",),
+    "output": ("extent_gate", "extent_rms"),
 }
 
 

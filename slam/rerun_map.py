@@ -61,11 +61,13 @@ def plane_colors(plane_id: NDArray[np.integer]) -> NDArray[np.uint8]:
 
 @dataclass(frozen=True)
 class SegmentLines:
-    """Segments for display: endpoints (M,2,3) in the world frame at their scan's stamp (s)."""
+    """Segments for display: endpoints (M,2,3) in the world frame at their scan's stamp (s); with
+    ``rms``, their points' RMS distance to their plane (m; for the planes' outlines)."""
 
     stamp: FloatArray
     endpoints_world: FloatArray
     plane_id: NDArray[np.int32]
+    rms: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)

@@ -58,7 +58,13 @@ from slam.prefetch import PreparedScans, prepared_scans
 from slam.preflight import check_observability, check_rig
 from slam.rerun_map import MapOptions, write_map_rrd
 from slam.result import SlamResult
-from slam.run_folder import RunSummary, check_cloud_space, write_cloud_outputs, write_tables
+from slam.run_folder import (
+    RunSummary,
+    check_cloud_space,
+    write_cloud_outputs,
+    write_planes,
+    write_tables,
+)
 
 # bag_time_range: a bag's (start, end) log time from its path, for callers that hold no source
 __all__ = ["bag_time_range", "estimate_noise", "load_imu", "peak_rss_gb", "run_slam", "trim_heap"]
@@ -254,8 +260,9 @@ def run_slam(
 
         with atomic_dir(Path(out_dir)) as tmp:
             t0 = time.perf_counter()
-            planes = write_tables(tmp, res)
+            write_tables(tmp, res)
             cloud = write_cloud_outputs(tmp, source, rig, cfg, res, scans.index, progress, voxel)
+            planes = write_planes(tmp, res, cfg, cloud.segments)
             if cfg.output.rerun:
                 write_map_rrd(tmp / "map.rrd", times=res.knot_times, T_world_body=res.T_world_body, planes=planes,
                               cloud=cloud.view, scanner_names=res.scanner_names, segments=cloud.segments,

@@ -1,12 +1,14 @@
 """What a run writes into its folder from its result (``slam.export`` holds the formats):
-trajectory.tum, planes.json and segments.npz (:func:`write_tables`), cloud.ply and the cloud
-shown in map.rrd (:func:`write_cloud_outputs`), and summary.json's record (:class:`RunSummary`,
+trajectory.tum and segments.npz (:func:`write_tables`), cloud.ply and the cloud shown in map.rrd
+(:func:`write_cloud_outputs`), planes.json with the outlines from the final map where that pass
+placed the segments (:func:`write_planes`), and summary.json's record (:class:`RunSummary`,
 with the run's counts as one :class:`RunCounts`).
 """
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,7 @@ from slam.frontend.planemap import KIND_NAMES
 from slam.health import Health
 from slam.io.source import BagSource, StreamIndex
 from slam.pipeline import SlamResult
+from slam.plane_extents import ExtentRule, final_extents
 from slam.rerun_map import CloudView, MapOptions, SegmentLines
 
 FloatArray = NDArray[np.float64]
@@ -50,37 +53,57 @@ TIMINGS_DEFINITION = ("seconds per stage; 'segmentation' and 'frontend' (lifting
                       "parallel.export_processes); 'wall' is the whole run's elapsed time")
 
 
-def plane_records(res: SlamResult, covariances: dict[int, FloatArray]) -> list[PlaneRecord]:
-    """The estimated planes (world frame) with their extents, kinds and ``covariances``."""
+def plane_records(res: SlamResult, covariances: dict[int, FloatArray],
+                  outlines: Mapping[int, FloatArray] | None = None) -> list[PlaneRecord]:
+    """The estimated planes (world frame) with their kinds, ``covariances`` and outlines: from
+    ``outlines`` (the final map's, :func:`final_outlines`) where given, else the front end's."""
     recs = []
     for pid, n, d in zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True):
         p = res.plane_map.planes[int(pid)]
+        final = None if outlines is None else outlines.get(int(pid))
         recs.append(
             PlaneRecord(
                 id=int(pid),
                 normal=np.asarray(n),
                 d=float(d),
-                polygon=res.plane_map.polygon(int(pid)),
+                polygon=final if final is not None else res.plane_map.polygon(int(pid)),
                 kind=KIND_NAMES[p.kind],
                 n_segments=int(p.n_segments),
                 covariance=covariances.get(int(pid)),
+                outline="final_map" if final is not None else "front_end",
             )
         )
     return recs
 
 
-def write_tables(out: Path, res: SlamResult) -> list[PlaneRecord]:
-    """trajectory.tum, planes.json and segments.npz into ``out`` (and trajectory_online.tum, the
-    window's estimate before the final batch, when there was one); returns the planes written."""
+def final_outlines(res: SlamResult, cfg: SlamConfig, segments: SegmentLines) -> dict[int, FloatArray]:
+    """The planes' outlines from the final map (:func:`slam.plane_extents.final_extents`) given
+    the associated segments' end points the cloud pass placed (world frame)."""
+    o = cfg.output
+    planes = [(int(pid), np.asarray(n), float(d))
+              for pid, n, d in zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True)]
+    return final_extents(segments.endpoints_world, segments.plane_id, planes,
+                         ExtentRule(o.extent_cell, o.extent_min_segments, o.extent_gate, o.extent_rms), segments.rms)
+
+
+def write_tables(out: Path, res: SlamResult) -> None:
+    """trajectory.tum and segments.npz into ``out`` (and trajectory_online.tum, the window's
+    estimate before the final batch, when there was one)."""
     write_trajectory_tum(out / "trajectory.tum", res.knot_times, res.T_world_body)
     if res.T_world_body_online is not None:
         write_trajectory_tum(out / "trajectory_online.tum", res.knot_times, res.T_world_body_online)
-    planes = plane_records(res, res.plane_covariances)
-    write_planes_json(out / "planes.json", planes)
     rows = res.segment_rows
     table = make_segment_table(res.scanner_names, rows["scanner"], rows["scan_index"], rows["stamp"],
                                rows["first_beam"], rows["last_beam"], rows["plane_id"])
     write_segments_npz(out / "segments.npz", table)
+
+
+def write_planes(out: Path, res: SlamResult, cfg: SlamConfig, segments: SegmentLines | None) -> list[PlaneRecord]:
+    """planes.json into ``out``, the outlines from the final map when the cloud pass placed the
+    ``segments`` (else the front end's); returns the planes written."""
+    outlines = None if segments is None else final_outlines(res, cfg, segments)
+    planes = plane_records(res, res.plane_covariances, outlines)
+    write_planes_json(out / "planes.json", planes)
     return planes
 
 

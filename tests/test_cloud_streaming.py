@@ -262,6 +262,20 @@ def _reference_cloud(bag: Path, res: SlamResult) -> tuple[CloudRecord, np.ndarra
     return CloudRecord(pw, np.concatenate(sc), t_all, np.concatenate(pid)), pw[np.asarray(ends, dtype=np.int64)]
 
 
+def _reference_rms(cloud: CloudRecord, ends: np.ndarray, res: SlamResult) -> np.ndarray:
+    """Each associated segment's points' RMS distance to its plane's final estimate, from the
+    cloud held whole (its points between the segment's first and last, all its plane's)."""
+    ids = [int(i) for i in res.plane_ids]
+    out = []
+    idx = {tuple(p): i for i, p in enumerate(cloud.points_world.tolist())}
+    for a, b in ends.reshape(-1, 2, 3):
+        lo, hi = idx[tuple(a.tolist())], idx[tuple(b.tolist())]
+        j = ids.index(int(cloud.plane_id[lo]))
+        r = cloud.points_world[lo:hi + 1] @ np.asarray(res.plane_normals[j]) + float(res.plane_offsets[j])
+        out.append(np.sqrt(np.mean(r * r)))
+    return np.asarray(out)
+
+
 def _streamed(walk: SimulationResult, res: SlamResult, ply: Path, index: StreamIndex | None = None,
               processes: int = 1) -> tuple[int, Any]:
     with BagSource(walk.bag) as source:
@@ -279,6 +293,10 @@ def test_streamed_cloud_equals_the_cloud_held_whole(walk: SimulationResult, esti
     _same(read_cloud_ply(tmp_path / "default.ply"), ref)
     np.testing.assert_array_equal(lines.endpoints_world.reshape(-1, 3), ref_ends)
     assert lines.stamp.shape[0] == lines.plane_id.shape[0] == ref_ends.shape[0] // 2
+    # each segment's points' RMS distance to its plane (for the planes' outlines), as numpy has it
+    assert lines.rms is not None and lines.rms.dtype == np.float32
+    np.testing.assert_allclose(lines.rms, _reference_rms(ref, ref_ends, estimate), rtol=1e-5, atol=1e-9)
+    assert float(np.median(lines.rms)) < 0.006  # the walk's segments lie on their planes
     # batches of a few scans, placed in odd chunks: the same file
     monkeypatch.setattr(slam.cloud_pass, "_EXPORT_BATCH", 1500)
     monkeypatch.setattr(slam.cloud_pass, "_PLACE_CHUNK", 333)

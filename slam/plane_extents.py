@@ -1,0 +1,148 @@
+"""Planes' extents from the final map: where the plane's own segments, placed with the final
+trajectory, lie on it.
+
+The front end grows a plane's extent while it walks (``slam.frontend.planemap``): in the world
+frame of the poses of that moment, and by every segment it gave the plane, so that one wall
+segment given to a door stretches the door's outline along its wall. The exported outline is
+instead taken from the final map: each associated segment's end points in the world frame (the
+cloud pass places them with the final trajectory), projected on the plane's final estimate. A
+segment counts where both its ends lie within ``gate`` of the plane and its points' RMS distance
+to it (the pass measures it) is within ``rms``: a segment run across a door's edge onto its wall,
+or across a floor's corner, does not. Its path is rasterised into
+``cell`` squares of the plane's (u, v) frame (``slam.frontend.planemap.plane_basis``: u
+horizontal on walls); a cell is part of the extent when at least ``min_segments`` segments cross
+it, so that a stray segment or two (a mixed one, a person) do not stretch it; the outline is the
+bounding rectangle of those cells, at the precision of the segments' points within them.
+
+Frames: end points, planes and outlines in the world frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from slam.frontend.planemap import plane_basis
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed at a corner is rarely missed
+
+
+@dataclass(frozen=True)
+class ExtentRule:
+    """``cell`` (m) the raster's square, ``min_segments`` the segments that must cross a cell for
+    it to count, ``gate`` (m) how far a segment's ends may lie off the plane, ``rms`` (m; None:
+    not tested) the largest RMS distance of a segment's points to the plane."""
+
+    cell: float
+    min_segments: int
+    gate: float
+    rms: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.cell > 0 and self.min_segments >= 1 and self.gate > 0 and (self.rms is None or self.rms > 0)):
+            raise ValueError(f"extent rule: expected cell > 0, min_segments >= 1, gate > 0; got {self}")
+
+
+@nb.njit(cache=True)
+def segment_runs(a_uv: FloatArray, b_uv: FloatArray, cell: float) -> tuple[IntArray, IntArray, FloatArray]:  # pragma: no cover
+    """The cells each segment ``a_uv[k] -> b_uv[k]`` ((k, 2) in-plane coordinates, m) crosses, one
+    run per (segment, cell): its cell (r, 2) (``floor(uv / cell)``), its segment (r,) and the
+    least and most u and v of the segment's samples in it (r, 4: u_lo, u_hi, v_lo, v_hi; the end
+    points are samples)."""
+    k_n = a_uv.shape[0]
+    total = 0
+    for k in range(k_n):
+        length = math.hypot(b_uv[k, 0] - a_uv[k, 0], b_uv[k, 1] - a_uv[k, 1])
+        total += math.ceil(length * _SAMPLES_PER_CELL / cell) + 1
+    cells = np.empty((total, 2), dtype=np.int64)
+    seg = np.empty(total, dtype=np.int64)
+    box = np.empty((total, 4))
+    r = -1
+    for k in range(k_n):
+        du, dv = b_uv[k, 0] - a_uv[k, 0], b_uv[k, 1] - a_uv[k, 1]
+        n = math.ceil(math.hypot(du, dv) * _SAMPLES_PER_CELL / cell) + 1
+        first = True
+        for i in range(n):
+            t = i / (n - 1) if n > 1 else 0.0
+            u = a_uv[k, 0] + t * du
+            v = a_uv[k, 1] + t * dv
+            cu, cv = math.floor(u / cell), math.floor(v / cell)
+            # a straight line's cells come in order and never again: a new cell is a new run
+            if first or cells[r, 0] != cu or cells[r, 1] != cv:
+                r += 1
+                cells[r, 0], cells[r, 1] = cu, cv
+                seg[r] = k
+                box[r, 0], box[r, 1], box[r, 2], box[r, 3] = u, u, v, v
+                first = False
+            else:
+                box[r, 0], box[r, 1] = min(box[r, 0], u), max(box[r, 1], u)
+                box[r, 2], box[r, 3] = min(box[r, 2], v), max(box[r, 3], v)
+    return cells[: r + 1], seg[: r + 1], box[: r + 1]
+
+
+def extent_box(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int) -> FloatArray | None:
+    """The bounding box (2, 2: lo, hi of u and v, m) of the cells that at least ``min_segments``
+    of the segments ``a_uv -> b_uv`` ((k, 2) each) cross, at their samples' precision; None when
+    no cell is crossed that often."""
+    if a_uv.shape[0] < min_segments:
+        return None
+    cells, _, box = segment_runs(np.ascontiguousarray(a_uv, dtype=np.float64),
+                                 np.ascontiguousarray(b_uv, dtype=np.float64), float(cell))
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    dense = counts[inverse.reshape(-1)] >= min_segments
+    if not dense.any():
+        return None
+    b = box[dense]
+    return np.array([[b[:, 0].min(), b[:, 2].min()], [b[:, 1].max(), b[:, 3].max()]])
+
+
+def rectangle(normal: FloatArray, d: float, box: FloatArray) -> FloatArray:
+    """The closed (5, 3) outline (world frame) of the in-plane box (2, 2: lo, hi of u and v) on
+    the plane ``normal . x + d = 0`` (its axes from ``plane_basis``)."""
+    u, v = plane_basis(np.asarray(normal, dtype=np.float64))
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    (u0, v0), (u1, v1) = box
+    corners = np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1], [u0, v0]])
+    return corners[:, :1] * u + corners[:, 1:] * v - d * n
+
+
+def final_extents(endpoints_world: FloatArray, seg_pid: NDArray[np.integer], planes: Sequence[tuple[int, FloatArray, float]],
+                  rule: ExtentRule, seg_rms: NDArray[np.floating] | None = None) -> dict[int, FloatArray]:
+    """Each plane's outline (closed (5, 3), world frame) from its segments' end points
+    (``endpoints_world`` (m, 2, 3), world frame; ``seg_pid`` (m,) their planes) and its final
+    estimate (``planes``: id, unit normal, offset) and, with ``rule.rms``, their points' RMS
+    distances to their plane (``seg_rms`` (m,)), by ``rule`` (module doc). Planes without a cell
+    crossed by ``rule.min_segments`` segments on them are left out."""
+    ends = np.asarray(endpoints_world, dtype=np.float64).reshape(-1, 2, 3)
+    pid = np.asarray(seg_pid, dtype=np.int64)
+    order = np.argsort(pid, kind="stable")
+    ids, first = np.unique(pid[order], return_index=True)
+    bounds = dict(zip(ids.tolist(), zip(first.tolist(), [*first[1:].tolist(), order.size], strict=True), strict=True))
+    out: dict[int, FloatArray] = {}
+    for plane_id, normal, d in planes:
+        span = bounds.get(int(plane_id))
+        if span is None:
+            continue
+        n = np.asarray(normal, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        sel = order[span[0]:span[1]]
+        e = ends[sel]
+        on = (np.abs(e @ n + d) <= rule.gate).all(axis=1)
+        if seg_rms is not None and rule.rms is not None:
+            on &= np.asarray(seg_rms)[sel] <= rule.rms
+        if not on.any():
+            continue
+        u, v = plane_basis(n)
+        B = np.stack((u, v), axis=1)
+        box = extent_box(e[on, 0] @ B, e[on, 1] @ B, rule.cell, rule.min_segments)
+        if box is not None:
+            out[int(plane_id)] = rectangle(n, float(d), box)
+    return out

@@ -1,0 +1,95 @@
+"""The planes' outlines from the final map (slam.plane_extents): the cells a plane's segments
+cross, counted, with stray and off-plane segments left out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam.frontend.planemap import plane_basis
+from slam.plane_extents import ExtentRule, extent_box, final_extents, rectangle, segment_runs
+
+RULE = ExtentRule(cell=0.05, min_segments=3, gate=0.009, rms=0.006)
+
+
+def test_a_segments_runs_are_its_cells_in_order_with_its_samples_bounds() -> None:
+    a, b = np.array([[0.01, 0.02]]), np.array([[0.23, 0.02]])
+    cells, seg, box = segment_runs(a, b, 0.1)
+    assert cells.tolist() == [[0, 0], [1, 0], [2, 0]] and seg.tolist() == [0, 0, 0]
+    assert box[0, 0] == 0.01 and box[-1, 1] == 0.23  # the end points are samples
+    assert np.all(box[:, 2] == 0.02) and np.all(box[:, 3] == 0.02)
+    assert box[1, 0] >= 0.1 and box[1, 1] < 0.2
+    # a diagonal crosses each cell once, in order; a point-like segment is one run
+    cells, seg, _ = segment_runs(np.array([[0.0, 0.0], [0.5, 0.5]]), np.array([[0.29, 0.29], [0.5, 0.5]]), 0.1)
+    assert seg.tolist().count(1) == 1
+    first = cells[seg == 0]
+    assert first[0].tolist() == [0, 0] and first[-1].tolist() == [2, 2]
+    assert len({tuple(c) for c in first.tolist()}) == first.shape[0]
+
+
+def _door_segments(rng: np.random.Generator, u: tuple[float, float], v: tuple[float, float], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` scan lines across a face [u0, u1] x [v0, v1]: horizontal ones at random heights and
+    slanted ones (tilted scanners), each from one edge to the other."""
+    hv = rng.uniform(*v, size=n)
+    a = np.column_stack((np.full(n, u[0]), hv))
+    b = np.column_stack((np.full(n, u[1]), np.clip(hv + rng.uniform(-0.6, 0.6, size=n), *v)))
+    return a, b
+
+
+def test_the_box_is_the_face_and_two_stray_segments_do_not_stretch_it() -> None:
+    rng = np.random.default_rng(3)
+    a, b = _door_segments(rng, (2.0, 2.9), (0.0, 2.05), 400)
+    stray_a, stray_b = np.array([[0.5, 0.02], [0.8, 1.0]]), np.array([[2.5, 0.03], [2.4, 1.0]])
+    box = extent_box(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 3)
+    assert box is not None
+    np.testing.assert_allclose(box, [[2.0, 0.0], [2.9, 2.05]], atol=0.03)
+    # counted once each, the strays are the outline's left edge: the count is what keeps them out
+    loose = extent_box(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 1)
+    assert loose is not None and loose[0, 0] == pytest.approx(0.5)
+    # fewer segments than the count: no outline
+    assert extent_box(a[:2], b[:2], 0.05, 3) is None
+
+
+def _lift(uv: np.ndarray, normal: np.ndarray, d: float, off: float = 0.0) -> np.ndarray:
+    u, v = plane_basis(normal)
+    return uv[:, :1] * u + uv[:, 1:] * v - (d + off) * normal
+
+
+def test_final_extents_leave_out_segments_off_the_plane_or_not_on_it() -> None:
+    rng = np.random.default_rng(5)
+    n = np.array([0.0, 1.0, 0.0])
+    d = -0.015  # a door 1.5 cm behind the wall y = 0, seen from y < 0
+    a, b = _door_segments(rng, (2.0, 2.9), (0.0, 2.05), 300)
+    ends = [np.stack((_lift(a, n, d), _lift(b, n, d)), axis=1)]
+    rms = [np.full(a.shape[0], 0.003)]
+    # the wall beside the door, 1.5 cm in front of the door's plane, wrongly given to it 20 times
+    wa, wb = _door_segments(rng, (0.0, 2.0), (0.5, 1.5), 20)
+    ends.append(np.stack((_lift(wa, n, d, 0.015), _lift(wb, n, d, 0.015)), axis=1))
+    rms.append(np.full(20, 0.015))
+    # segments run across the door's edge onto the wall: their ends on the door's plane, their
+    # points half on the wall (RMS 11 mm)
+    ma, mb = _door_segments(rng, (1.0, 2.5), (0.4, 0.6), 20)
+    ends.append(np.stack((_lift(ma, n, d), _lift(mb, n, d)), axis=1))
+    rms.append(np.full(20, 0.011))
+    e = np.concatenate(ends)
+    pid = np.full(e.shape[0], 7)
+    planes = [(7, n, d), (8, n, 0.0)]  # plane 8 has no segment: left out
+    out = final_extents(e, pid, planes, RULE, np.concatenate(rms))
+    assert sorted(out) == [7]
+    u, v = plane_basis(n)
+    poly = out[7]
+    assert poly.shape == (5, 3) and np.allclose(poly[0], poly[-1])
+    np.testing.assert_allclose(poly @ n + d, 0.0, atol=1e-12)  # on the plane
+    uv = np.column_stack((poly @ u, poly @ v))
+    np.testing.assert_allclose([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()],
+                               [2.0, 2.9, 0.0, 2.05], atol=0.03)
+    # without the RMS test the segments across the edge stretch the door onto its wall
+    loose = final_extents(e, pid, planes, ExtentRule(0.05, 3, 0.009), np.concatenate(rms))
+    assert float((loose[7] @ u).min()) < 1.1
+    np.testing.assert_allclose(rectangle(n, d, np.array([[2.0, 0.0], [2.9, 2.05]])), poly, atol=0.03)
+
+
+@pytest.mark.parametrize("bad", [dict(cell=0.0), dict(min_segments=0), dict(gate=-1.0), dict(rms=0.0)])
+def test_a_rule_out_of_range_is_refused(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match="extent rule"):
+        ExtentRule(**{"cell": 0.05, "min_segments": 3, "gate": 0.009, "rms": 0.006, **bad})  # type: ignore[arg-type]
