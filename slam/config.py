@@ -518,6 +518,9 @@ class OutputConfig(StrictModel):
     extent_gate: float = Field(
         0.009, gt=0, description="m, how far a segment's end points may lie off its plane's final estimate and still "
         "count for the plane's outline (noise-scaled)")
+    extent_gap: float = Field(
+        0.25, ge=0, description="m, the widest empty space within one region of a plane's outline (planes.json lists "
+        "each plane's regions: a wall's pieces between doorways, two doors at one depth)")
     extent_rms: float = Field(
         0.006, gt=0, description="m, the largest RMS distance of a segment's points to its plane's final estimate for "
         "the segment to count for the plane's outline (noise-scaled: a segment run across a door's edge onto its wall "

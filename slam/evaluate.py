@@ -286,7 +286,8 @@ def transform_plane(T: FloatArray, plane: PlaneRecord) -> PlaneRecord:
     n = T[:3, :3] @ plane.normal
     d = float(plane.d - n @ T[:3, 3])
     poly = transform_points(T, plane.polygon) if plane.polygon.size else plane.polygon
-    return PlaneRecord(plane.id, n, d, poly, plane.kind, plane.n_segments, plane.covariance)
+    regions = tuple(transform_points(T, r) for r in plane.regions)
+    return PlaneRecord(plane.id, n, d, poly, plane.kind, plane.n_segments, plane.covariance, plane.outline, regions)
 
 
 # ---------------------------------------------------------------------------- majorities
@@ -681,9 +682,13 @@ class PlaneMatch:
     matched_by: str  # "beams" or "geometry"
     support: float  # beams: fraction of the plane's segments voting for the true plane
     sigma_angle_deg: float = float("nan")  # the run's own 1-sigma of the normal (planes.json covariance), larger axis
-    # doors and boards: the extent's error against the true face (``extent_errors``), NaN otherwise
+    # doors and boards: the extent's error against the true face (``extent_errors``; of the
+    # outline's region on the face when the plane has regions, ``face_region``), NaN otherwise;
+    # of the whole outline; the outline's regions
     extent_error_m: float = float("nan")
     extent_excess_m: float = float("nan")
+    extent_whole_error_m: float = float("nan")
+    extent_regions: int = 0
 
 
 def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -> tuple[float, float]:
@@ -699,14 +704,32 @@ def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -
     return err, excess
 
 
+def face_region(regions: Sequence[FloatArray], true: FloatArray, normal: FloatArray) -> FloatArray:
+    """The region (polygon (k, 3)) of an estimated outline that overlaps the true face (polygon
+    (m, 3)) most, both bounding rectangles projected onto the face's plane; the first region when
+    none overlaps it."""
+    B = np.stack(plane_basis(np.asarray(normal, dtype=np.float64)))
+    t = true @ B.T
+    t_lo, t_hi = t.min(axis=0), t.max(axis=0)
+    best, area = regions[0], 0.0
+    for r in regions:
+        e = r @ B.T
+        side = np.minimum(e.max(axis=0), t_hi) - np.maximum(e.min(axis=0), t_lo)
+        a = float(np.prod(np.clip(side, 0.0, None)))
+        if a > area:
+            best, area = r, a
+    return best
+
+
 @dataclass(frozen=True)
 class PlaneEval:
     matches: list[PlaneMatch]
     n_estimated: int
     n_true: int
     unmatched: list[int] = field(default_factory=list)
-    # doors and boards: est id -> (its extent polygon (k, 3), the true face's (m, 3), the face's
-    # normal (3,)), ground-truth frame, for the plot of extents against faces
+    # doors and boards: est id -> (its extent polygon (k, 3; its region on the face when it has
+    # regions), the true face's (m, 3), the face's normal (3,)), ground-truth frame, for the plot
+    # of extents against faces
     outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = field(default_factory=dict)
 
     @property
@@ -758,9 +781,13 @@ class PlaneEval:
             "extents": {
                 "definition": "door and board planes: largest distance between the edges of the estimated "
                 "extent's bounding rectangle and the true face's, in the face's plane (m); excess: how much "
-                "longer or taller the estimate is",
+                "longer or taller the estimate is; of the outline's region on the face when the plane's outline "
+                "has regions (planes.json 'regions': the separate surfaces it holds), whole_error_m of the whole "
+                "outline",
                 "planes": [{"est_id": m.est_id, "true_id": m.true_id, "kind": m.kind, "error_m": m.extent_error_m,
-                            "excess_m": m.extent_excess_m} for m in self.matches if m.extent_error_m == m.extent_error_m],
+                            "excess_m": m.extent_excess_m, "whole_error_m": m.extent_whole_error_m,
+                            "regions": m.extent_regions}
+                           for m in self.matches if m.extent_error_m == m.extent_error_m],
                 "max_error_m": max((m.extent_error_m for m in self.matches if m.extent_error_m == m.extent_error_m),
                                    default=None),
             },
@@ -804,10 +831,12 @@ def plane_errors(
         t = true_by_id[tid]
         cosang = min(1.0, abs(float(e.normal @ t.normal)))
         c = _centre(e, fallback=_centre(t) if t.polygon.shape[0] >= 3 else None)
-        ext = (float("nan"), float("nan"))
+        ext = whole = (float("nan"), float("nan"))
         if t.kind in ("door", "board") and e.polygon.shape[0] >= 3 and t.polygon.shape[0] >= 3:
-            ext = extent_errors(e.polygon, t.polygon, t.normal)
-            outlines[int(e.id)] = (e.polygon, t.polygon, t.normal)
+            whole = extent_errors(e.polygon, t.polygon, t.normal)
+            own = face_region(e.regions, t.polygon, t.normal) if e.regions else e.polygon
+            ext = extent_errors(own, t.polygon, t.normal)
+            outlines[int(e.id)] = (own, t.polygon, t.normal)
         matches.append(
             PlaneMatch(
                 est_id=int(e.id),
@@ -822,6 +851,8 @@ def plane_errors(
                 sigma_angle_deg=normal_sigma_deg(e.covariance),
                 extent_error_m=ext[0],
                 extent_excess_m=ext[1],
+                extent_whole_error_m=whole[0],
+                extent_regions=len(e.regions),
             )
         )
     return PlaneEval(matches, len(estimated), len(true), unmatched, outlines)

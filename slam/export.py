@@ -4,7 +4,8 @@ Files of a run folder ``DIR``:
 
 - ``trajectory.tum``: ``T_world_body`` as TUM lines ``t tx ty tz qx qy qz qw`` (evo's format).
 - ``planes.json``: planes ``n . x + d = 0`` (world frame, metres) with extent polygon (and
-  where it came from, ``outline``: the final map or the front end), number of segments,
+  where it came from, ``outline``: the final map or the front end; from the final map also the
+  ``regions``, one outline per separate surface the plane holds), number of segments,
   covariance over (Unit3 tangent of the normal (2), d) and a kind guess.
   The ground truth's ``planes.json`` reads with the same reader.
 - ``cloud.ply``: every valid point in the world frame with per-point ``scanner`` (int32),
@@ -121,7 +122,8 @@ class PlaneRecord:
     ``polygon`` (k,3) is the extent in the world frame (may be empty); ``covariance`` (3,3) is
     over (Unit3 tangent of the normal, d), or None when unknown (ground truth); ``outline`` says
     where the polygon came from: ``final_map`` (the segments placed with the final trajectory,
-    ``slam.plane_extents``), ``front_end`` (the extent grown during the walk) or "" (unknown).
+    ``slam.plane_extents``), ``front_end`` (the extent grown during the walk) or "" (unknown);
+    ``regions`` (the final map's) one outline per separate surface the plane holds.
     """
 
     id: int
@@ -132,6 +134,7 @@ class PlaneRecord:
     n_segments: int = 0
     covariance: FloatArray | None = None
     outline: str = ""
+    regions: tuple[FloatArray, ...] = ()
 
 
 def _plane_to_dict(p: PlaneRecord) -> dict[str, Any]:
@@ -147,6 +150,8 @@ def _plane_to_dict(p: PlaneRecord) -> dict[str, Any]:
         out["covariance"] = np.asarray(p.covariance, dtype=float).reshape(3, 3).tolist()
     if p.outline:
         out["outline"] = p.outline
+    if p.regions:
+        out["regions"] = [np.asarray(r, dtype=float).reshape(-1, 3).tolist() for r in p.regions]
     return out
 
 
@@ -195,6 +200,7 @@ def read_planes_json(path: str | Path) -> list[PlaneRecord]:
                     if cov is None
                     else np.asarray(cov, dtype=np.float64).reshape(3, 3),
                     outline=str(rec.get("outline", "")),
+                    regions=tuple(np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rec.get("regions", [])),
                 )
             )
         except (KeyError, TypeError, ValueError) as e:

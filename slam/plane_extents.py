@@ -12,7 +12,9 @@ or across a floor's corner, does not. Its path is rasterised into
 ``cell`` squares of the plane's (u, v) frame (``slam.frontend.planemap.plane_basis``: u
 horizontal on walls); a cell is part of the extent when at least ``min_segments`` segments cross
 it, so that a stray segment or two (a mixed one, a person) do not stretch it; the outline is the
-bounding rectangle of those cells, at the precision of the segments' points within them.
+bounding rectangle of those cells, at the precision of the segments' points within them, and its
+regions the rectangles of the groups of those cells that lie within ``gap`` of one another (a
+plane can hold separate surfaces: a wall's pieces between doorways, two doors at one depth).
 
 Frames: end points, planes and outlines in the world frame.
 """
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from slam.frontend.planemap import plane_basis
 
@@ -39,15 +42,18 @@ _SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed
 class ExtentRule:
     """``cell`` (m) the raster's square, ``min_segments`` the segments that must cross a cell for
     it to count, ``gate`` (m) how far a segment's ends may lie off the plane, ``rms`` (m; None:
-    not tested) the largest RMS distance of a segment's points to the plane."""
+    not tested) the largest RMS distance of a segment's points to the plane, ``gap`` (m) the
+    widest empty space within one region of the outline."""
 
     cell: float
     min_segments: int
     gate: float
     rms: float | None = None
+    gap: float = 0.25
 
     def __post_init__(self) -> None:
-        if not (self.cell > 0 and self.min_segments >= 1 and self.gate > 0 and (self.rms is None or self.rms > 0)):
+        if not (self.cell > 0 and self.min_segments >= 1 and self.gate > 0 and (self.rms is None or self.rms > 0)
+                and self.gap >= 0):
             raise ValueError(f"extent rule: expected cell > 0, min_segments >= 1, gate > 0; got {self}")
 
 
@@ -92,16 +98,13 @@ def extent_box(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: in
     """The bounding box (2, 2: lo, hi of u and v, m) of the cells that at least ``min_segments``
     of the segments ``a_uv -> b_uv`` ((k, 2) each) cross, at their samples' precision; None when
     no cell is crossed that often."""
-    if a_uv.shape[0] < min_segments:
-        return None
-    cells, _, box = segment_runs(np.ascontiguousarray(a_uv, dtype=np.float64),
-                                 np.ascontiguousarray(b_uv, dtype=np.float64), float(cell))
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    dense = counts[inverse.reshape(-1)] >= min_segments
-    if not dense.any():
-        return None
-    b = box[dense]
-    return np.array([[b[:, 0].min(), b[:, 2].min()], [b[:, 1].max(), b[:, 3].max()]])
+    boxes = region_boxes(a_uv, b_uv, cell, min_segments, 0.0)
+    return _union(boxes) if boxes else None
+
+
+def _union(boxes: list[FloatArray]) -> FloatArray:
+    """The box (2, 2) around ``boxes`` (2, 2 each: lo, hi of u and v)."""
+    return np.array([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
 def rectangle(normal: FloatArray, d: float, box: FloatArray) -> FloatArray:
@@ -114,9 +117,50 @@ def rectangle(normal: FloatArray, d: float, box: FloatArray) -> FloatArray:
     return corners[:, :1] * u + corners[:, 1:] * v - d * n
 
 
+@dataclass(frozen=True)
+class Outline:
+    """A plane's outline from the final map (world frame): ``polygon`` (5, 3) the bounding rectangle
+    of all its counted cells, ``regions`` one such rectangle per group of them (cells within
+    ``ExtentRule.gap`` of each other), the one of most cells first: the separate surfaces the plane
+    holds (the pieces of a wall between its doorways, two doors at one depth)."""
+
+    polygon: FloatArray
+    regions: tuple[FloatArray, ...]
+
+
+def region_boxes(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int, gap: float) -> list[FloatArray]:
+    """The boxes (2, 2 each, as :func:`extent_box`) of the groups of cells that at least
+    ``min_segments`` of the segments ``a_uv -> b_uv`` cross, a group being the cells within
+    ``gap`` (m) of one another (by way of others); the group of most cells first."""
+    if a_uv.shape[0] < min_segments:
+        return []
+    cells, _, box = segment_runs(np.ascontiguousarray(a_uv, dtype=np.float64),
+                                 np.ascontiguousarray(b_uv, dtype=np.float64), float(cell))
+    uniq, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    keep = counts >= min_segments
+    if not keep.any():
+        return []
+    lo = uniq[keep].min(axis=0)
+    grid = np.zeros(uniq[keep].max(axis=0) - lo + 1, dtype=bool)
+    grid[tuple((uniq[keep] - lo).T)] = True
+    reach = max(0, math.ceil(gap / cell))
+    joined = ndimage.binary_dilation(grid, structure=np.ones((3, 3), dtype=bool), iterations=reach) if reach else grid
+    labels, n = ndimage.label(joined, structure=np.ones((3, 3), dtype=bool))
+    cell_label = np.zeros(uniq.shape[0], dtype=np.int64)
+    cell_label[keep] = labels[tuple((uniq[keep] - lo).T)]
+    run_label = cell_label[inverse.reshape(-1)]
+    sizes = np.bincount(cell_label[keep], minlength=n + 1)
+    out = []
+    for g in sorted(range(1, n + 1), key=lambda i: -sizes[i]):
+        b = box[run_label == g]
+        if b.shape[0]:
+            out.append(np.array([[b[:, 0].min(), b[:, 2].min()], [b[:, 1].max(), b[:, 3].max()]]))
+    return out
+
+
 def final_extents(endpoints_world: FloatArray, seg_pid: NDArray[np.integer], planes: Sequence[tuple[int, FloatArray, float]],
-                  rule: ExtentRule, seg_rms: NDArray[np.floating] | None = None) -> dict[int, FloatArray]:
-    """Each plane's outline (closed (5, 3), world frame) from its segments' end points
+                  rule: ExtentRule, seg_rms: NDArray[np.floating] | None = None) -> dict[int, Outline]:
+    """Each plane's :class:`Outline` (world frame) from its segments' end points
     (``endpoints_world`` (m, 2, 3), world frame; ``seg_pid`` (m,) their planes) and its final
     estimate (``planes``: id, unit normal, offset) and, with ``rule.rms``, their points' RMS
     distances to their plane (``seg_rms`` (m,)), by ``rule`` (module doc). Planes without a cell
@@ -126,7 +170,7 @@ def final_extents(endpoints_world: FloatArray, seg_pid: NDArray[np.integer], pla
     order = np.argsort(pid, kind="stable")
     ids, first = np.unique(pid[order], return_index=True)
     bounds = dict(zip(ids.tolist(), zip(first.tolist(), [*first[1:].tolist(), order.size], strict=True), strict=True))
-    out: dict[int, FloatArray] = {}
+    out: dict[int, Outline] = {}
     for plane_id, normal, d in planes:
         span = bounds.get(int(plane_id))
         if span is None:
@@ -142,7 +186,9 @@ def final_extents(endpoints_world: FloatArray, seg_pid: NDArray[np.integer], pla
             continue
         u, v = plane_basis(n)
         B = np.stack((u, v), axis=1)
-        box = extent_box(e[on, 0] @ B, e[on, 1] @ B, rule.cell, rule.min_segments)
-        if box is not None:
-            out[int(plane_id)] = rectangle(n, float(d), box)
+        boxes = region_boxes(e[on, 0] @ B, e[on, 1] @ B, rule.cell, rule.min_segments, rule.gap)
+        if boxes:
+            whole = _union(boxes)
+            out[int(plane_id)] = Outline(rectangle(n, float(d), whole),
+                                         tuple(rectangle(n, float(d), b) for b in boxes))
     return out

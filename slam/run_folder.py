@@ -34,7 +34,7 @@ from slam.frontend.planemap import KIND_NAMES
 from slam.health import Health
 from slam.io.source import BagSource, StreamIndex
 from slam.pipeline import SlamResult
-from slam.plane_extents import ExtentRule, final_extents
+from slam.plane_extents import ExtentRule, Outline, final_extents
 from slam.rerun_map import CloudView, MapOptions, SegmentLines
 
 FloatArray = NDArray[np.float64]
@@ -54,7 +54,7 @@ TIMINGS_DEFINITION = ("seconds per stage; 'segmentation' and 'frontend' (lifting
 
 
 def plane_records(res: SlamResult, covariances: dict[int, FloatArray],
-                  outlines: Mapping[int, FloatArray] | None = None) -> list[PlaneRecord]:
+                  outlines: Mapping[int, Outline] | None = None) -> list[PlaneRecord]:
     """The estimated planes (world frame) with their kinds, ``covariances`` and outlines: from
     ``outlines`` (the final map's, :func:`final_outlines`) where given, else the front end's."""
     recs = []
@@ -66,24 +66,26 @@ def plane_records(res: SlamResult, covariances: dict[int, FloatArray],
                 id=int(pid),
                 normal=np.asarray(n),
                 d=float(d),
-                polygon=final if final is not None else res.plane_map.polygon(int(pid)),
+                polygon=final.polygon if final is not None else res.plane_map.polygon(int(pid)),
                 kind=KIND_NAMES[p.kind],
                 n_segments=int(p.n_segments),
                 covariance=covariances.get(int(pid)),
                 outline="final_map" if final is not None else "front_end",
+                regions=() if final is None else final.regions,
             )
         )
     return recs
 
 
-def final_outlines(res: SlamResult, cfg: SlamConfig, segments: SegmentLines) -> dict[int, FloatArray]:
+def final_outlines(res: SlamResult, cfg: SlamConfig, segments: SegmentLines) -> dict[int, Outline]:
     """The planes' outlines from the final map (:func:`slam.plane_extents.final_extents`) given
     the associated segments' end points the cloud pass placed (world frame)."""
     o = cfg.output
     planes = [(int(pid), np.asarray(n), float(d))
               for pid, n, d in zip(res.plane_ids, res.plane_normals, res.plane_offsets, strict=True)]
     return final_extents(segments.endpoints_world, segments.plane_id, planes,
-                         ExtentRule(o.extent_cell, o.extent_min_segments, o.extent_gate, o.extent_rms), segments.rms)
+                         ExtentRule(o.extent_cell, o.extent_min_segments, o.extent_gate, o.extent_rms, o.extent_gap),
+                         segments.rms)
 
 
 def write_tables(out: Path, res: SlamResult) -> None:

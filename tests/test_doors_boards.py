@@ -41,8 +41,7 @@ def test_the_door_and_the_board_keep_their_segments_and_faces(walk: SimulationRe
     assert a.fraction_correct_surface_of_associated > 0.99
     # (the door's and the board's first segments go to their walls, before their planes are made)
     assert a.n_child_associated > 100 and a.confusion_fraction < 0.08
-    # the door's plane is found (its extent still runs 2 m along the wall on this short walk:
-    # issue 26's extent goal is open)
+    # the door's plane is found (its outline: the next test)
     assert [m for m in res.planes.matches if m.kind == "door"]
     old = _run(walk, tmp_path / "nearest",
                SlamConfig.model_validate({"frontend": {"parallel_choice": False}})).association

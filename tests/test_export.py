@@ -102,6 +102,9 @@ def test_planes_round_trip_and_ground_truth_format(tmp_path: Path) -> None:
             kind="floor",
             n_segments=120,
             covariance=cov,
+            outline="final_map",
+            regions=(np.array([[0, 0, 0], [1, 0, 0], [1, 3, 0], [0, 3, 0], [0, 0, 0]], float),
+                     np.array([[3, 0, 0], [4, 0, 0], [4, 3, 0], [3, 3, 0], [3, 0, 0]], float)),
         ),
         PlaneRecord(id=7, normal=np.array([0.6, 0.8, 0.0]), d=-2.5, polygon=np.zeros((0, 3))),
     ]
@@ -112,6 +115,9 @@ def test_planes_round_trip_and_ground_truth_format(tmp_path: Path) -> None:
     assert back[0].covariance is not None
     np.testing.assert_allclose(back[0].covariance, cov)
     assert back[0].kind == "floor" and back[0].n_segments == 120
+    assert back[0].outline == "final_map" and len(back[0].regions) == 2
+    np.testing.assert_allclose(back[0].regions[1], planes[0].regions[1])
+    assert back[1].outline == "" and back[1].regions == ()
     assert back[1].covariance is None and back[1].polygon.shape == (0, 3)
     np.testing.assert_allclose(back[1].normal, [0.6, 0.8, 0.0])
     assert back[1].d == pytest.approx(-2.5)

@@ -6,8 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam.evaluate import extent_errors, face_region
 from slam.frontend.planemap import plane_basis
-from slam.plane_extents import ExtentRule, extent_box, final_extents, rectangle, segment_runs
+from slam.plane_extents import (
+    ExtentRule,
+    extent_box,
+    final_extents,
+    rectangle,
+    region_boxes,
+    segment_runs,
+)
 
 RULE = ExtentRule(cell=0.05, min_segments=3, gate=0.009, rms=0.006)
 
@@ -77,7 +85,8 @@ def test_final_extents_leave_out_segments_off_the_plane_or_not_on_it() -> None:
     out = final_extents(e, pid, planes, RULE, np.concatenate(rms))
     assert sorted(out) == [7]
     u, v = plane_basis(n)
-    poly = out[7]
+    poly = out[7].polygon
+    assert len(out[7].regions) == 1 and np.array_equal(out[7].regions[0], poly)
     assert poly.shape == (5, 3) and np.allclose(poly[0], poly[-1])
     np.testing.assert_allclose(poly @ n + d, 0.0, atol=1e-12)  # on the plane
     uv = np.column_stack((poly @ u, poly @ v))
@@ -85,11 +94,36 @@ def test_final_extents_leave_out_segments_off_the_plane_or_not_on_it() -> None:
                                [2.0, 2.9, 0.0, 2.05], atol=0.03)
     # without the RMS test the segments across the edge stretch the door onto its wall
     loose = final_extents(e, pid, planes, ExtentRule(0.05, 3, 0.009), np.concatenate(rms))
-    assert float((loose[7] @ u).min()) < 1.1
+    assert float((loose[7].polygon @ u).min()) < 1.1
     np.testing.assert_allclose(rectangle(n, d, np.array([[2.0, 0.0], [2.9, 2.05]])), poly, atol=0.03)
 
 
-@pytest.mark.parametrize("bad", [dict(cell=0.0), dict(min_segments=0), dict(gate=-1.0), dict(rms=0.0)])
+def test_two_doors_on_one_plane_are_two_regions_each_on_its_face() -> None:
+    """Two doors at one depth 3.6 m apart on one plane: the outline spans both, its regions are
+    one per door (the larger first), and the evaluation measures each door by its own region."""
+    rng = np.random.default_rng(7)
+    a1, b1 = _door_segments(rng, (7.55, 8.45), (0.0, 2.05), 300)
+    a2, b2 = _door_segments(rng, (12.05, 12.95), (0.0, 2.05), 200)
+    boxes = region_boxes(np.vstack((a1, a2)), np.vstack((b1, b2)), 0.05, 3, 0.25)
+    assert len(boxes) == 2
+    np.testing.assert_allclose(boxes[0], [[7.55, 0.0], [8.45, 2.05]], atol=0.03)
+    np.testing.assert_allclose(boxes[1], [[12.05, 0.0], [12.95, 2.05]], atol=0.03)
+    # a gap wider than the scan lines' spacing within a face does not split it; one wider than
+    # ``gap`` between two faces does
+    assert len(region_boxes(a1, b1, 0.05, 3, 0.25)) == 1
+    assert len(region_boxes(np.vstack((a1, a2)), np.vstack((b1, b2)), 0.05, 3, 4.0)) == 1
+    n, d = np.array([0.0, 1.0, 0.0]), -0.015
+    e = np.concatenate((np.stack((_lift(a1, n, d), _lift(b1, n, d)), axis=1),
+                        np.stack((_lift(a2, n, d), _lift(b2, n, d)), axis=1)))
+    out = final_extents(e, np.full(e.shape[0], 3), [(3, n, d)], RULE, np.full(e.shape[0], 0.003))[3]
+    assert len(out.regions) == 2
+    face2 = rectangle(n, d, np.array([[12.05, 0.0], [12.95, 2.05]]))
+    whole, _ = extent_errors(out.polygon, face2, n)
+    own, excess = extent_errors(face_region(out.regions, face2, n), face2, n)
+    assert whole > 4.0 and own < 0.03 and excess < 0.03
+
+
+@pytest.mark.parametrize("bad", [dict(cell=0.0), dict(min_segments=0), dict(gate=-1.0), dict(rms=0.0), dict(gap=-0.1)])
 def test_a_rule_out_of_range_is_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError, match="extent rule"):
         ExtentRule(**{"cell": 0.05, "min_segments": 3, "gate": 0.009, "rms": 0.006, **bad})  # type: ignore[arg-type]
