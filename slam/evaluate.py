@@ -683,7 +683,7 @@ class PlaneMatch:
     support: float  # beams: fraction of the plane's segments voting for the true plane
     sigma_angle_deg: float = float("nan")  # the run's own 1-sigma of the normal (planes.json covariance), larger axis
     # doors and boards: the extent's error against the true face (``extent_errors``; of the
-    # outline's region on the face when the plane has regions, ``face_region``), NaN otherwise;
+    # outline's regions on the face when the plane has regions, ``face_region``), NaN otherwise;
     # of the whole outline; the outline's regions
     extent_error_m: float = float("nan")
     extent_excess_m: float = float("nan")
@@ -705,20 +705,21 @@ def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -
 
 
 def face_region(regions: Sequence[FloatArray], true: FloatArray, normal: FloatArray) -> FloatArray:
-    """The region (polygon (k, 3)) of an estimated outline that overlaps the true face (polygon
-    (m, 3)) most, both bounding rectangles projected onto the face's plane; the first region when
-    none overlaps it."""
+    """The part of an estimated outline on the true face (polygon (m, 3)): the bounding rectangle
+    (closed (5, 3), on the regions' plane) of the outline's regions (polygons (k, 3)) that overlap
+    the face, all projected onto the face's plane; all the regions' when none does."""
     B = np.stack(plane_basis(np.asarray(normal, dtype=np.float64)))
     t = true @ B.T
     t_lo, t_hi = t.min(axis=0), t.max(axis=0)
-    best, area = regions[0], 0.0
-    for r in regions:
-        e = r @ B.T
-        side = np.minimum(e.max(axis=0), t_hi) - np.maximum(e.min(axis=0), t_lo)
-        a = float(np.prod(np.clip(side, 0.0, None)))
-        if a > area:
-            best, area = r, a
-    return best
+    on = [r for r in regions
+          if np.all(np.minimum((r @ B.T).max(axis=0), t_hi) - np.maximum((r @ B.T).min(axis=0), t_lo) > 0.0)]
+    pts = np.concatenate(on or list(regions))
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    off = float(np.mean(pts @ n))
+    uv = pts @ B.T
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]], [lo[0], lo[1]]])
+    return corners @ B + off * n
 
 
 @dataclass(frozen=True)
@@ -727,7 +728,7 @@ class PlaneEval:
     n_estimated: int
     n_true: int
     unmatched: list[int] = field(default_factory=list)
-    # doors and boards: est id -> (its extent polygon (k, 3; its region on the face when it has
+    # doors and boards: est id -> (its extent polygon (k, 3; its regions on the face when it has
     # regions), the true face's (m, 3), the face's normal (3,)), ground-truth frame, for the plot
     # of extents against faces
     outlines: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = field(default_factory=dict)
@@ -781,7 +782,7 @@ class PlaneEval:
             "extents": {
                 "definition": "door and board planes: largest distance between the edges of the estimated "
                 "extent's bounding rectangle and the true face's, in the face's plane (m); excess: how much "
-                "longer or taller the estimate is; of the outline's region on the face when the plane's outline "
+                "longer or taller the estimate is; of the outline's regions that overlap the face when the plane's outline "
                 "has regions (planes.json 'regions': the separate surfaces it holds), whole_error_m of the whole "
                 "outline",
                 "planes": [{"est_id": m.est_id, "true_id": m.true_id, "kind": m.kind, "error_m": m.extent_error_m,

@@ -121,6 +121,11 @@ def test_two_doors_on_one_plane_are_two_regions_each_on_its_face() -> None:
     whole, _ = extent_errors(out.polygon, face2, n)
     own, excess = extent_errors(face_region(out.regions, face2, n), face2, n)
     assert whole > 4.0 and own < 0.03 and excess < 0.03
+    # a door seen as two bands (its middle given to the wall): both bands are on its face
+    bands = (rectangle(n, d, np.array([[7.55, 0.0], [8.45, 0.4]])), rectangle(n, d, np.array([[7.55, 1.66], [8.45, 2.05]])))
+    face1 = rectangle(n, d, np.array([[7.55, 0.0], [8.45, 2.05]]))
+    assert extent_errors(face_region(bands, face1, n), face1, n)[0] < 1e-9
+    assert extent_errors(bands[1], face1, n)[0] > 1.6
 
 
 @pytest.mark.parametrize("bad", [dict(cell=0.0), dict(min_segments=0), dict(gate=-1.0), dict(rms=0.0), dict(gap=-0.1)])
