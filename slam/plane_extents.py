@@ -36,6 +36,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 _SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed at a corner is rarely missed
+_CHUNK_SEGMENTS = 20_000  # segments rasterised at a time (a few million runs at most)
 
 
 @dataclass(frozen=True)
@@ -128,31 +129,61 @@ class Outline:
     regions: tuple[FloatArray, ...]
 
 
+def cell_table(a_uv: FloatArray, b_uv: FloatArray, cell: float,
+               chunk: int = _CHUNK_SEGMENTS) -> tuple[IntArray, IntArray, FloatArray]:
+    """Per cell that the segments ``a_uv -> b_uv`` ((k, 2) each) cross: the cell (c, 2), how many
+    segments cross it (c,) and the least and most u and v of their samples in it (c, 4: u_lo,
+    u_hi, v_lo, v_hi); cells in lexicographic order. The segments are rasterised ``chunk`` at a
+    time and their runs reduced per cell, so that memory follows the cells, not the samples."""
+    keys = np.zeros((0, 2), dtype=np.int64)
+    count = np.zeros(0, dtype=np.int64)
+    box = np.zeros((0, 4))
+    a = np.ascontiguousarray(a_uv, dtype=np.float64)
+    b = np.ascontiguousarray(b_uv, dtype=np.float64)
+    for lo in range(0, a.shape[0], chunk):
+        cells, _, runs = segment_runs(a[lo:lo + chunk], b[lo:lo + chunk], float(cell))
+        keys, count, box = _reduce(np.concatenate((keys, cells)), np.concatenate((count, np.ones(cells.shape[0], dtype=np.int64))),
+                                   np.concatenate((box, runs)))
+    return keys, count, box
+
+
+def _reduce(cells: IntArray, count: IntArray, box: FloatArray) -> tuple[IntArray, IntArray, FloatArray]:
+    """Rows of one cell joined: counts added, boxes widened."""
+    uniq, inverse = np.unique(cells, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    n = uniq.shape[0]
+    out = np.empty((n, 4))
+    out[:, 0], out[:, 2] = np.inf, np.inf
+    out[:, 1], out[:, 3] = -np.inf, -np.inf
+    np.minimum.at(out[:, 0], inverse, box[:, 0])
+    np.maximum.at(out[:, 1], inverse, box[:, 1])
+    np.minimum.at(out[:, 2], inverse, box[:, 2])
+    np.maximum.at(out[:, 3], inverse, box[:, 3])
+    return uniq, np.bincount(inverse, weights=count, minlength=n).astype(np.int64), out
+
+
 def region_boxes(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int, gap: float) -> list[FloatArray]:
     """The boxes (2, 2 each, as :func:`extent_box`) of the groups of cells that at least
     ``min_segments`` of the segments ``a_uv -> b_uv`` cross, a group being the cells within
     ``gap`` (m) of one another (by way of others); the group of most cells first."""
     if a_uv.shape[0] < min_segments:
         return []
-    cells, _, box = segment_runs(np.ascontiguousarray(a_uv, dtype=np.float64),
-                                 np.ascontiguousarray(b_uv, dtype=np.float64), float(cell))
-    uniq, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    cells, counts, box = cell_table(a_uv, b_uv, cell)
     keep = counts >= min_segments
     if not keep.any():
         return []
-    lo = uniq[keep].min(axis=0)
-    grid = np.zeros(uniq[keep].max(axis=0) - lo + 1, dtype=bool)
-    grid[tuple((uniq[keep] - lo).T)] = True
+    dense, box = cells[keep], box[keep]
+    lo = dense.min(axis=0)
+    grid = np.zeros(dense.max(axis=0) - lo + 1, dtype=bool)
+    grid[tuple((dense - lo).T)] = True
     reach = max(0, math.ceil(gap / cell))
     joined = ndimage.binary_dilation(grid, structure=np.ones((3, 3), dtype=bool), iterations=reach) if reach else grid
     labels, n = ndimage.label(joined, structure=np.ones((3, 3), dtype=bool))
-    cell_label = np.zeros(uniq.shape[0], dtype=np.int64)
-    cell_label[keep] = labels[tuple((uniq[keep] - lo).T)]
-    run_label = cell_label[inverse.reshape(-1)]
-    sizes = np.bincount(cell_label[keep], minlength=n + 1)
+    label = labels[tuple((dense - lo).T)]
+    sizes = np.bincount(label, minlength=n + 1)
     out = []
     for g in sorted(range(1, n + 1), key=lambda i: -sizes[i]):
-        b = box[run_label == g]
+        b = box[label == g]
         if b.shape[0]:
             out.append(np.array([[b[:, 0].min(), b[:, 2].min()], [b[:, 1].max(), b[:, 3].max()]]))
     return out

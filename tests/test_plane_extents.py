@@ -10,6 +10,7 @@ from slam.evaluate import extent_errors, face_region
 from slam.frontend.planemap import plane_basis
 from slam.plane_extents import (
     ExtentRule,
+    cell_table,
     extent_box,
     final_extents,
     rectangle,
@@ -132,3 +133,15 @@ def test_two_doors_on_one_plane_are_two_regions_each_on_its_face() -> None:
 def test_a_rule_out_of_range_is_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError, match="extent rule"):
         ExtentRule(**{"cell": 0.05, "min_segments": 3, "gate": 0.009, "rms": 0.006, **bad})  # type: ignore[arg-type]
+
+
+def test_the_cell_table_in_chunks_is_the_table_at_once() -> None:
+    rng = np.random.default_rng(11)
+    a, b = _door_segments(rng, (0.0, 3.0), (0.0, 2.0), 500)
+    whole = cell_table(a, b, 0.05, chunk=10_000)
+    cut = cell_table(a, b, 0.05, chunk=37)
+    for x, y in zip(whole, cut, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # every segment counted once in each cell it crosses
+    cells, _, _ = segment_runs(a, b, 0.05)
+    assert int(whole[1].sum()) == cells.shape[0]
