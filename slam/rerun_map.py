@@ -6,7 +6,8 @@ Entities (all in the ``world`` frame, z up, timeline ``sensor`` = the data's own
 - ``world/scans/<scanner>``: the points of each scanner over time, one frame per
   ``frame_period``, coloured by plane id (grey = unassociated).
 - ``world/segments``: segments as 3D lines over time, coloured by plane id (when given).
-- ``world/planes/<id>``: each plane's extent polygon as a translucent ``Mesh3D`` patch (static)
+- ``world/planes/<id>``: each plane's extent polygon (or the regions of its outline from the
+  final map) as a translucent ``Mesh3D`` patch (static)
   with its outline and label in ``world/planes/<id>/outline``.
 - ``world/trajectory``: the whole path as a ``LineStrips3D`` (static); ``world/body``: the
   current pose ``T_world_body`` as a ``Transform3D`` over time, with axes.
@@ -308,17 +309,22 @@ def _log_trajectory(rec: rr.RecordingStream, t: FloatArray, T: FloatArray, opt: 
 
 
 def _log_planes(rec: rr.RecordingStream, planes: Sequence[PlaneRecord], opt: MapOptions) -> None:
+    """Each plane's patch and outline: one per region of its outline where it has regions (the
+    separate surfaces it holds, from the final map), else its polygon."""
     for p in planes:
-        poly = np.asarray(p.polygon, dtype=np.float64).reshape(-1, 3)
-        if poly.shape[0] < 3:
+        polys = [np.asarray(q, dtype=np.float64).reshape(-1, 3) for q in (p.regions or (p.polygon,))]
+        polys = [q for q in polys if q.shape[0] >= 3]
+        if not polys:
             continue
         rgb = plane_colors(np.array([p.id]))[0]
+        first = np.cumsum([0, *(q.shape[0] for q in polys)])
+        vertices = np.vstack(polys)
         rec.log(
             f"world/planes/{p.id}",
             rr.Mesh3D(
-                vertex_positions=poly,
-                triangle_indices=fan_triangles(poly.shape[0]),
-                vertex_normals=np.tile(p.normal, (poly.shape[0], 1)),
+                vertex_positions=vertices,
+                triangle_indices=np.vstack([fan_triangles(q.shape[0]) + k for q, k in zip(polys, first, strict=False)]),
+                vertex_normals=np.tile(p.normal, (vertices.shape[0], 1)),
                 albedo_factor=[*rgb.tolist(), opt.plane_alpha],
             ),
             static=True,
@@ -326,7 +332,8 @@ def _log_planes(rec: rr.RecordingStream, planes: Sequence[PlaneRecord], opt: Map
         label = f"plane {p.id}" + (f" ({p.kind})" if p.kind else "")
         rec.log(
             f"world/planes/{p.id}/outline",
-            rr.LineStrips3D([np.vstack([poly, poly[:1]])], colors=[rgb], labels=[label]),
+            rr.LineStrips3D([np.vstack([q, q[:1]]) for q in polys], colors=[rgb] * len(polys),
+                            labels=[label] * len(polys)),
             static=True,
         )
 

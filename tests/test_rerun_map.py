@@ -64,6 +64,9 @@ def _planes() -> list[PlaneRecord]:
         PlaneRecord(0, np.array([0, 0, 1.0]), 0.0, floor, kind="floor"),
         PlaneRecord(1, np.array([0, -1.0, 0]), 2.0, wall, kind="wall"),
         PlaneRecord(2, np.array([1.0, 0, 0]), 0.0, np.zeros((0, 3))),  # no extent: skipped
+        # two doors at one depth: a patch and an outline per region
+        PlaneRecord(3, np.array([0, 1.0, 0]), 0.0, wall, kind="wall", outline="final_map",
+                    regions=(wall[[0, 1, 2, 3, 0]] * [0.3, 1, 1], wall[[0, 1, 2, 3, 0]] * [1, 1, 1] + [0.5, 0, 0])),
     ]
 
 
@@ -104,6 +107,7 @@ def test_write_and_verify(tmp_path: Path) -> None:
         "/world/segments",
         "/world/planes/0",
         "/world/planes/1/outline",
+        "/world/planes/3/outline",
         "/world/trajectory",
         "/world/body",
         "/world/cloud",
