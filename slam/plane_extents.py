@@ -37,6 +37,7 @@ IntArray = NDArray[np.int64]
 
 _SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed at a corner is rarely missed
 _CHUNK_SEGMENTS = 20_000  # segments rasterised at a time (a few million runs at most)
+_HALF = 1 << 31  # cell indices offset into 32 bits each of one key (cells of 5 cm: +-100,000 km)
 
 
 @dataclass(frozen=True)
@@ -148,9 +149,12 @@ def cell_table(a_uv: FloatArray, b_uv: FloatArray, cell: float,
 
 
 def _reduce(cells: IntArray, count: IntArray, box: FloatArray) -> tuple[IntArray, IntArray, FloatArray]:
-    """Rows of one cell joined: counts added, boxes widened."""
-    uniq, inverse = np.unique(cells, axis=0, return_inverse=True)
+    """Rows of one cell joined: counts added, boxes widened (cells as one int64 key each: a
+    one-dimensional unique is several times faster than one over rows)."""
+    key = ((cells[:, 0] + _HALF) << 32) | (cells[:, 1] + _HALF)
+    ukey, inverse = np.unique(key, return_inverse=True)
     inverse = inverse.reshape(-1)
+    uniq = np.column_stack(((ukey >> 32) - _HALF, (ukey & 0xFFFFFFFF) - _HALF))
     n = uniq.shape[0]
     out = np.empty((n, 4))
     out[:, 0], out[:, 2] = np.inf, np.inf
