@@ -37,7 +37,9 @@ IntArray = NDArray[np.int64]
 
 _SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed at a corner is rarely missed
 _CHUNK_SEGMENTS = 20_000  # segments rasterised at a time (a few million runs at most)
-_HALF = 1 << 31  # cell indices offset into 32 bits each of one key (cells of 5 cm: +-100,000 km)
+_OFFSET = 1 << 30  # cell indices offset into 31 bits each of one non-negative key (cells of 5 cm: +-50,000 km)
+_MERGE_ROWS = 4_000_000  # the chunks' cell tables are joined when they hold more rows than this
+_GRID_CELLS = 4_000_000  # a plane's cells counted in a grid up to this many (10,000 m2 at 5 cm; 160 MB)
 
 
 @dataclass(frozen=True)
@@ -130,40 +132,80 @@ class Outline:
     regions: tuple[FloatArray, ...]
 
 
+@nb.njit(cache=True)
+def _grid_runs(a_uv: FloatArray, b_uv: FloatArray, cell: float, lo_u: int, lo_v: int, count: IntArray,
+               box: FloatArray) -> None:  # pragma: no cover
+    """:func:`segment_runs` accumulated into a grid whose cell (0, 0) is ``(lo_u, lo_v)``: per
+    cell the segments that cross it (``count`` (H, W)) and their samples' least and most u and v
+    (``box`` (H, W, 4), to be started at +inf, -inf, +inf, -inf)."""
+    for k in range(a_uv.shape[0]):
+        du, dv = b_uv[k, 0] - a_uv[k, 0], b_uv[k, 1] - a_uv[k, 1]
+        n = math.ceil(math.hypot(du, dv) * _SAMPLES_PER_CELL / cell) + 1
+        pu, pv = -1, -1
+        for i in range(n):
+            t = i / (n - 1) if n > 1 else 0.0
+            u = a_uv[k, 0] + t * du
+            v = a_uv[k, 1] + t * dv
+            cu, cv = math.floor(u / cell) - lo_u, math.floor(v / cell) - lo_v
+            if cu != pu or cv != pv:  # a new cell of this segment (a line meets each cell once)
+                count[cu, cv] += 1
+                pu, pv = cu, cv
+            box[cu, cv, 0] = min(box[cu, cv, 0], u)
+            box[cu, cv, 1] = max(box[cu, cv, 1], u)
+            box[cu, cv, 2] = min(box[cu, cv, 2], v)
+            box[cu, cv, 3] = max(box[cu, cv, 3], v)
+
+
 def cell_table(a_uv: FloatArray, b_uv: FloatArray, cell: float,
                chunk: int = _CHUNK_SEGMENTS) -> tuple[IntArray, IntArray, FloatArray]:
     """Per cell that the segments ``a_uv -> b_uv`` ((k, 2) each) cross: the cell (c, 2), how many
     segments cross it (c,) and the least and most u and v of their samples in it (c, 4: u_lo,
-    u_hi, v_lo, v_hi); cells in lexicographic order. The segments are rasterised ``chunk`` at a
-    time and their runs reduced per cell, so that memory follows the cells, not the samples."""
-    keys = np.zeros((0, 2), dtype=np.int64)
-    count = np.zeros(0, dtype=np.int64)
-    box = np.zeros((0, 4))
+    u_hi, v_lo, v_hi); cells in lexicographic order. Within a grid of at most ``_GRID_CELLS``
+    cells around the segments they are counted in place; else rasterised ``chunk`` at a time and
+    their runs reduced per cell, so that memory follows the cells, not the samples."""
     a = np.ascontiguousarray(a_uv, dtype=np.float64)
     b = np.ascontiguousarray(b_uv, dtype=np.float64)
+    if a.shape[0]:
+        lo = np.floor(np.minimum(a.min(axis=0), b.min(axis=0)) / cell).astype(np.int64) - 1
+        hi = np.floor(np.maximum(a.max(axis=0), b.max(axis=0)) / cell).astype(np.int64) + 1
+        shape = hi - lo + 1
+        if int(shape[0]) * int(shape[1]) <= _GRID_CELLS:
+            count = np.zeros((int(shape[0]), int(shape[1])), dtype=np.int64)
+            box = np.empty((int(shape[0]), int(shape[1]), 4))
+            box[..., 0::2], box[..., 1::2] = np.inf, -np.inf
+            _grid_runs(a, b, float(cell), int(lo[0]), int(lo[1]), count, box)
+            hit = np.argwhere(count > 0)  # row-major: lexicographic
+            return hit + lo, count[hit[:, 0], hit[:, 1]], box[hit[:, 0], hit[:, 1]]
+    parts: list[tuple[IntArray, IntArray, FloatArray]] = []
+    rows = 0
     for lo in range(0, a.shape[0], chunk):
         cells, _, runs = segment_runs(a[lo:lo + chunk], b[lo:lo + chunk], float(cell))
-        keys, count, box = _reduce(np.concatenate((keys, cells)), np.concatenate((count, np.ones(cells.shape[0], dtype=np.int64))),
-                                   np.concatenate((box, runs)))
-    return keys, count, box
+        parts.append(_reduce(_keys(cells), np.ones(cells.shape[0], dtype=np.int64), runs))
+        rows += parts[-1][0].shape[0]
+        if rows > _MERGE_ROWS and len(parts) > 1:  # joined now and then: the parts' cells repeat
+            parts = [_reduce(*(np.concatenate(c) for c in zip(*parts, strict=True)))]
+            rows = parts[0][0].shape[0]
+    if not parts:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+    key, count, box = _reduce(*(np.concatenate(c) for c in zip(*parts, strict=True))) if len(parts) > 1 else parts[0]
+    return np.column_stack(((key >> 32) - _OFFSET, (key & 0xFFFFFFFF) - _OFFSET)), count, box
 
 
-def _reduce(cells: IntArray, count: IntArray, box: FloatArray) -> tuple[IntArray, IntArray, FloatArray]:
-    """Rows of one cell joined: counts added, boxes widened (cells as one int64 key each: a
-    one-dimensional unique is several times faster than one over rows)."""
-    key = ((cells[:, 0] + _HALF) << 32) | (cells[:, 1] + _HALF)
-    ukey, inverse = np.unique(key, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    uniq = np.column_stack(((ukey >> 32) - _HALF, (ukey & 0xFFFFFFFF) - _HALF))
-    n = uniq.shape[0]
-    out = np.empty((n, 4))
-    out[:, 0], out[:, 2] = np.inf, np.inf
-    out[:, 1], out[:, 3] = -np.inf, -np.inf
-    np.minimum.at(out[:, 0], inverse, box[:, 0])
-    np.maximum.at(out[:, 1], inverse, box[:, 1])
-    np.minimum.at(out[:, 2], inverse, box[:, 2])
-    np.maximum.at(out[:, 3], inverse, box[:, 3])
-    return uniq, np.bincount(inverse, weights=count, minlength=n).astype(np.int64), out
+def _keys(cells: IntArray) -> IntArray:
+    """Each cell (r, 2) as one non-negative int64 key that sorts as the cells do."""
+    return ((cells[:, 0] + _OFFSET) << 32) | (cells[:, 1] + _OFFSET)
+
+
+def _reduce(key: IntArray, count: IntArray, box: FloatArray) -> tuple[IntArray, IntArray, FloatArray]:
+    """Rows of one cell (``key``) joined, in key order: counts added, boxes (u_lo, u_hi, v_lo,
+    v_hi) widened."""
+    order = np.argsort(key)  # (any order within a cell: min, max and sum do not care)
+    k = key[order]
+    starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
+    b = box[order]
+    out = np.column_stack((np.minimum.reduceat(b[:, 0], starts), np.maximum.reduceat(b[:, 1], starts),
+                           np.minimum.reduceat(b[:, 2], starts), np.maximum.reduceat(b[:, 3], starts)))
+    return k[starts], np.add.reduceat(count[order], starts), out
 
 
 def region_boxes(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int, gap: float) -> list[FloatArray]:

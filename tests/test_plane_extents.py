@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam import plane_extents
 from slam.evaluate import extent_errors, face_region
 from slam.frontend.planemap import plane_basis
 from slam.plane_extents import (
@@ -135,13 +136,17 @@ def test_a_rule_out_of_range_is_refused(bad: dict[str, float]) -> None:
         ExtentRule(**{"cell": 0.05, "min_segments": 3, "gate": 0.009, "rms": 0.006, **bad})  # type: ignore[arg-type]
 
 
-def test_the_cell_table_in_chunks_is_the_table_at_once() -> None:
+def test_the_cell_table_in_chunks_is_the_grids() -> None:
     rng = np.random.default_rng(11)
-    a, b = _door_segments(rng, (0.0, 3.0), (0.0, 2.0), 500)
+    a, b = _door_segments(rng, (-1.5, 1.5), (-1.0, 1.0), 500)  # cells of both signs
     whole = cell_table(a, b, 0.05, chunk=10_000)
-    cut = cell_table(a, b, 0.05, chunk=37)
+    with pytest.MonkeyPatch.context() as mp:  # the chunked reduction instead of the grid
+        mp.setattr(plane_extents, "_GRID_CELLS", 0)
+        cut = cell_table(a, b, 0.05, chunk=37)
     for x, y in zip(whole, cut, strict=True):
         np.testing.assert_array_equal(x, y)
-    # every segment counted once in each cell it crosses
+    # every segment counted once in each cell it crosses; the cells as the runs have them
     cells, _, _ = segment_runs(a, b, 0.05)
     assert int(whole[1].sum()) == cells.shape[0]
+    np.testing.assert_array_equal(whole[0], np.unique(cells, axis=0))
+    assert whole[0].min() < 0 < whole[0].max()
