@@ -395,11 +395,6 @@ class BackEndConfig(StrictModel):
     window_iterations: int = Field(4, ge=1, description="Gauss-Newton iterations per window solve")
     final_batch: bool = True
     batch_iterations: int = Field(10, ge=1)
-    batch_reseat_iterations: int = Field(
-        0, ge=0, description="experimental (0: off): before a sectioned final batch, each section's knots solved "
-        "against the planes as they are (held, as are the knots by the sections' cuts) with up to this many "
-        "Gauss-Newton steps, so that the knots the window let go of early in a long walk start on the planes that "
-        "later laps moved (docs/memory.md, session 32)")
     batch_section_seconds: float = Field(
         300.0, gt=0, description="s: a longer walk's final batch is solved in time-ordered sections of at most this "
         "length, each section's own variables eliminated in turn onto the planes and the cut knots (the same steps "

@@ -310,7 +310,6 @@ def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
         lm_max_iterations=be.lm_max_iterations,
         lm_relative_tolerance=be.lm_relative_tolerance,
         batch_relative_tolerance=be.batch_relative_tolerance,
-        batch_reseat_iterations=be.batch_reseat_iterations,
         robust_schedule=be.robust_schedule,
         imu=imu_config(cfg) if with_imu else None,
         coalesce_blocks=be.solver == "window",

@@ -297,34 +297,3 @@ def test_a_plane_the_system_leaves_indeterminate_has_no_covariance(scene: Scene,
     assert 98 not in covs
     assert set(covs) == set(range(len(scene.planes)))
     assert all(np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) > 0) for c in covs.values())
-
-
-def test_the_reseat_moves_only_the_sections_own_knots_and_lowers_their_error(scene: Scene) -> None:
-    """Before a long walk's first batch solve, each section's knots solved against the planes as
-    they are (``batch_reseat_iterations``): the planes and the knots by the cuts stay where they
-    are, the sections' error falls, and the batch after it reaches the batch's estimate."""
-    cfg = replace(backend_defaults(), batch_section_knots=20, batch_whole_knots=0)
-    be = _build(scene, cfg)
-    values0 = gtsam.Values(be.graph.values)
-    sections = be.sections.plan()
-    sep = separator_knots(sections)
-    before, after = be.sections.reseat(be.config.kernel, 5, 1e-6)
-    assert after < 0.9 * before  # (the planes are perturbed too: only the knots move)
-    values1 = be.graph.values
-    moved_knots = set()
-    for k in values0.keys():
-        sym = gtsam.Symbol(k)
-        name = chr(sym.chr())
-        if name == "p":
-            assert np.array_equal(values1.atOrientedPlane3(k).planeCoefficients(),
-                                  values0.atOrientedPlane3(k).planeCoefficients())
-        elif name == "x" and not np.array_equal(values1.atPose3(k).matrix(), values0.atPose3(k).matrix()):
-            moved_knots.add(int(sym.index()))
-    assert moved_knots and not (moved_knots & sep)
-    ref = _build(scene, cfg)
-    s_ref = ref.batch_optimize(graduated=False)
-    with_reseat = _build(scene, replace(cfg, batch_reseat_iterations=3))
-    s = with_reseat.batch_optimize(graduated=False)
-    assert with_reseat.sections.reseated is not None and with_reseat.sections.reseated[1] < with_reseat.sections.reseated[0]
-    assert s.final_error == pytest.approx(s_ref.final_error, rel=1e-3)
-    assert np.abs(with_reseat.poses()[:, :3, 3] - ref.poses()[:, :3, 3]).max() < 1e-4

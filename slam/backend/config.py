@@ -57,9 +57,6 @@ class BackendConfig:
         not fit is eliminated or built again.
     fold_links_in_window: :meth:`Backend.step` first merges the planes linked since the last step
         (:meth:`Backend.fold_links`) instead of carrying the links to the end of the run.
-    batch_reseat_iterations: before the first solve of a sectioned final batch, each section's
-        knots solved against the planes held (:meth:`SectionedBatch.reseat`) with up to this many
-        steps; 0: not.
     """
 
     kernel: RobustKernel
@@ -89,7 +86,6 @@ class BackendConfig:
     fold_links_in_window: bool
     batch_whole_knots: int
     batch_relative_tolerance: float
-    batch_reseat_iterations: int = 0
 
     def __post_init__(self) -> None:
         if self.datum not in ("pose", "position_yaw"):
@@ -112,8 +108,6 @@ class BackendConfig:
                 raise ValueError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.batch_whole_knots < 0:
             raise ValueError(f"batch_whole_knots: must be >= 0, got {self.batch_whole_knots}")
-        if self.batch_reseat_iterations < 0:
-            raise ValueError(f"batch_reseat_iterations: must be >= 0, got {self.batch_reseat_iterations}")
         if self.batch_cache_bytes < 0:
             raise ValueError(f"batch_cache_bytes: must be >= 0, got {self.batch_cache_bytes}")
         if self.window_knots < 0:

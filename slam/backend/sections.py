@@ -129,7 +129,6 @@ class SectionedBatch:
         # the planes one section alone sees (local_planes) for a graph version and plan
         self._local: tuple[tuple[int, tuple[tuple[int, int], ...]], dict[int, int]] | None = None
         self._cleanup: weakref.finalize | None = None
-        self.reseated: tuple[float, float] | None = None  # the graph's error before / after the re-seat, once done
 
     def needed(self) -> bool:
         """Whether the walk is longer than one section (and than a walk solved whole)."""
@@ -359,8 +358,6 @@ class SectionedBatch:
             self.clear_cache()
             self._caching = True
             try:
-                if cfg.batch_reseat_iterations and self.reseated is None:  # before the first solve only
-                    self.reseated = self.reseat(k, cfg.batch_reseat_iterations, cfg.batch_relative_tolerance)
                 its, first, e1 = self.solve(k, n_max, cfg.batch_relative_tolerance)
             except RuntimeError as err:
                 raise ValueError(f"sectioned batch optimisation failed ({' '.join(str(err).split())[:200]}); "
@@ -430,55 +427,6 @@ class SectionedBatch:
                 break
         self.graph.values.update(values)
         return it, err0, err
-
-    def reseat(self, kernel: RobustKernel, max_iterations: int, relative_tolerance: float) -> tuple[float, float]:
-        """Each section's knots solved against the planes as they are: the planes held, as are the
-        knots the next or the previous section's factors touch (the cuts), so that the sections
-        are independent; up to ``max_iterations`` damped Gauss-Newton steps per section (a step
-        that raises the section's error is halved, up to five times; a relative decrease below
-        ``relative_tolerance`` ends the section). The estimate is updated. Returns the sections'
-        error (the plane factors' left out: they do not change) before and after."""
-        sections = self.plan()
-        sep = separator_knots(sections)
-        values = gtsam.Values(self.graph.values)
-        dims = {int(k): int(d) for k, d in values.dims().items()}
-        before = after = 0.0
-        for a, b in sections:
-            graph = self.factors(a, b, kernel)
-            keys = sorted(int(k) for k in graph.keyVector())
-            free = [k for k in keys if _is_interior(k, a, b, sep)]
-            damp = damping_rows([(k, dims[k]) for k in keys], set(keys) - set(free), DAMPING, cache=False)
-            with self._serving(values):
-                err = float(graph.error(values))
-            before += err
-            for _ in range(max_iterations):
-                with self._serving(values):
-                    lin = graph.linearize(values)
-                lin.push_back(damp)
-                full = lin.optimize()
-                delta = gtsam.VectorValues()
-                for k in free:
-                    delta.insert(k, full.at(k))
-                del lin, full
-                step, new_err = 1.0, err
-                for _ in range(5):
-                    trial = values.retract(delta if step == 1.0 else delta.scale(step))
-                    with self._serving(trial):
-                        new_err = float(graph.error(trial))
-                    if new_err <= err:
-                        values = trial
-                        break
-                    step *= 0.5
-                else:
-                    break  # no step lowers the section's error
-                rel = (err - new_err) / max(err, 1e-300)
-                err = new_err
-                if rel < relative_tolerance:
-                    break
-            after += err
-            del graph
-        self.graph.values.update(values)
-        return before, after
 
     # ----------------------------------------------------------------- errors, covariances
     def total_error(self, kernel: RobustKernel | None = None, values: gtsam.Values | None = None) -> float:
