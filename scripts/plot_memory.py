@@ -78,7 +78,7 @@ def main() -> int:
         if at60:
             ax.plot([60, x_max], [at60[0], at60[0] + 0.5 * (x_max - 60) / 60], color="grey", ls=":", lw=1.0)
             ax.annotate("goal: < +0.5 GB per further hour", (x_max, at60[0] + 0.5 * (x_max - 60) / 60),
-                        textcoords="offset points", xytext=(-150, 8), fontsize=8)
+                        textcoords="offset points", xytext=(-170, -16), fontsize=8)
     _style(ax, "peak memory (GB)", 8, "upper left", x_max)
     fig.tight_layout()
     fig.savefig(args.out, dpi=120)
