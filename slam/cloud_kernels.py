@@ -88,26 +88,3 @@ def segment_planes(beams: IntArray, scan_start: IntArray, row_lo: IntArray, row_
                 k += 1
     return plane, seg_scan[:k], seg_plane[:k], ends[: 2 * k]
 
-
-@nb.njit(cache=True)
-def segment_rms(points_world: FloatArray, ends: IntArray, seg_plane: IntArray, normals: FloatArray,
-                offsets: FloatArray) -> NDArray[np.float32]:  # pragma: no cover
-    """Per associated segment (its first and last point ``ends[2k]``, ``ends[2k + 1]`` of
-    ``points_world`` (n, 3), world frame, and its plane ``seg_plane[k]``, a row of ``normals``
-    (P, 3) and ``offsets`` (P,)), the root mean square distance (m) of its points to its plane;
-    NaN where the plane has no row or its row is NaN (no estimate)."""
-    m = seg_plane.shape[0]
-    out = np.empty(m, dtype=np.float32)
-    for k in range(m):
-        j = seg_plane[k]
-        if j < 0 or j >= offsets.shape[0]:
-            out[k] = np.nan
-            continue
-        nx, ny, nz, d = normals[j, 0], normals[j, 1], normals[j, 2], offsets[j]
-        s = 0.0
-        lo, hi = ends[2 * k], ends[2 * k + 1]
-        for i in range(lo, hi + 1):
-            r = nx * points_world[i, 0] + ny * points_world[i, 1] + nz * points_world[i, 2] + d
-            s += r * r
-        out[k] = np.sqrt(s / (hi - lo + 1))
-    return out

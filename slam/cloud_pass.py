@@ -149,7 +149,7 @@ class _CloudBatch:
             self.endpoints_world.append(p_w[ends])
             self.seg_stamp.append(np.array([line.stamp for line in scans], dtype=np.float64)[seg_scan])
             self.seg_pid.append(seg_pid.astype(np.int32))
-            self.seg_rms.append(ck.segment_rms(p_w, ends, seg_pid, self._normals, self._offsets))
+            self.seg_rms.append(segment_rms(p_w, ends, seg_pid, self._normals, self._offsets))
         self._scans, self._scanner, self._scan_index, self.n = [], [], [], 0
         self._heap.check()
 
@@ -191,6 +191,30 @@ def plane_table(res: SlamResult) -> tuple[FloatArray, FloatArray]:
         normals[ids] = np.asarray(res.plane_normals, dtype=np.float64).reshape(-1, 3)
         offsets[ids] = np.asarray(res.plane_offsets, dtype=np.float64)
     return normals, offsets
+
+
+def segment_rms(points_world: FloatArray, ends: NDArray[np.int64], seg_plane: NDArray[np.integer],
+                normals: FloatArray, offsets: FloatArray) -> NDArray[np.float32]:
+    """Per associated segment (its first and last point ``ends[2k]``, ``ends[2k + 1]`` of
+    ``points_world`` (n, 3), world frame, and its plane ``seg_plane[k]``, a row of ``normals``
+    (P, 3) and ``offsets`` (P,): :func:`plane_table`), the root mean square distance (m) of its
+    points to its plane; NaN where the plane has no row or its row is NaN. (numpy: a compiled
+    kernel would be one more to load in each of the pass's processes, ~50 MB apiece.)"""
+    m = seg_plane.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.float32)
+    first, last = ends[0::2], ends[1::2]
+    size = last - first + 1
+    plane = np.asarray(seg_plane, dtype=np.int64)
+    known = (plane >= 0) & (plane < offsets.shape[0])
+    row = np.where(known, plane, 0)
+    starts = np.concatenate(([0], np.cumsum(size)[:-1]))
+    idx = np.repeat(first - starts, size) + np.arange(int(size.sum()))  # each segment's points, in order
+    seg = np.repeat(np.arange(m), size)
+    r = np.einsum("ij,ij->i", points_world[idx], normals[row[seg]]) + offsets[row[seg]]
+    out = np.sqrt(np.add.reduceat(r * r, starts) / size)
+    out[~known] = np.nan
+    return out.astype(np.float32)
 
 
 def plan_parts(index: StreamIndex | None, scanner_names: list[str], processes: int) -> list[CloudPart]:

@@ -39,7 +39,7 @@ _SAMPLES_PER_CELL = 4  # samples along a segment per cell length: a cell crossed
 _CHUNK_SEGMENTS = 20_000  # segments rasterised at a time (a few million runs at most)
 _OFFSET = 1 << 30  # cell indices offset into 31 bits each of one non-negative key (cells of 5 cm: +-50,000 km)
 _MERGE_ROWS = 4_000_000  # the chunks' cell tables are joined when they hold more rows than this
-_GRID_CELLS = 4_000_000  # a plane's cells counted in a grid up to this many (10,000 m2 at 5 cm; 160 MB)
+_GRID_CELLS = 1_000_000  # a plane's cells counted in a grid up to this many (2,500 m2 at 5 cm; 40 MB)
 
 
 @dataclass(frozen=True)
