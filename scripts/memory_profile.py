@@ -469,8 +469,9 @@ class Profiler:
         wrap(SlamRunner, "result", result)
         wrap(Backend, "batch_optimize", batch)
         wrap(Backend, "plane_covariance", cov)
-        wrap(slam.run, "write_tables", after("export: after tables (trajectory, planes, segments.npz)"))
+        wrap(slam.run, "write_tables", after("export: after tables (trajectory, segments.npz)"))
         wrap(slam.run, "write_cloud_outputs", after("export: after cloud pass", keep=True))
+        wrap(slam.run, "write_planes", after("export: after planes.json (the outlines from the final map)"))
         wrap(slam.run, "write_map_rrd", after("export: after map.rrd"))
 
         def undo() -> None:
