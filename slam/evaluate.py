@@ -51,6 +51,7 @@ from slam.export import (
     read_trajectory_tum,
 )
 from slam.frontend.planemap import plane_basis
+from slam.plane_extents import rectangle, union_box
 from slam.trajectory.interpolation import interpolate_trajectory
 
 FloatArray = NDArray[np.float64]
@@ -706,20 +707,16 @@ def extent_errors(estimated: FloatArray, true: FloatArray, normal: FloatArray) -
 
 def face_region(regions: Sequence[FloatArray], true: FloatArray, normal: FloatArray) -> FloatArray:
     """The part of an estimated outline on the true face (polygon (m, 3)): the bounding rectangle
-    (closed (5, 3), on the regions' plane) of the outline's regions (polygons (k, 3)) that overlap
-    the face, all projected onto the face's plane; all the regions' when none does."""
-    B = np.stack(plane_basis(np.asarray(normal, dtype=np.float64)))
+    (closed (5, 3), ``slam.plane_extents.rectangle``) of the outline's regions (polygons (k, 3))
+    that overlap the face, all projected onto the face's plane; all the regions' when none does."""
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    B = np.stack(plane_basis(n))
     t = true @ B.T
     t_lo, t_hi = t.min(axis=0), t.max(axis=0)
-    on = [r for r in regions
-          if np.all(np.minimum((r @ B.T).max(axis=0), t_hi) - np.maximum((r @ B.T).min(axis=0), t_lo) > 0.0)]
-    pts = np.concatenate(on or list(regions))
-    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
-    off = float(np.mean(pts @ n))
-    uv = pts @ B.T
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]], [lo[0], lo[1]]])
-    return corners @ B + off * n
+    boxes = [np.array([uv.min(axis=0), uv.max(axis=0)]) for uv in (r @ B.T for r in regions)]
+    on = [b for b in boxes if np.all(np.minimum(b[1], t_hi) - np.maximum(b[0], t_lo) > 0.0)]
+    off = float(np.mean(np.concatenate(regions) @ n))
+    return rectangle(n, -off, union_box(on or boxes))
 
 
 @dataclass(frozen=True)

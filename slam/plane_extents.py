@@ -58,7 +58,8 @@ class ExtentRule:
     def __post_init__(self) -> None:
         if not (self.cell > 0 and self.min_segments >= 1 and self.gate > 0 and (self.rms is None or self.rms > 0)
                 and self.gap >= 0):
-            raise ValueError(f"extent rule: expected cell > 0, min_segments >= 1, gate > 0; got {self}")
+            raise ValueError(f"extent rule: expected cell > 0, min_segments >= 1, gate > 0, rms None or > 0, gap >= 0; "
+                             f"got {self}")
 
 
 @nb.njit(cache=True)
@@ -98,16 +99,8 @@ def segment_runs(a_uv: FloatArray, b_uv: FloatArray, cell: float) -> tuple[IntAr
     return cells[: r + 1], seg[: r + 1], box[: r + 1]
 
 
-def extent_box(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int) -> FloatArray | None:
-    """The bounding box (2, 2: lo, hi of u and v, m) of the cells that at least ``min_segments``
-    of the segments ``a_uv -> b_uv`` ((k, 2) each) cross, at their samples' precision; None when
-    no cell is crossed that often."""
-    boxes = region_boxes(a_uv, b_uv, cell, min_segments, 0.0)
-    return _union(boxes) if boxes else None
-
-
-def _union(boxes: list[FloatArray]) -> FloatArray:
-    """The box (2, 2) around ``boxes`` (2, 2 each: lo, hi of u and v)."""
+def union_box(boxes: Sequence[FloatArray]) -> FloatArray:
+    """The box (2, 2: lo, hi of u and v) around ``boxes`` (2, 2 each; at least one)."""
     return np.array([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
@@ -209,7 +202,7 @@ def _reduce(key: IntArray, count: IntArray, box: FloatArray) -> tuple[IntArray, 
 
 
 def region_boxes(a_uv: FloatArray, b_uv: FloatArray, cell: float, min_segments: int, gap: float) -> list[FloatArray]:
-    """The boxes (2, 2 each, as :func:`extent_box`) of the groups of cells that at least
+    """The boxes (2, 2 each: lo, hi of u and v, m, at the samples' precision) of the groups of cells that at least
     ``min_segments`` of the segments ``a_uv -> b_uv`` cross, a group being the cells within
     ``gap`` (m) of one another (by way of others); the group of most cells first."""
     if a_uv.shape[0] < min_segments:
@@ -265,7 +258,7 @@ def final_extents(endpoints_world: FloatArray, seg_pid: NDArray[np.integer], pla
         B = np.stack((u, v), axis=1)
         boxes = region_boxes(e[on, 0] @ B, e[on, 1] @ B, rule.cell, rule.min_segments, rule.gap)
         if boxes:
-            whole = _union(boxes)
+            whole = union_box(boxes)
             out[int(plane_id)] = Outline(rectangle(n, float(d), whole),
                                          tuple(rectangle(n, float(d), b) for b in boxes))
     return out

@@ -323,7 +323,7 @@ def _log_planes(rec: rr.RecordingStream, planes: Sequence[PlaneRecord], opt: Map
             f"world/planes/{p.id}",
             rr.Mesh3D(
                 vertex_positions=vertices,
-                triangle_indices=np.vstack([fan_triangles(q.shape[0]) + k for q, k in zip(polys, first, strict=False)]),
+                triangle_indices=np.vstack([fan_triangles(q.shape[0]) + k for q, k in zip(polys, first[:-1], strict=True)]),
                 vertex_normals=np.tile(p.normal, (vertices.shape[0], 1)),
                 albedo_factor=[*rgb.tolist(), opt.plane_alpha],
             ),

@@ -12,11 +12,11 @@ from slam.frontend.planemap import plane_basis
 from slam.plane_extents import (
     ExtentRule,
     cell_table,
-    extent_box,
     final_extents,
     rectangle,
     region_boxes,
     segment_runs,
+    union_box,
 )
 
 RULE = ExtentRule(cell=0.05, min_segments=3, gate=0.009, rms=0.006)
@@ -50,14 +50,13 @@ def test_the_box_is_the_face_and_two_stray_segments_do_not_stretch_it() -> None:
     rng = np.random.default_rng(3)
     a, b = _door_segments(rng, (2.0, 2.9), (0.0, 2.05), 400)
     stray_a, stray_b = np.array([[0.5, 0.02], [0.8, 1.0]]), np.array([[2.5, 0.03], [2.4, 1.0]])
-    box = extent_box(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 3)
-    assert box is not None
+    box = union_box(region_boxes(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 3, 0.0))
     np.testing.assert_allclose(box, [[2.0, 0.0], [2.9, 2.05]], atol=0.03)
     # counted once each, the strays are the outline's left edge: the count is what keeps them out
-    loose = extent_box(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 1)
-    assert loose is not None and loose[0, 0] == pytest.approx(0.5)
+    loose = union_box(region_boxes(np.vstack((a, stray_a)), np.vstack((b, stray_b)), 0.05, 1, 0.0))
+    assert loose[0, 0] == pytest.approx(0.5)
     # fewer segments than the count: no outline
-    assert extent_box(a[:2], b[:2], 0.05, 3) is None
+    assert region_boxes(a[:2], b[:2], 0.05, 3, 0.0) == []
 
 
 def _lift(uv: np.ndarray, normal: np.ndarray, d: float, off: float = 0.0) -> np.ndarray:
