@@ -228,6 +228,9 @@ class FrontEndConfig(StrictModel):
         "with it on was lost at 3,440 s (session 27, README: a corridor's association decays lap after lap); "
         "0 = off")
     local_step_gate: float = Field(3.0, gt=0, description="sigmas of the local step test")
+    local_step_min: float = Field(
+        0.0, ge=0, description="m, the least step the local step test acts on, whatever its sigmas (noise-scaled): a "
+        "wall's own segments that differ from their neighbours by less stay on the wall")
     local_step_sigma: float = Field(
         0.001, gt=0, description="m, what two neighbouring segments of one wall in one scan may differ by beyond "
         "their own lines' sigmas (flatness), in the local step test")
@@ -411,6 +414,11 @@ class BackEndConfig(StrictModel):
         "11 kB per knot; one that does not fit is written to disk and read back). The batch's memory stops growing "
         "with the walk once this is full (the hour's office walk: 512 MB -> 1024 MB took its final batch from 424 "
         "to 361 s and its peak from 2.83 to 3.37 GB, the same estimate bit for bit)")
+    batch_heap_slack_mb: float = Field(
+        64.0, ge=0, description="MB: a pass over a sectioned final batch's sections gives malloc's free pages back "
+        "to the system (malloc_trim) whenever its resident memory has risen this much since the last time: each "
+        "section's linearisation and elimination are freed into malloc's chunks, which the next section splits at "
+        "new places, so that the resident memory would climb with the sections while the memory in use does not")
     fold_links: Literal["step", "end"] = Field(
         "step", description="when two planes the front end found to be one surface (a wall walked past again) "
         "become one variable in the back end: 'step' at the next window step (the window then holds one plane "

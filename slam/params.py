@@ -35,7 +35,8 @@ from slam.motion import ImuConfig, MotionPriorConfig
 
 # the values stated for the reference noise (``noise.reference``) that scale with the scanners' noise
 NOISE_SCALED: dict[str, tuple[str, ...]] = {
-    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma"),
+    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma",
+                 "local_step_min"),
     "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
     "backend": ("final_trim_distance",),
     "output": ("extent_gate", "extent_rms"),
@@ -123,7 +124,8 @@ def gates(cfg: SlamConfig) -> Gates:
                             host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test,
                             model=fe.choice_lever_model, hold_past_child=fe.hold_past_child_extent,
                             local_reach=fe.local_step_reach, local_gate=fe.local_step_gate,
-                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)))
+                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)),
+                            local_min=fe.local_step_min)
         if fe.parallel_choice else None,
     )
 
@@ -320,6 +322,7 @@ def backend_config(cfg: SlamConfig, with_imu: bool) -> BackendConfig:
         isam2_fallback_iterations=be.isam2_fallback_iterations,
         batch_section_knots=max(1, round(be.batch_section_seconds * cfg.trajectory.knot_rate)),
         batch_cache_bytes=round(be.batch_cache_mb * 1e6),
+        batch_heap_slack_bytes=round(be.batch_heap_slack_mb * 1e6),
         fold_links_in_window=be.fold_links == "step" and be.solver == "window",
         batch_whole_knots=round(be.batch_whole_seconds * cfg.trajectory.knot_rate),
     )

@@ -50,7 +50,7 @@ def test_packed_solve_matches_gtsam(tmp_path: Path, seed: int) -> None:
     bn, rest = graph.eliminatePartialSequential(interior)
     sep = rest.optimize()
     want = bn.optimize(sep)
-    net = pack(bn, dims)
+    net = pack(bn, dims.__getitem__)
     assert net.nbytes == 8 * sum(int(bn.at(i).rows()) * int(bn.at(i).cols()) for i in range(bn.size()))
     got = dict(solve(net, sep))
     assert sorted(got) == sorted(interior)
@@ -70,7 +70,7 @@ def test_packed_solve_names_a_missing_parent() -> None:
     graph, interior, dims = _section(rng, 6, 3)
     bn, _ = graph.eliminatePartialSequential(interior)
     with pytest.raises(ValueError, match="no value given for parent"):
-        solve(pack(bn, dims), gtsam.VectorValues())
+        solve(pack(bn, dims.__getitem__), gtsam.VectorValues())
 
 
 def test_packed_solve_singular_is_a_runtime_error() -> None:
@@ -84,4 +84,4 @@ def test_packed_solve_singular_is_a_runtime_error() -> None:
     with pytest.raises(RuntimeError):
         bn.optimize(given)
     with pytest.raises(RuntimeError, match="indeterminate system at conditional 0 \\(x0\\)"):
-        solve(pack(bn, {X(0): 3, P(0): 3}), given)
+        solve(pack(bn, {X(0): 3, P(0): 3}.__getitem__), given)

@@ -55,6 +55,8 @@ class BackendConfig:
     batch_cache_bytes: how much a sectioned final batch keeps from one pass to the next: the
         sections' eliminations first, then their factors (estimated from their points); what does
         not fit is eliminated or built again.
+    batch_heap_slack_bytes: a pass over the sections trims the C heap whenever its resident memory
+        has risen by this much since the last trim (0: after every section).
     fold_links_in_window: :meth:`Backend.step` first merges the planes linked since the last step
         (:meth:`Backend.fold_links`) instead of carrying the links to the end of the run.
     """
@@ -83,6 +85,7 @@ class BackendConfig:
     isam2_fallback_iterations: int
     batch_section_knots: int
     batch_cache_bytes: int
+    batch_heap_slack_bytes: int
     fold_links_in_window: bool
     batch_whole_knots: int
     batch_relative_tolerance: float
@@ -108,6 +111,8 @@ class BackendConfig:
                 raise ValueError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.batch_whole_knots < 0:
             raise ValueError(f"batch_whole_knots: must be >= 0, got {self.batch_whole_knots}")
+        if self.batch_heap_slack_bytes < 0:
+            raise ValueError(f"batch_heap_slack_bytes: must be >= 0, got {self.batch_heap_slack_bytes}")
         if self.batch_cache_bytes < 0:
             raise ValueError(f"batch_cache_bytes: must be >= 0, got {self.batch_cache_bytes}")
         if self.window_knots < 0:

@@ -163,6 +163,18 @@ def plane_indices(keys: Sequence[int]) -> list[int]:
     return [k & _INDEX_MASK for k in keys if (k >> _INDEX_BITS) == _PLANE_CHAR]
 
 
+_DIMS = {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("p"): 3}  # pose, velocity, IMU bias, plane
+
+
+def key_dim(key: int) -> int:
+    """The tangent dimension of variable ``key`` (a pose, velocity, IMU bias or plane), from its
+    symbol alone: no walk-sized ``Values.dims()`` map."""
+    d = _DIMS.get((key >> _INDEX_BITS) & 0xFF)
+    if d is None:
+        raise ValueError(f"unknown variable {gtsam.Symbol(key).string()}")
+    return d
+
+
 def copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, update: bool = False) -> None:
     """Copy variable ``key`` from ``src`` into ``dst``: insert it if absent; overwrite it only
     with ``update``."""

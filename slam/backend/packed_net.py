@@ -20,6 +20,7 @@ from __future__ import annotations
 import os
 import tempfile
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +28,8 @@ import gtsam
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
+
+from slam.backend.graph import key_dim
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -80,9 +83,9 @@ class PackedNet:
         return np.fromfile(self.path, dtype=np.float64)
 
 
-def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
-    """The conditionals of ``bn`` packed (see :class:`PackedNet`); ``dims`` the variables'
-    dimensions by key (every key of ``bn``)."""
+def pack(bn: gtsam.GaussianBayesNet, dim: Callable[[int], int] = key_dim) -> PackedNet:
+    """The conditionals of ``bn`` packed (see :class:`PackedNet`); ``dim`` a variable's dimension
+    by key (every key of ``bn``)."""
     n = bn.size()
     conds = [bn.at(j) for j in range(n)]
     sizes = np.array([int(c.rows()) * int(c.cols()) for c in conds], dtype=np.int64)
@@ -96,7 +99,7 @@ def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
         R = np.asarray(c.R())
         rows, nf, acc = R.shape[0], 0, 0
         while acc < rows:  # the leading keys whose dimensions make up R's rows are the frontals
-            acc += dims[int(ks[nf])]
+            acc += dim(int(ks[nf]))
             nf += 1
         if acc != rows:
             raise ValueError(f"pack: conditional {j}'s R has {rows} rows, its frontals {acc} dimensions")
@@ -113,7 +116,7 @@ def pack(bn: gtsam.GaussianBayesNet, dims: dict[int, int]) -> PackedNet:
     p_all = np.concatenate(parents) if parents else np.zeros(0, dtype=np.int64)
     all_keys = np.unique(np.concatenate((f_all, p_all)))
     return PackedNet(f_all, fptr, p_all, pptr, all_keys,
-                     np.array([dims[int(k)] for k in all_keys.tolist()], dtype=np.int64), mptr, data)
+                     np.array([dim(int(k)) for k in all_keys.tolist()], dtype=np.int64), mptr, data)
 
 
 def solve(net: PackedNet, given: gtsam.VectorValues) -> list[tuple[int, FloatArray]]:

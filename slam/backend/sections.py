@@ -62,12 +62,12 @@ from numpy.typing import NDArray
 from slam.backend.blocks import BlockStore, interval_factors
 from slam.backend.config import BackendConfig, OptimizeSummary
 from slam.backend.factors import RobustKernel
-from slam.backend.graph import FactorGraph, plane_indices, top_knot
+from slam.backend.graph import FactorGraph, key_dim, plane_indices, top_knot
 from slam.backend.marginals import dense_marginals
 from slam.backend.packed_net import PackedNet, pack
 from slam.backend.packed_net import solve as solve_net
 from slam.backend.solver import DAMPING, MAX_DAMPING, damping_rows, predicted_end
-from slam.heap import trim_heap
+from slam.heap import HeapKeeper, trim_heap
 
 FloatArray = NDArray[np.float64]
 # a cached interval factor's points (body point, fraction, sigma, plane index, their copies in the
@@ -255,26 +255,25 @@ class SectionedBatch:
         sections = self.plan()
         sep = separator_knots(sections)
         local = self.local_planes(sections, keep_planes)
-        dims = {int(k): int(d) for k, d in values.dims().items()}
-        zero = values.zeroVectors()  # every variable's: a linearisation's error at zero is its 0.5 ||b||^2
         out = gtsam.GaussianFactorGraph()
         err = 0.0
         sep_keys: set[int] = set()
         nets: list[PackedNet] | None = [] if keep else None
         self._nets_bytes = 0
         self._in_memory = []
+        heap = self._heap_keeper()
         with self._serving(values):
             for i, (a, b) in enumerate(sections):
                 lin = self.factors(a, b, kernel).linearize(values)
                 keys = [int(k) for k in lin.keyVector()]
-                err += lin.error(zero)
+                err += lin.error(_zeros(keys))  # a linearisation's error at zero is its 0.5 ||b||^2
                 interior = _interior(keys, i, sections, sep, local)
-                bn, rest = self._eliminate(lin, interior, dims, damping)
+                bn, rest = self._eliminate(lin, interior, damping)
                 inner = set(interior)
                 sep_keys.update(k for k in keys if k not in inner)
                 out.push_back(rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
-                    net = pack(bn, dims)
+                    net = pack(bn)
                     self.largest_net_bytes = max(self.largest_net_bytes, net.nbytes)
                     self._nets_bytes += net.index_bytes
                     if self._cache_bytes + self._nets_bytes + net.nbytes <= self.config.batch_cache_bytes:
@@ -286,14 +285,15 @@ class SectionedBatch:
                     nets.append(net)
                     self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
                 del lin, rest, bn
+                heap.check()
             planes = self.plane_factors()
             if planes.size():
                 lin = planes.linearize(values)
-                err += lin.error(zero)
+                err += lin.error(_zeros([int(k) for k in lin.keyVector()]))
                 out.push_back(lin)
                 sep_keys.update(int(k) for k in lin.keyVector())
         if damping > 0.0:
-            out.push_back(damping_rows([(k, dims[k]) for k in sorted(sep_keys)], set(), damping, cache=False))
+            out.push_back(damping_rows([(k, key_dim(k)) for k in sorted(sep_keys)], set(), damping, cache=False))
         self.peak_separator_bytes = max(self.peak_separator_bytes, _graph_bytes(out))
         return Reduced(out, err, nets)
 
@@ -308,39 +308,47 @@ class SectionedBatch:
         sections = self.plan()
         sep = separator_knots(sections)
         local = self.local_planes(sections, keep_planes)
-        dims = {int(k): int(d) for k, d in values.dims().items()}
         delta = gtsam.VectorValues()
         delta.insert(sep_delta)
+        heap = self._heap_keeper()
         with self._serving(values):
             for i, (a, b) in enumerate(sections):
                 net = nets[i] if nets is not None else None
                 if net is None:
                     lin = self.factors(a, b, kernel).linearize(values)
                     interior = _interior([int(k) for k in lin.keyVector()], i, sections, sep, local)
-                    bn, _ = self._eliminate(lin, interior, dims, damping)
-                    net = pack(bn, dims)
+                    bn, _ = self._eliminate(lin, interior, damping)
+                    net = pack(bn)
                     del lin, bn
                 for k, v in solve_net(net, sep_delta):
                     delta.insert(k, v)
                 del net
-        return self._fill(delta, dims)
+                heap.check()
+        return self._fill(delta, values)
 
-    def _eliminate(self, lin: gtsam.GaussianFactorGraph, interior: list[int], dims: dict[int, int],
-                   damping: float) -> tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph]:
+    def _eliminate(self, lin: gtsam.GaussianFactorGraph, interior: list[int], damping: float) -> tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph]:
         """A section's linearisation with its ``interior``'s damping rows added, the interior
         eliminated (in COLAMD's order): its conditionals and the factor left on the separator."""
         if damping > 0.0:
-            lin.push_back(damping_rows([(k, dims[k]) for k in interior], set(), damping, cache=False))
+            lin.push_back(damping_rows([(k, key_dim(k)) for k in interior], set(), damping, cache=False))
         self.sections_solved += 1
         out: tuple[gtsam.GaussianBayesNet, gtsam.GaussianFactorGraph] = lin.eliminatePartialSequential(interior)
         return out
 
     @staticmethod
-    def _fill(delta: gtsam.VectorValues, dims: dict[int, int]) -> gtsam.VectorValues:
-        for k, d in dims.items():  # variables no factor touches stay where they are
+    def _fill(delta: gtsam.VectorValues, values: gtsam.Values) -> gtsam.VectorValues:
+        for k in values.keys():  # variables no factor touches stay where they are
             if not delta.exists(k):
-                delta.insert(k, np.zeros(d))
+                delta.insert(k, np.zeros(key_dim(k)))
         return delta
+
+    def _heap_keeper(self) -> HeapKeeper:
+        """Trims the C heap during a pass over the sections once its resident memory has risen by
+        ``config.batch_heap_slack_bytes``: each section's linearisation and elimination are freed
+        into malloc's chunks, which the next section splits at new places, so that without it the
+        pass's resident memory climbs with the sections (with the walk) while the memory in use
+        does not."""
+        return HeapKeeper(slack=self.config.batch_heap_slack_bytes)
 
     # ----------------------------------------------------------------- solving
     def optimize(self, max_iterations: int | None, graduated: bool, kernel: RobustKernel | None) -> OptimizeSummary:
@@ -376,7 +384,7 @@ class SectionedBatch:
         """Damped Gauss-Newton from the current estimate, as :func:`slam.backend.solver.solve`
         (without its Levenberg-Marquardt fallback); the estimate is updated. Returns the
         iterations and the errors before and after."""
-        values = gtsam.Values(self.graph.values)
+        values = self.graph.values  # not copied: only read, and replaced by each accepted trial point
         damping = DAMPING
         red: Reduced | None = self.reduce(values, kernel, damping, keep=True)
         assert red is not None
@@ -435,9 +443,11 @@ class SectionedBatch:
         kernel = self.config.kernel if kernel is None else kernel
         values = self.graph.values if values is None else values
         total = 0.0
+        heap = self._heap_keeper()
         with self._serving(values):
             for a, b in self.plan():  # one section's factors at a time
                 total += float(self.factors(a, b, kernel).error(values))
+                heap.check()
             total += float(self.plane_factors().error(values))
         return total
 
@@ -458,8 +468,7 @@ class SectionedBatch:
         values = self.graph.values
         red = self.reduce(values, self.config.kernel, 0.0, keep_planes=plane_ids)
         keys = sorted(int(k) for k in red.graph.keyVector())
-        dims = {int(k): int(d) for k, d in values.dims().items()}
-        first = np.concatenate(([0], np.cumsum([dims[k] for k in keys])))
+        first = np.concatenate(([0], np.cumsum([key_dim(k) for k in keys])))
         wanted = None if plane_ids is None else {int(P(int(j))) for j in plane_ids}
         planes = [(i, k) for i, k in enumerate(keys) if plane_indices((k,)) and (wanted is None or k in wanted)]
         info, _ = red.graph.hessian(gtsam.Ordering(keys))
@@ -489,6 +498,14 @@ def _local_planes(graph: FactorGraph, block_ids: NDArray[np.int64], block_knot: 
             if where < 0 or seen.setdefault(j, where) != where:
                 shared.add(j)
     return {int(P(j)): i for j, i in seen.items() if j not in shared}
+
+
+def _zeros(keys: list[int]) -> gtsam.VectorValues:
+    """Zero steps of ``keys`` (one section's variables, not the walk's)."""
+    zero = gtsam.VectorValues()
+    for k in keys:
+        zero.insert(k, np.zeros(key_dim(k)))
+    return zero
 
 
 def _knot_indices(keys: tuple[int, ...]) -> list[int]:
