@@ -228,9 +228,6 @@ class FrontEndConfig(StrictModel):
         "with it on was lost at 3,440 s (session 27, README: a corridor's association decays lap after lap); "
         "0 = off")
     local_step_gate: float = Field(3.0, gt=0, description="sigmas of the local step test")
-    local_step_min: float = Field(
-        0.0, ge=0, description="m, the least step the local step test acts on, whatever its sigmas (noise-scaled): a "
-        "wall's own segments that differ from their neighbours by less stay on the wall")
     local_step_sigma: float = Field(
         0.001, gt=0, description="m, what two neighbouring segments of one wall in one scan may differ by beyond "
         "their own lines' sigmas (flatness), in the local step test")

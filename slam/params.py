@@ -35,8 +35,7 @@ from slam.motion import ImuConfig, MotionPriorConfig
 
 # the values stated for the reference noise (``noise.reference``) that scale with the scanners' noise
 NOISE_SCALED: dict[str, tuple[str, ...]] = {
-    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma",
-                 "local_step_min"),
+    "frontend": ("point_sigma", "coplanar_distance", "merge_distance", "max_endpoint_distance", "relative_sigma"),
     "edges": ("sigma", "min_step", "step_tolerance", "cluster_width"),
     "backend": ("final_trim_distance",),
     "output": ("extent_gate", "extent_rms"),
@@ -124,8 +123,7 @@ def gates(cfg: SlamConfig) -> Gates:
                             host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test,
                             model=fe.choice_lever_model, hold_past_child=fe.hold_past_child_extent,
                             local_reach=fe.local_step_reach, local_gate=fe.local_step_gate,
-                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)),
-                            local_min=fe.local_step_min)
+                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)))
         if fe.parallel_choice else None,
     )
 

@@ -30,12 +30,12 @@ def _scan(spans: list[tuple[float, float, float]], plane: list[int]) -> tuple[np
 
 
 def _run(out: np.ndarray, dist: np.ndarray, ends: np.ndarray, cen: np.ndarray, reach: float = 0.5,
-         sigma: float = 0.0003, least: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
+         sigma: float = 0.0003) -> tuple[np.ndarray, np.ndarray, int]:
     out = out.copy()
     grows = np.ones(out.shape[0], dtype=bool)
     k = out.shape[0]
     n = local_steps(out, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(k, sigma), np.full(k, 60.0), reach, 3.0,
-                    0.001**2, float(np.radians(0.02)), least)
+                    0.001**2, float(np.radians(0.02)))
     return out, grows, n
 
 
@@ -62,7 +62,7 @@ def test_a_door_holding_most_of_the_scans_points_does_not_send_the_wall_away() -
     weight = np.array([20.0, 90.0])
     got = out.copy()
     grows = np.ones(2, dtype=bool)
-    n = local_steps(got, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0, 0.0)
+    n = local_steps(got, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0)
     np.testing.assert_array_equal(got, [WALL, WALL])
     assert n == 0
 
@@ -76,20 +76,6 @@ def test_a_step_beyond_the_reach_or_within_the_sigmas_is_left_alone() -> None:
     # a 2 mm difference is the lines' noise and the wall's flatness
     out, dist, ends, cen = _scan([(0.0, 1.0, 0.0), (1.1, 2.0, 0.002)], [WALL, WALL])
     assert _run(out, dist, ends, cen)[2] == 0
-
-
-def test_a_step_under_the_least_step_stays_on_the_wall_whatever_its_sigmas() -> None:
-    # two long, well-fitted wall segments 3.6 mm apart: past 3 sigmas of their 1.1 mm, so without
-    # a least step the second goes to the pool; with a least step of 4 mm it is the wall's
-    out, dist, ends, cen = _scan([(0.0, 1.0, 0.0), (1.1, 2.0, 0.0036)], [WALL, WALL])
-    got, _, n = _run(out, dist, ends, cen, sigma=0.0002)
-    assert n == 1 and got[1] == NONE
-    got, _, n = _run(out, dist, ends, cen, sigma=0.0002, least=0.004)
-    np.testing.assert_array_equal(got, [WALL, WALL])
-    assert n == 0
-    # a door 12 mm behind is a step all the same
-    out, dist, ends, cen = _scan([(0.0, 1.0, 0.0), (1.1, 2.0, 0.012)], [WALL, WALL])
-    assert _run(out, dist, ends, cen, least=0.004)[2] == 1
 
 
 def test_a_rotation_error_along_a_long_wall_is_no_step() -> None:
@@ -110,9 +96,8 @@ def test_segments_on_a_door_or_unassociated_are_not_tested() -> None:
 def test_the_test_is_off_without_a_reach_and_in_the_trackings_veto() -> None:
     p = ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=0.002, sigma_lever=0.0, walls_only=False,
                      veto=False, host_sigma=0.0004, host_lever=0.0, host_test=False, model=False,
-                     hold_past_child=False, local_reach=0.5, local_gate=3.0, local_sigma=0.002, local_lever=0.0,
-                     local_min=0.004)
-    assert local_scalars(p) == (0.5, 3.0, 0.002**2, 0.0, 0.004)
+                     hold_past_child=False, local_reach=0.5, local_gate=3.0, local_sigma=0.002, local_lever=0.0)
+    assert local_scalars(p) == (0.5, 3.0, 0.002**2, 0.0)
     assert local_scalars(ChoiceParams(**{**p.__dict__, "veto": True}))[0] == 0.0
     assert local_scalars(ChoiceParams(**{**p.__dict__, "local_reach": 0.0}))[0] == 0.0
     assert local_scalars(None)[0] == 0.0
@@ -128,12 +113,12 @@ def test_a_young_duplicate_of_the_wall_counts_as_the_wall() -> None:
     dist = np.stack([d[:, 0], d[:, 0] - 0.001, d[:, 0] - 3.0], axis=1)
     grows = np.ones(3, dtype=bool)
     n = local_steps(out, grows, dist, ids, walls, normals, SAME, ends, cen, np.full(3, 0.0003), np.full(3, 60.0), 0.5,
-                    3.0, 0.001**2, 0.0, 0.0)
+                    3.0, 0.001**2, 0.0)
     np.testing.assert_array_equal(out, [WALL, NONE, WALL])
     assert n == 1
     # a perpendicular wall is not the same wall
     out, d, ends, cen = _scan([(0.0, 1.0, 0.001), (1.1, 2.0, 0.013)], [WALL, 11])
     normals[1] = (1.0, 0.0, 0.0)
     n = local_steps(out, np.ones(2, dtype=bool), np.stack([d[:, 0], d[:, 0], d[:, 0]], axis=1), ids, walls, normals,
-                    SAME, ends, cen, np.full(2, 0.0003), np.full(2, 60.0), 0.5, 3.0, 0.001**2, 0.0, 0.0)
+                    SAME, ends, cen, np.full(2, 0.0003), np.full(2, 60.0), 0.5, 3.0, 0.001**2, 0.0)
     assert n == 0

@@ -493,7 +493,7 @@ def _end_gap(endpoints: FloatArray, a: int, b: int) -> float:
 def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray, walls: BoolArray,
                 normals: FloatArray, same_normal: float, endpoints: FloatArray, centroid: FloatArray,
                 sigma_own: FloatArray, weight: FloatArray, reach: float, gate: float, flat2: float,
-                lever: float, least: float) -> int:
+                lever: float) -> int:
     """The local step test (``parallel_choice.ChoiceParams.local_reach``) on one scan's
     association ``out`` (plane ids per segment; changed in place with ``grows``): a segment ``k``
     given to a wall ``c`` (``walls`` (P,) over the columns of ``ids``, ``normals`` (P, 3) and
@@ -503,7 +503,7 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
     ``reach`` of its own (``endpoints`` (k, 2, 3), world frame), both measured from ``c``. The
     scan's pose error shifts both alike, so their difference ``dist[k] - dist[j]`` has the sigma of
     their own lines (``sigma_own``), the wall's flatness (``flat2``, squared) and the rotation's
-    lever over their separation only. Where it exceeds ``gate`` sigmas and ``least`` (m), and ``j`` lies nearer the
+    lever over their separation only. Where it exceeds ``gate`` sigmas and ``j`` lies nearer the
     wall both by its offset in this scan (the point-weighted median of the distances from ``c`` of
     the segments on ``c`` and its parallels within ``_LOCAL_NEAR``, ``weight``) and by its
     distance from ``c``'s plane, ``k`` is off the wall: left to the pool (``NONE``). Returns how
@@ -567,7 +567,7 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
                 e = centroid[k, r] - centroid[j, r]
                 sep2 += e * e
             s = math.sqrt(sigma_own[k] ** 2 + sigma_own[j] ** 2 + flat2 + lever * lever * sep2)
-            if abs(dist[k, c] - dist[j, c]) > max(gate * s, least):
+            if abs(dist[k, c] - dist[j, c]) > gate * s:
                 off[k] = True
                 break
     n_off = 0

@@ -78,21 +78,18 @@ class ChoiceParams:
     local_gate: float
     local_sigma: float
     local_lever: float
-    # the least step (m) the local step test acts on, whatever its sigmas: a wall's own segments
-    # that differ by less stay on it
-    local_min: float
 
 
-LocalScalars = tuple[float, float, float, float, float]
+LocalScalars = tuple[float, float, float, float]
 
 
 def local_scalars(params: ChoiceParams | None) -> LocalScalars:
     """The local step test's numbers as ``assoc_kernels.local_steps`` takes them: reach (0: off;
-    off without a choice and in its veto), gate, the square of ``local_sigma``, lever, least step."""
+    off without a choice and in its veto), gate, the square of ``local_sigma``, lever."""
     if params is None or params.veto or params.local_reach <= 0.0:
-        return (0.0, 0.0, 0.0, 0.0, 0.0)
+        return (0.0, 0.0, 0.0, 0.0)
     return (float(params.local_reach), float(params.local_gate), float(params.local_sigma) ** 2,
-            float(params.local_lever), float(params.local_min))
+            float(params.local_lever))
 
 
 @dataclass(frozen=True)
