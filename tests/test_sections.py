@@ -297,3 +297,48 @@ def test_a_plane_the_system_leaves_indeterminate_has_no_covariance(scene: Scene,
     assert 98 not in covs
     assert set(covs) == set(range(len(scene.planes)))
     assert all(np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) > 0) for c in covs.values())
+
+
+def test_each_pass_trims_the_heap_once_its_memory_has_risen_by_the_slack(
+        scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    import slam.backend.sections as sections
+    from slam.heap import HeapKeeper
+
+    checks: list[int] = []
+    trims: list[int] = []
+    rss = iter(range(0, 10**9, 10))  # the resident memory rises by 10 bytes at every look
+
+    class Counting(HeapKeeper):
+        def __init__(self, slack: int) -> None:
+            super().__init__(slack=slack, rss=lambda: next(rss), trim=lambda: trims.append(1) is None)
+
+        def check(self) -> None:
+            checks.append(1)
+            super().check()
+
+    monkeypatch.setattr(sections, "HeapKeeper", Counting)
+    be = _build(scene, replace(backend_defaults(), batch_section_knots=17, batch_whole_knots=0,
+                               batch_heap_slack_bytes=0))
+    values = be.graph.values
+    n = len(be.sections.plan())
+    red = be.sections.reduce(values, be.config.kernel, DAMPING)
+    assert len(checks) == n and len(trims) == n  # no slack: a trim after every section
+    be.sections.back_substitute(values, be.config.kernel, DAMPING, red.graph.optimize())
+    be.sections.total_error()
+    assert len(checks) == 3 * n and len(trims) == 3 * n
+    slack = replace(be.config, batch_heap_slack_bytes=10**6)
+    be.sections.config = slack
+    be.sections.reduce(values, be.config.kernel, DAMPING)
+    assert len(checks) == 4 * n and len(trims) == 3 * n  # under the slack: none
+    with pytest.raises(ValueError, match="batch_heap_slack_bytes"):
+        replace(backend_defaults(), batch_heap_slack_bytes=-1)
+
+
+def test_a_variables_dimension_comes_from_its_symbol() -> None:
+    from gtsam.symbol_shorthand import B, L, P, V, X
+
+    from slam.backend.graph import key_dim
+
+    assert [key_dim(int(k(3))) for k in (X, V, B, P)] == [6, 3, 6, 3]
+    with pytest.raises(ValueError, match="unknown variable l7"):
+        key_dim(int(L(7)))
