@@ -228,10 +228,6 @@ class FrontEndConfig(StrictModel):
         "with it on was lost at 3,440 s (session 27, README: a corridor's association decays lap after lap); "
         "0 = off")
     local_step_gate: float = Field(3.0, gt=0, description="sigmas of the local step test")
-    local_step_flanked: bool = Field(
-        False, description="the local step test sends a segment away only when the wall's segments that it steps "
-        "off lie on both sides of it along its scan line (a door or board face inside its wall); without it a wall "
-        "plane made at a door's depth sent the wall's own segments away while walking past the door (session 33)")
     local_step_sigma: float = Field(
         0.001, gt=0, description="m, what two neighbouring segments of one wall in one scan may differ by beyond "
         "their own lines' sigmas (flatness), in the local step test")

@@ -123,8 +123,7 @@ def gates(cfg: SlamConfig) -> Gates:
                             host_lever=float(np.radians(fe.host_lever_deg)), host_test=fe.host_test,
                             model=fe.choice_lever_model, hold_past_child=fe.hold_past_child_extent,
                             local_reach=fe.local_step_reach, local_gate=fe.local_step_gate,
-                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)),
-                            local_flanked=fe.local_step_flanked)
+                            local_sigma=fe.local_step_sigma, local_lever=float(np.radians(fe.local_step_lever_deg)))
         if fe.parallel_choice else None,
     )
 

@@ -248,12 +248,12 @@ def _associate_scan_reference(segs: WorldSegments, pmap: PlaneMap, odometer: flo
         chosen = np.where(ch.column >= 0, id_arr[np.maximum(ch.column, 0)], ch.column)
         if not gates.choice.veto:
             grows = ch.grows & (ch.column >= 0)
-            reach, gate, flat2, lever, flanked = local_scalars(gates.choice)
+            reach, gate, flat2, lever = local_scalars(gates.choice)
             if reach > 0.0:  # the local step test after the choice (its behaviour: tests/test_local_steps.py)
                 walls = np.array([p.kind == KIND_WALL for p in active], dtype=bool)
                 walls[child_rows] = False
                 ak.local_steps(chosen, grows, dist_c, id_arr, walls, normals, same_normal, segs.endpoints, segs.centroid,
-                            segs.sigma_centroid, weight, reach, gate, flat2, lever, flanked)
+                            segs.sigma_centroid, weight, reach, gate, flat2, lever)
             return Association(chosen, grows)
     else:
         chosen = None
@@ -441,8 +441,7 @@ def _choice_params(rng: np.random.Generator) -> ChoiceParams:
                         sigma_pose=float(rng.choice([0.0, 0.004, 0.02])), sigma_lever=float(np.radians(0.01)),
                         walls_only=bool(rng.uniform() < 0.3), veto=False, host_sigma=0.0004,
                         host_lever=float(np.radians(0.015)), host_test=True, model=False,
-                        hold_past_child=False, local_reach=0.0, local_gate=3.0, local_sigma=0.001, local_lever=0.0,
-                        local_flanked=False)
+                        hold_past_child=False, local_reach=0.0, local_gate=3.0, local_sigma=0.001, local_lever=0.0)
 
 
 def test_choose_matches_the_reference_on_random_candidates() -> None:

@@ -30,12 +30,12 @@ def _scan(spans: list[tuple[float, float, float]], plane: list[int]) -> tuple[np
 
 
 def _run(out: np.ndarray, dist: np.ndarray, ends: np.ndarray, cen: np.ndarray, reach: float = 0.5,
-         sigma: float = 0.0003, flanked: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+         sigma: float = 0.0003) -> tuple[np.ndarray, np.ndarray, int]:
     out = out.copy()
     grows = np.ones(out.shape[0], dtype=bool)
     k = out.shape[0]
     n = local_steps(out, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(k, sigma), np.full(k, 60.0), reach, 3.0,
-                    0.001**2, float(np.radians(0.02)), flanked)
+                    0.001**2, float(np.radians(0.02)))
     return out, grows, n
 
 
@@ -62,7 +62,7 @@ def test_a_door_holding_most_of_the_scans_points_does_not_send_the_wall_away() -
     weight = np.array([20.0, 90.0])
     got = out.copy()
     grows = np.ones(2, dtype=bool)
-    n = local_steps(got, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0, False)
+    n = local_steps(got, grows, dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(2, 0.0003), weight, 0.5, 3.0, 0.001**2, 0.0)
     np.testing.assert_array_equal(got, [WALL, WALL])
     assert n == 0
 
@@ -76,28 +76,6 @@ def test_a_step_beyond_the_reach_or_within_the_sigmas_is_left_alone() -> None:
     # a 2 mm difference is the lines' noise and the wall's flatness
     out, dist, ends, cen = _scan([(0.0, 1.0, 0.0), (1.1, 2.0, 0.002)], [WALL, WALL])
     assert _run(out, dist, ends, cen)[2] == 0
-
-
-def test_flanked_the_wall_beside_a_door_stays_when_the_plane_lies_at_the_doors_depth() -> None:
-    # the plane was made at the door's depth (distances from it: the door 0, the wall 15 mm); the
-    # scan sees mostly door (its median on the door): the wall's own segments beside the door
-    # step off the door segment, on one side of it each
-    out, dist, ends, cen = _scan([(0.0, 0.4, 0.015), (0.5, 1.4, 0.0), (1.5, 1.8, 0.015)], [WALL] * 3)
-    weight = np.array([20.0, 90.0, 15.0])  # the door holds most of the scan's points
-    for flanked, expected in ((False, [NONE, WALL, NONE]), (True, [WALL, WALL, WALL])):
-        got = out.copy()
-        n = local_steps(got, np.ones(3, dtype=bool), dist, IDS, WALLS, NORMALS, SAME, ends, cen, np.full(3, 0.0003),
-                        weight, 0.5, 3.0, 0.001**2, 0.0, flanked)
-        np.testing.assert_array_equal(got, expected)  # without: the reversal, the wall sent away
-        assert n == expected.count(NONE)
-    # a door between wall segments on both sides still leaves the wall when flanked
-    out, dist, ends, cen = _scan([(0.0, 1.0, 0.002), (1.1, 2.0, 0.0025), (2.1, 3.0, 0.014), (3.1, 4.5, 0.0018)],
-                                 [WALL] * 4)
-    got, _, n = _run(out, dist, ends, cen, flanked=True)
-    np.testing.assert_array_equal(got, [WALL, WALL, NONE, WALL])
-    # with the wall on one side only (a door's bottom edge run onto the floor) it stays
-    out, dist, ends, cen = _scan([(0.0, 1.0, 0.002), (1.1, 2.0, 0.014)], [WALL] * 2)
-    assert _run(out, dist, ends, cen, flanked=True)[2] == 0
 
 
 def test_a_rotation_error_along_a_long_wall_is_no_step() -> None:
@@ -118,9 +96,8 @@ def test_segments_on_a_door_or_unassociated_are_not_tested() -> None:
 def test_the_test_is_off_without_a_reach_and_in_the_trackings_veto() -> None:
     p = ChoiceParams(relative_sigma=0.0015, gate=4.0, ratio=100.0, sigma_pose=0.002, sigma_lever=0.0, walls_only=False,
                      veto=False, host_sigma=0.0004, host_lever=0.0, host_test=False, model=False,
-                     hold_past_child=False, local_reach=0.5, local_gate=3.0, local_sigma=0.002, local_lever=0.0,
-                     local_flanked=True)
-    assert local_scalars(p) == (0.5, 3.0, 0.002**2, 0.0, True)
+                     hold_past_child=False, local_reach=0.5, local_gate=3.0, local_sigma=0.002, local_lever=0.0)
+    assert local_scalars(p) == (0.5, 3.0, 0.002**2, 0.0)
     assert local_scalars(ChoiceParams(**{**p.__dict__, "veto": True}))[0] == 0.0
     assert local_scalars(ChoiceParams(**{**p.__dict__, "local_reach": 0.0}))[0] == 0.0
     assert local_scalars(None)[0] == 0.0
@@ -136,12 +113,12 @@ def test_a_young_duplicate_of_the_wall_counts_as_the_wall() -> None:
     dist = np.stack([d[:, 0], d[:, 0] - 0.001, d[:, 0] - 3.0], axis=1)
     grows = np.ones(3, dtype=bool)
     n = local_steps(out, grows, dist, ids, walls, normals, SAME, ends, cen, np.full(3, 0.0003), np.full(3, 60.0), 0.5,
-                    3.0, 0.001**2, 0.0, False)
+                    3.0, 0.001**2, 0.0)
     np.testing.assert_array_equal(out, [WALL, NONE, WALL])
     assert n == 1
     # a perpendicular wall is not the same wall
     out, d, ends, cen = _scan([(0.0, 1.0, 0.001), (1.1, 2.0, 0.013)], [WALL, 11])
     normals[1] = (1.0, 0.0, 0.0)
     n = local_steps(out, np.ones(2, dtype=bool), np.stack([d[:, 0], d[:, 0], d[:, 0]], axis=1), ids, walls, normals,
-                    SAME, ends, cen, np.full(2, 0.0003), np.full(2, 60.0), 0.5, 3.0, 0.001**2, 0.0, False)
+                    SAME, ends, cen, np.full(2, 0.0003), np.full(2, 60.0), 0.5, 3.0, 0.001**2, 0.0)
     assert n == 0

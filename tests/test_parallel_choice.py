@@ -12,8 +12,7 @@ NORMALS = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 GAP = 0.02
 # the configuration's host-test defaults (slam.config: host_sigma, host_lever_deg, host_test)
 HOST_OFF = {"host_sigma": 0.0004, "host_lever": float(np.radians(0.015)), "host_test": False, "model": False,
-            "hold_past_child": False, "local_reach": 0.0, "local_gate": 3.0, "local_sigma": 0.001, "local_lever": 0.0,
-            "local_flanked": False}
+            "hold_past_child": False, "local_reach": 0.0, "local_gate": 3.0, "local_sigma": 0.001, "local_lever": 0.0}
 
 
 def _params(sigma_pose: float = 0.004) -> ChoiceParams:

@@ -493,7 +493,7 @@ def _end_gap(endpoints: FloatArray, a: int, b: int) -> float:
 def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray, walls: BoolArray,
                 normals: FloatArray, same_normal: float, endpoints: FloatArray, centroid: FloatArray,
                 sigma_own: FloatArray, weight: FloatArray, reach: float, gate: float, flat2: float,
-                lever: float, flanked: bool) -> int:
+                lever: float) -> int:
     """The local step test (``parallel_choice.ChoiceParams.local_reach``) on one scan's
     association ``out`` (plane ids per segment; changed in place with ``grows``): a segment ``k``
     given to a wall ``c`` (``walls`` (P,) over the columns of ``ids``, ``normals`` (P, 3) and
@@ -506,11 +506,8 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
     lever over their separation only. Where it exceeds ``gate`` sigmas and ``j`` lies nearer the
     wall both by its offset in this scan (the point-weighted median of the distances from ``c`` of
     the segments on ``c`` and its parallels within ``_LOCAL_NEAR``, ``weight``) and by its
-    distance from ``c``'s plane, ``k`` is off the wall: left to the pool (``NONE``). With
-    ``flanked``, only when such segments lie on both sides of ``k`` along its line (their centroids
-    before its first end point and past its last): a door's or board's face has its wall around it,
-    while the wall's own segment beside a door (when the plane was made at the door's depth and the
-    scan's median sits on the door) has the door on one side only. Returns how many were."""
+    distance from ``c``'s plane, ``k`` is off the wall: left to the pool (``NONE``). Returns how
+    many were."""
     k_n = out.shape[0]
     col = np.full(k_n, -1, dtype=np.int64)
     for k in range(k_n):
@@ -554,7 +551,6 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
         c = col[k]
         if c < 0:
             continue
-        before = after = False
         for j in range(k_n):
             # j nearer the wall both in this scan (its offset from the scan's median) and on the map
             # (its distance from the wall's plane): a door whose segment holds most of the scan's
@@ -572,15 +568,8 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
                 sep2 += e * e
             s = math.sqrt(sigma_own[k] ** 2 + sigma_own[j] ** 2 + flat2 + lever * lever * sep2)
             if abs(dist[k, c] - dist[j, c]) > gate * s:
-                if not flanked:
-                    off[k] = True
-                    break
-                side = _side(endpoints, centroid, k, j)
-                before = before or side < 0
-                after = after or side > 0
-                if before and after:
-                    off[k] = True
-                    break
+                off[k] = True
+                break
     n_off = 0
     for k in range(k_n):
         if off[k]:
@@ -588,22 +577,6 @@ def local_steps(out: IntArray, grows: BoolArray, dist: FloatArray, ids: IntArray
             grows[k] = False
             n_off += 1
     return n_off
-
-
-@nb.njit(cache=True)
-def _side(endpoints: FloatArray, centroid: FloatArray, k: int, j: int) -> int:
-    """Where segment ``j``'s centroid lies along segment ``k``'s line: -1 before its first end
-    point, 1 past its last, 0 alongside."""
-    d = endpoints[k, 1] - endpoints[k, 0]
-    length2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    t = 0.0
-    for r in range(3):
-        t += (centroid[j, r] - endpoints[k, 0, r]) * d[r]
-    if t < 0.0:
-        return -1
-    if t > length2:
-        return 1
-    return 0
 
 
 _LOCAL_NEAR = 0.05  # m: a parallel wall's segment this near a wall counts towards its offset in the scan

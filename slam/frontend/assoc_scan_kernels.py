@@ -24,7 +24,7 @@ BoolArray = NDArray[np.bool_]
 DriftScalars = tuple[float, float, float, int, int, int]
 TestScalars = tuple[float, float, float, float, float]
 ChoiceTuple = tuple[float, float, float, float, float, float, float, float, float, bool, bool, float]
-LocalTuple = tuple[float, float, float, float, bool]
+LocalTuple = tuple[float, float, float, float]
 
 
 @nb.njit(cache=True)
@@ -81,7 +81,7 @@ def associate_summarised(
                         choice[11])
     if local[0] > 0.0:
         local_steps(out, grows, dist, ids, walls, np.ascontiguousarray(rows[:, 0:3]), same_normal, endpoints, centroid,
-                    sigma_centroid, weight, local[0], local[1], local[2], local[3], local[4])
+                    sigma_centroid, weight, local[0], local[1], local[2], local[3])
     return out, grows
 
 

@@ -78,22 +78,18 @@ class ChoiceParams:
     local_gate: float
     local_sigma: float
     local_lever: float
-    # a segment leaves the wall only when segments nearer the wall lie on both sides of it along
-    # its scan line: a door or board face within its wall, not the wall beside a door whose face
-    # the plane was made on
-    local_flanked: bool
 
 
-LocalScalars = tuple[float, float, float, float, bool]
+LocalScalars = tuple[float, float, float, float]
 
 
 def local_scalars(params: ChoiceParams | None) -> LocalScalars:
     """The local step test's numbers as ``assoc_kernels.local_steps`` takes them: reach (0: off;
-    off without a choice and in its veto), gate, the square of ``local_sigma``, lever, flanked."""
+    off without a choice and in its veto), gate, the square of ``local_sigma``, lever."""
     if params is None or params.veto or params.local_reach <= 0.0:
-        return (0.0, 0.0, 0.0, 0.0, False)
+        return (0.0, 0.0, 0.0, 0.0)
     return (float(params.local_reach), float(params.local_gate), float(params.local_sigma) ** 2,
-            float(params.local_lever), bool(params.local_flanked))
+            float(params.local_lever))
 
 
 @dataclass(frozen=True)
