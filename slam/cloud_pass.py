@@ -11,6 +11,7 @@ order at the end; the file is the same byte for byte as one pass's.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import multiprocessing as mp
 from collections.abc import Iterable, Mapping
@@ -25,7 +26,7 @@ from tqdm import tqdm
 from common.rig import Rig
 from segmentation import Scanline
 from slam import cloud_kernels as ck
-from slam.export import CloudPlyWriter, CloudRecord, cloud_ply_writer
+from slam.export import CloudPlyWriter, CloudRecord, PointCounter, PointSink, cloud_ply_writer
 from slam.frontend.transients import TRANSIENT
 from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
@@ -78,7 +79,7 @@ class _CloudBatch:
     Every number is computed point by point (the body frame by one small matrix product per
     scan, as before), so the cloud is the same however the scans are batched."""
 
-    def __init__(self, res: SlamResult, rig: Rig, writer: CloudPlyWriter, picker: CloudViewPicker | None) -> None:
+    def __init__(self, res: SlamResult, rig: Rig, writer: PointSink, picker: CloudViewPicker | None) -> None:
         self._kt, self._T, self._deskew = res.knot_times, res.T_world_body, res.deskew
         self._T_bs = [s.T_body_scanner.matrix() for s in rig.scanners]
         self._rows = _SegmentRows(res.segment_rows)
@@ -244,7 +245,7 @@ def plan_parts(index: StreamIndex | None, scanner_names: list[str], processes: i
     return parts
 
 
-def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamResult, writer: CloudPlyWriter,
+def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamResult, writer: PointSink,
                bar: Any = None, picker: CloudViewPicker | None = None) -> CloudPartResult:
     """The part's scans (``scans``, in stream order) placed in the world with the final trajectory
     and written with ``writer`` as they come; with a ``picker``, the recording's view picked from
@@ -274,15 +275,18 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
     return CloudPartResult(writer.count, seg_stamp, seg_pid, endpoints, seg_rms, picker)
 
 
-def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path, q: Any,
+def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path | None, q: Any,
                   echo: Echo, intensity: bool, strides: tuple[int, int] | None) -> None:
     """A forked export process: part ``i`` of the cloud pass, read from its own ``BagSource`` of
-    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path``, its view
-    picked at ``strides`` (None: none); ``(i, its CloudPartResult or the exception)`` goes on
-    ``q``."""
+    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path`` (None: only
+    counted), its view picked at ``strides`` (None: none); ``(i, its CloudPartResult or the
+    exception)`` goes on ``q``."""
     try:
-        with BagSource(bag) as source, rows_path.open("wb") as f:
-            writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
+        with BagSource(bag) as source, contextlib.ExitStack() as stack:
+            writer: PointSink = PointCounter(intensity)
+            if rows_path is not None:
+                f = stack.enter_context(rows_path.open("wb"))
+                writer = CloudPlyWriter(f, str(rows_path), header=False, intensity=intensity)
             picker = None if strides is None else CloudViewPicker(*strides)
             q.put((i, cloud_part(source.scans(rig=rig, window=part.window, echo=echo, record=False), part, rig, res,
                                  writer, picker=picker)))
@@ -313,7 +317,7 @@ def scans_have_intensities(source: BagSource, rig: Rig, echo: Echo) -> bool:
 
 def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: StreamIndex | None,
                 progress: bool, processes: int = 1, *, echo: Echo,
-                view: MapOptions | None = None) -> tuple[int, SegmentLines, CloudView | None]:
+                view: MapOptions | None = None, keep_points: bool = True) -> tuple[int, SegmentLines, CloudView | None]:
     """The second pass over ``source``'s scans (their stream's ``index``, see :func:`plan_parts`;
     a MultiEchoLaserScan's ``echo`` of each beam, the run's ``input.echo``): every valid point
     placed in the world and written to the cloud.ply ``ply``, with an intensity property when the
@@ -324,7 +328,10 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     from the file after the pass).
 
     With ``processes`` > 1 (and fork available, see ``slam.prefetch.can_fork_reader``) the pass
-    is cut into that many parts, the first written here and the others by forked processes."""
+    is cut into that many parts, the first written here and the others by forked processes.
+
+    Without ``keep_points`` nothing is written (``ply`` is not made): the points are counted, and
+    the segments and the recording's view (which then needs the ``index``) are what the pass gives."""
     names = res.scanner_names
     if len(names) > 256:
         raise ValueError(f"{source.path}: {len(names)} scanners, at most 256 fit a cloud's scanner index")
@@ -333,16 +340,22 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     ctx = mp.get_context("fork") if len(parts) > 1 else None
     q: Any = ctx.Queue() if ctx is not None else None
     procs = []
-    row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") for i in range(1, len(parts))]
+    row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") for i in range(1, len(parts))] if keep_points else []
     strides = None if view is None or index is None else view_strides(index.points, view)
+    if not keep_points and view is not None and strides is None:
+        raise ValueError(f"{source.path}: a cloud pass that keeps no points picks the recording's view only with the "
+                         "stream's index")
     try:
         if ctx is not None:
-            for i, path in enumerate(row_files, start=1):
+            paths: list[Path | None] = list(row_files) if keep_points else [None] * (len(parts) - 1)
+            for i, path in enumerate(paths, start=1):
                 p = ctx.Process(target=_part_process, name=f"backpack-slam-cloud-{i}", daemon=True,
                                 args=(i, parts[i], source.path, rig, res, path, q, echo, intensity, strides))
                 p.start()
                 procs.append(p)
-        with cloud_ply_writer(ply, intensity=intensity) as writer:
+        with contextlib.ExitStack() as stack:
+            writer: PointSink = (stack.enter_context(cloud_ply_writer(ply, intensity=intensity)) if keep_points
+                                 else PointCounter(intensity))
             first = parts[0]
             desc = "cloud" if len(parts) == 1 else f"cloud (part 1 of {len(parts)})"
             total = None if first.hi is None else first.hi - first.lo
@@ -352,9 +365,10 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
                                     picker=None if strides is None else CloudViewPicker(*strides))]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
             for i in range(1, len(parts)):
-                writer.append_rows(row_files[i - 1], others[i].count)
+                if isinstance(writer, CloudPlyWriter):
+                    writer.append_rows(row_files[i - 1], others[i].count)
                 found.append(others[i])
-            n_points = writer.count
+            n_points = sum(part.count for part in found)
     finally:
         for proc in procs:
             if proc.is_alive():

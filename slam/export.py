@@ -34,7 +34,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -328,6 +328,30 @@ def _write_ply_rows(f: BinaryIO, cloud: CloudRecord, start: int, stop: int, buf:
     else:
         ck.pack_rows(rows, cloud.points_world, cloud.scanner, cloud.time, cloud.plane_id, start)
     f.write(rows.data)
+
+
+class PointSink(Protocol):
+    """Where the cloud pass puts its points (world frame): a :class:`CloudPlyWriter`, or a
+    :class:`PointCounter` when no cloud is kept."""
+
+    intensity: bool
+    count: int
+
+    def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike,
+              intensity: ArrayLike | None = None) -> None: ...
+
+
+class PointCounter:
+    """A :class:`PointSink` that keeps nothing and counts the points: the cloud pass of a run
+    without cloud.ply (its recording's view and the planes' outlines need the pass, not the file)."""
+
+    def __init__(self, intensity: bool = False) -> None:
+        self.intensity = intensity
+        self.count = 0
+
+    def write(self, points_world: ArrayLike, scanner: ArrayLike, time: ArrayLike, plane_id: ArrayLike,
+              intensity: ArrayLike | None = None) -> None:
+        self.count += int(np.shape(points_world)[0])
 
 
 class CloudPlyWriter:

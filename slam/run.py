@@ -169,7 +169,7 @@ def cloud_space_note(source: BagSource, rig: Rig, plan: dict[str, str | None], c
     estimated as each scan topic's message count times the valid returns of its first scan,
     checked as the export will check the exact count (``slam.run_folder.check_cloud_space``);
     None when it fits or there is no cloud."""
-    if not (cfg.output.cloud or cfg.output.rerun):
+    if not cfg.output.cloud:  # without cloud.ply the pass keeps no point (slam.run_folder.write_cloud_outputs)
         return None
     per_scan: dict[str, int] = {}
     stream = source.scans(rig=rig, echo=cfg.input.echo, record=False)

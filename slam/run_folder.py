@@ -127,13 +127,17 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
     if not (cfg.output.cloud or cfg.output.rerun):
         return CloudOutputs()
     v = voxel if voxel is not None else (cfg.output.voxel or None)
-    if index is not None:
+    # without cloud.ply the pass keeps no point (the recording's view is picked on the way, which
+    # needs the stream's index; without it the view is read back from a file of every point)
+    keep = cfg.output.cloud or index is None
+    if index is not None and keep:
         check_cloud_space(out, index.points, index.intensities, cfg.parallel.export_processes, v is not None)
     # every point goes to a file as it is placed (the recording's view picked on the way); the
     # voxel thinning reads it back
     every = out / ("cloud.ply" if cfg.output.cloud and v is None else ".cloud_every_point.ply")
     n_every, lines, view = write_cloud(source, rig, res, every, index, progress, cfg.parallel.export_processes,
-                                       echo=cfg.input.echo, view=MapOptions() if cfg.output.rerun else None)
+                                       echo=cfg.input.echo, view=MapOptions() if cfg.output.rerun else None,
+                                       keep_points=keep)
     n_cloud = 0
     if cfg.output.cloud:
         n_cloud = n_every
@@ -142,7 +146,7 @@ def write_cloud_outputs(out: Path, source: BagSource, rig: Rig, cfg: SlamConfig,
             n_cloud = write_cloud_ply(out / "cloud.ply", c.points_world, c.scanner, c.time, c.plane_id, voxel=v,
                                       intensity=c.intensity)
     if every.name != "cloud.ply":
-        every.unlink()
+        every.unlink(missing_ok=not keep)
     return CloudOutputs(n_cloud, view, lines)
 
 

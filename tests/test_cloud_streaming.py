@@ -322,17 +322,22 @@ def test_a_cloud_cut_by_stamp_windows_is_the_same_file(walk: SimulationResult, e
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ply", "one.ply"]
 
 
+def _read_with_view_caps(walk: SimulationResult) -> tuple[Any, MapOptions, Any]:
+    """The walk's scans read once (so that their stream's index is complete), small view caps,
+    the rig."""
+    stream = read_scans(walk.bag, rig=resolve_rig("itc_backpack"))
+    for _ in stream:
+        pass
+    return stream, MapOptions(max_scan_points=5_000, max_cloud_points=3_000), resolve_rig("itc_backpack")
+
+
 def test_the_pass_picks_the_recordings_view_as_it_writes(walk: SimulationResult, estimate: SlamResult,
                                                          tmp_path: Path) -> None:
     """The view for map.rrd is picked while the points are written, at strides from the stream's
     count of returns (no second pass over the file): in one part it is the file's view at those
     strides; cut into parts, every part picks from its own first point, and the joined view holds
     cloud points only, each scanner's in time order, about as many as in one part."""
-    stream = read_scans(walk.bag, rig=resolve_rig("itc_backpack"))
-    for _ in stream:
-        pass
-    opt = MapOptions(max_scan_points=5_000, max_cloud_points=3_000)
-    rig = resolve_rig("itc_backpack")
+    stream, opt, rig = _read_with_view_caps(walk)
     with BagSource(walk.bag) as source:
         n, _, one = slam.cloud_pass.write_cloud(source, rig, estimate, tmp_path / "one.ply", stream.index, False, 1,
                                                 echo="first", view=opt)
@@ -357,6 +362,43 @@ def test_the_pass_picks_the_recordings_view_as_it_writes(walk: SimulationResult,
         assert all((float(t), int(s)) in keys for t, s in zip(a.time, a.scanner, strict=True))
     assert abs(len(cut.cloud) - len(one.cloud)) <= 3
     assert len(one.cloud) <= opt.max_cloud_points and sum(len(c) for _, c in one.scans) <= opt.max_scan_points + 3
+
+
+@pytest.mark.parametrize("processes", [1, 3])
+def test_a_pass_that_keeps_no_point_gives_what_the_written_pass_gives(walk: SimulationResult, estimate: SlamResult,
+                                                                     tmp_path: Path, processes: int) -> None:
+    """Without cloud.ply (``keep_points`` off: only the recording and the outlines want the pass)
+    no file is made, in one part or three, and the count, the segments with their RMS and the
+    recording's view are those of the pass that writes every point."""
+    stream, opt, rig = _read_with_view_caps(walk)
+    with BagSource(walk.bag) as source:
+        n, lines, view = slam.cloud_pass.write_cloud(source, rig, estimate, tmp_path / "all.ply", stream.index, False,
+                                                     processes, echo="first", view=opt)
+        none = tmp_path / "none" / "cloud.ply"
+        none.parent.mkdir()
+        m, kept, seen = slam.cloud_pass.write_cloud(source, rig, estimate, none, stream.index, False, processes,
+                                                    echo="first", view=opt, keep_points=False)
+        with pytest.raises(ValueError, match="only with the stream's index"):
+            slam.cloud_pass.write_cloud(source, rig, estimate, none, None, False, 1, echo="first", view=opt,
+                                        keep_points=False)
+    assert not list(none.parent.iterdir())
+    assert m == n == read_cloud_ply(tmp_path / "all.ply").points_world.shape[0] > 0
+    for field in ("stamp", "endpoints_world", "plane_id", "rms"):
+        np.testing.assert_array_equal(getattr(kept, field), getattr(lines, field))
+    assert view is not None and seen is not None
+    _same_view(seen, view)
+
+
+def test_a_run_without_cloud_ply_needs_no_room_for_it(walk: SimulationResult, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``output.cloud`` off the recording's pass writes no point: a disk too small for the
+    cloud does not stop the run, and its folder holds map.rrd and planes.json, no cloud."""
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=10 << 20))
+    cfg = SlamConfig.model_validate({"output": {"cloud": False, "rerun": True}})
+    slam.run.run_slam(walk.bag, resolve_rig("itc_backpack"), cfg, tmp_path / "run", progress=False)
+    names = {p.name for p in (tmp_path / "run").iterdir()}
+    assert {"map.rrd", "planes.json"} <= names and not any("cloud" in n for n in names)
 
 
 def test_the_cloud_pass_keeps_its_heap_from_creeping_up(walk: SimulationResult, estimate: SlamResult,
@@ -481,6 +523,9 @@ def test_a_run_warns_before_the_walk_when_its_cloud_may_not_fit(walk: Simulation
         assert note is not None and note.startswith("warning: ") and str(tmp_path) in note
         no_cloud = cfg.model_copy(update={"output": cfg.output.model_copy(update={"cloud": False, "rerun": False})})
         assert cloud_space_note(source, rig, plan, no_cloud, tmp_path, None) is None
+        # the recording alone needs the pass but no room: it keeps no point
+        rrd_only = cfg.model_copy(update={"output": cfg.output.model_copy(update={"cloud": False, "rerun": True})})
+        assert cloud_space_note(source, rig, plan, rrd_only, tmp_path, None) is None
         stream = source.scans(rig=rig)
         valid = sum(int(line.valid.sum()) for line in stream)
     assert 0.8 * valid < seen[0] < 1.25 * valid
