@@ -340,22 +340,22 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     ctx = mp.get_context("fork") if len(parts) > 1 else None
     q: Any = ctx.Queue() if ctx is not None else None
     procs = []
-    row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") for i in range(1, len(parts))] if keep_points else []
+    # the other parts' bare rows until they are joined (None: a part that keeps no point)
+    row_files = [ply.with_name(f".{ply.stem}.part{i}.rows") if keep_points else None for i in range(1, len(parts))]
     strides = None if view is None or index is None else view_strides(index.points, view)
     if not keep_points and view is not None and strides is None:
         raise ValueError(f"{source.path}: a cloud pass that keeps no points picks the recording's view only with the "
                          "stream's index")
     try:
         if ctx is not None:
-            paths: list[Path | None] = list(row_files) if keep_points else [None] * (len(parts) - 1)
-            for i, path in enumerate(paths, start=1):
+            for i, path in enumerate(row_files, start=1):
                 p = ctx.Process(target=_part_process, name=f"backpack-slam-cloud-{i}", daemon=True,
                                 args=(i, parts[i], source.path, rig, res, path, q, echo, intensity, strides))
                 p.start()
                 procs.append(p)
         with contextlib.ExitStack() as stack:
-            writer: PointSink = (stack.enter_context(cloud_ply_writer(ply, intensity=intensity)) if keep_points
-                                 else PointCounter(intensity))
+            ply_writer = stack.enter_context(cloud_ply_writer(ply, intensity=intensity)) if keep_points else None
+            writer: PointSink = ply_writer if ply_writer is not None else PointCounter(intensity)
             first = parts[0]
             desc = "cloud" if len(parts) == 1 else f"cloud (part 1 of {len(parts)})"
             total = None if first.hi is None else first.hi - first.lo
@@ -364,9 +364,9 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
                 found = [cloud_part(scans, first, rig, res, writer, bar,
                                     picker=None if strides is None else CloudViewPicker(*strides))]
             others = dict(_next_part(source.path, q, procs) for _ in procs)
-            for i in range(1, len(parts)):
-                if isinstance(writer, CloudPlyWriter):
-                    writer.append_rows(row_files[i - 1], others[i].count)
+            for i, path in enumerate(row_files, start=1):
+                if ply_writer is not None and path is not None:
+                    ply_writer.append_rows(path, others[i].count)
                 found.append(others[i])
             n_points = sum(part.count for part in found)
     finally:
@@ -375,7 +375,8 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
                 proc.terminate()
             proc.join()
         for path in row_files:
-            path.unlink(missing_ok=True)
+            if path is not None:
+                path.unlink(missing_ok=True)
     lines = SegmentLines(
         np.concatenate([part.seg_stamp for part in found]).astype(np.float64),
         np.concatenate([part.endpoints_world for part in found]).reshape(-1, 2, 3),
