@@ -22,6 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse
+import ctypes
 import gc
 import importlib
 import signal
@@ -107,8 +108,10 @@ def signals_as_interrupt() -> Iterator[list[int]]:
     """While the block runs, SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` in
     this process, and the block's list records which arrived (an exception that an interrupt turns
     into another one on its way out, such as an extension module's ImportError while it loads, is
-    then still an interrupt). A process forked meanwhile (a reader or export helper) exits at once
-    on SIGTERM instead, its parent cleaning up. The previous handlers come back after the block
+    then still an interrupt). A process forked meanwhile (a reader, the back end or an export
+    helper) exits at once on either instead, its parent cleaning up: raised there, the interrupt
+    would end in the helper's queue, whose flush at the helper's exit can wait forever on a parent
+    that no longer reads it. The previous handlers come back after the block
     (``main`` may run inside a test)."""
     me = os.getpid()
     received: list[int] = []
@@ -118,10 +121,8 @@ def signals_as_interrupt() -> Iterator[list[int]]:
             if _Redeliver.pending is None:
                 return
             signum, _Redeliver.pending = _Redeliver.pending, None
-        if os.getpid() != me:
-            if signum == signal.SIGTERM:
-                os._exit(128 + signum)
-            raise KeyboardInterrupt
+        if os.getpid() != me:  # a forked helper: its parent cleans up
+            os._exit(128 + signum)
         received.append(signum)
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
@@ -143,7 +144,19 @@ def signals_as_interrupt() -> Iterator[list[int]]:
         sys.unraisablehook = previous_hook
 
 
+def _forget_nested_interrupt() -> None:
+    """CPython marks an interrupt that escapes code run through ``PyRun_String`` (pybind11's
+    ``py::exec`` inside an extension) as unhandled, and at exit kills the process with SIGINT
+    itself (exit status -2, not 130 or 143), though the interrupt was caught further out. Here it
+    was handled: clear the mark."""
+    try:
+        ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt").value = 0
+    except (AttributeError, ValueError):  # another interpreter, or a CPython without the flag
+        pass
+
+
 def _interrupted(signum: int) -> int:
+    _forget_nested_interrupt()
     if signum == signal.SIGTERM:
         print(f"{PROG}: terminated", file=sys.stderr)
         return EXIT_TERMINATED

@@ -25,9 +25,9 @@ the same output. :meth:`BackendProcess.collect` waits for the outstanding step (
 walk); every other query (the final batch, trims, covariances, statistics) is a synchronous call
 answered by the worker.
 
-The worker is forked (Linux), dies with its parent (it watches its parent's pid) and hands any
-exception back as a one-line ``RuntimeError`` raised in the parent (no hang: the parent waits
-only while the worker lives, ``slam.prefetch.get_from_children``).
+The worker is forked (Linux), dies with its parent (the kernel kills it; it also watches its
+parent's pid) and hands any exception back as a one-line ``RuntimeError`` raised in the parent
+(no hang: the parent waits only while the worker lives, ``slam.prefetch.get_from_children``).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from slam.backend import Backend, BackendConfig, OptimizeSummary, RobustKernel, StepReport
 from slam.backend.ties import link_roots
 from slam.frontend.knots import KnotMirror
-from slam.prefetch import can_fork_reader, get_from_children
+from slam.prefetch import can_fork_reader, die_with_parent, get_from_children, stop_children
 
 FloatArray = NDArray[np.float64]
 
@@ -223,6 +223,7 @@ def _one_line(e: BaseException) -> str:
 def _worker(config: BackendConfig, calls: Any, results: Any, parent: int) -> None:
     """The worker process: the real back end, driven by the messages on ``calls``; step results
     and synchronous answers go on ``results``, a fatal error as ``(_FAILED, one line)``."""
+    die_with_parent(parent)
     try:
         be = Backend(config)
         while True:
@@ -276,9 +277,10 @@ def _stop(proc: Any, calls: Any) -> None:
         except (OSError, ValueError):
             pass
         proc.join(timeout=2.0)
-        if proc.is_alive():
-            proc.terminate()
-            proc.join()
+        stop_children([proc])
+    # what is still queued for a stopped worker is moot: the interpreter's exit must not wait for
+    # the queue's feeder thread, blocked on a pipe that nobody reads any more
+    calls.cancel_join_thread()
 
 
 class BackendProcess:

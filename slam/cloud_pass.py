@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import multiprocessing as mp
+import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +32,7 @@ from slam.frontend.transients import TRANSIENT
 from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
-from slam.prefetch import can_fork_reader, get_from_children
+from slam.prefetch import can_fork_reader, die_with_parent, get_from_children, stop_children
 from slam.rerun_map import (
     CloudView,
     CloudViewPicker,
@@ -276,11 +277,12 @@ def cloud_part(scans: Iterable[Scanline], part: CloudPart, rig: Rig, res: SlamRe
 
 
 def _part_process(i: int, part: CloudPart, bag: Path, rig: Rig, res: SlamResult, rows_path: Path | None, q: Any,
-                  echo: Echo, intensity: bool, strides: tuple[int, int] | None) -> None:
-    """A forked export process: part ``i`` of the cloud pass, read from its own ``BagSource`` of
-    ``bag``, written as bare PLY rows (with intensities or without) to ``rows_path`` (None: only
-    counted), its view picked at ``strides`` (None: none); ``(i, its CloudPartResult or the
-    exception)`` goes on ``q``."""
+                  echo: Echo, intensity: bool, strides: tuple[int, int] | None, parent: int) -> None:
+    """A forked export process (of ``parent``): part ``i`` of the cloud pass, read from its own
+    ``BagSource`` of ``bag``, written as bare PLY rows (with intensities or without) to
+    ``rows_path`` (None: only counted), its view picked at ``strides`` (None: none); ``(i, its
+    CloudPartResult or the exception)`` goes on ``q``."""
+    die_with_parent(parent)
     try:
         with BagSource(bag) as source, contextlib.ExitStack() as stack:
             writer: PointSink = PointCounter(intensity)
@@ -350,7 +352,7 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
         if ctx is not None:
             for i, path in enumerate(row_files, start=1):
                 p = ctx.Process(target=_part_process, name=f"backpack-slam-cloud-{i}", daemon=True,
-                                args=(i, parts[i], source.path, rig, res, path, q, echo, intensity, strides))
+                                args=(i, parts[i], source.path, rig, res, path, q, echo, intensity, strides, os.getpid()))
                 p.start()
                 procs.append(p)
         with contextlib.ExitStack() as stack:
@@ -370,10 +372,7 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
                 found.append(others[i])
             n_points = sum(part.count for part in found)
     finally:
-        for proc in procs:
-            if proc.is_alive():
-                proc.terminate()
-            proc.join()
+        stop_children(procs)
         for path in row_files:
             if path is not None:
                 path.unlink(missing_ok=True)

@@ -14,8 +14,13 @@ have children), the scans are prepared in this process instead.
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing as mp
+import os
 import queue as queue_mod
+import signal
+import sys
+import time
 from collections.abc import Generator, Sequence
 from dataclasses import fields, replace
 from pathlib import Path
@@ -33,6 +38,8 @@ from slam.io.source import BagSource, StreamIndex
 FloatArray = NDArray[np.float64]
 
 _POLL_S = 1.0  # s between checks that the reader is still alive while waiting for a chunk
+_PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent ends
+_STOP_GRACE_S = 2.0  # s a stopped helper process has to exit on SIGTERM before it is killed
 _DONE = "done"
 _ERROR = "error"
 
@@ -47,6 +54,39 @@ def get_from_children(q: Any, procs: Sequence[Any], what: str) -> Any:
             if not any(p.is_alive() for p in procs):
                 codes = ", ".join(str(p.exitcode) for p in procs)
                 raise RuntimeError(f"{what}: stopped without a result (exit code {codes})") from None
+
+
+def stop_children(procs: Sequence[Any], grace_s: float = _STOP_GRACE_S) -> None:
+    """Stop the forked processes ``procs`` that still live: SIGTERM, then SIGKILL for those still
+    alive ``grace_s`` later, and reap them. Bounded: a helper whose main thread waits on a lock
+    (its queue's feeder thread, say, blocked on a pipe nobody reads) may never run its SIGTERM
+    handler when the signal lands in another of its threads."""
+    alive = [p for p in procs if p.is_alive()]
+    for p in alive:
+        p.terminate()
+    deadline = time.monotonic() + grace_s
+    for p in alive:
+        p.join(timeout=max(0.0, deadline - time.monotonic()))
+    for p in alive:
+        if p.is_alive():
+            p.kill()
+        p.join()
+
+
+def die_with_parent(parent: int) -> None:
+    """Called first in a forked helper: the kernel kills it (SIGKILL) when its parent ``parent``
+    ends (Linux; elsewhere nothing), and it ends at once if the parent already has. A helper
+    forked while its parent was being interrupted may be unknown to the parent's clean-up (the
+    interrupt landed between the fork and the parent's record of it), and its exit would wait
+    forever on a queue the parent no longer reads."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (AttributeError, OSError):
+            pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def can_fork_reader() -> bool:
@@ -102,10 +142,11 @@ def prepared_scans(
     return PreparedScans(_from_reader(source.path, rig, cfg, imu, chunk, max_chunks, index), index)
 
 
-def _reader(bag: Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, q: Any) -> None:
-    """The reader process: prepares every scan of its own ``BagSource`` of ``bag`` and puts them
-    on ``q`` in chunks, then ``(_DONE, the stream's index)``; any exception goes on ``q`` as
-    ``(_ERROR, exception)``."""
+def _reader(bag: Path, rig: Rig, cfg: SlamConfig, imu: ImuSamples | None, chunk: int, q: Any, parent: int) -> None:
+    """The reader process (forked from ``parent``): prepares every scan of its own ``BagSource``
+    of ``bag`` and puts them on ``q`` in chunks, then ``(_DONE, the stream's index)``; any
+    exception goes on ``q`` as ``(_ERROR, exception)``."""
+    die_with_parent(parent)
     try:
         preparer = ScanPreparer(rig, cfg, imu)
         batch: list[PreparedScan] = []
@@ -145,7 +186,7 @@ def _from_reader(
     """The reader process's scans; ``index`` is filled with its stream's index at the end."""
     ctx = mp.get_context("fork")
     q = ctx.Queue(maxsize=max_chunks)
-    proc = ctx.Process(target=_reader, args=(bag, rig, cfg, imu, chunk, q), name="backpack-slam-reader", daemon=True)
+    proc = ctx.Process(target=_reader, args=(bag, rig, cfg, imu, chunk, q, os.getpid()), name="backpack-slam-reader", daemon=True)
     proc.start()
     try:
         while True:
@@ -160,8 +201,6 @@ def _from_reader(
             yield from item
         proc.join()
     finally:
-        if proc.is_alive():
-            proc.terminate()
-            proc.join()
+        stop_children([proc])
         q.close()
         q.cancel_join_thread()

@@ -225,3 +225,75 @@ def test_scans_fed_raw_or_prepared_elsewhere_give_the_same_run(walk: SimulationR
     assert raw.preparer.deskew is not None and results[0].deskew is raw.preparer.deskew
     np.testing.assert_array_equal(results[0].T_world_body, results[1].T_world_body)
     np.testing.assert_array_equal(results[0].deskew.rotvec, results[1].deskew.rotvec)
+
+
+def _deaf_helper(q: Any) -> None:
+    """A forked helper as the hang left it: SIGTERM not acted on, and its exit waiting for its
+    queue's feeder thread, blocked on a pipe that nobody reads."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    q.put(np.zeros(1 << 20))  # 8 MB: far past a pipe's buffer
+
+
+def test_stopping_helpers_is_bounded_when_one_does_not_answer_sigterm() -> None:
+    import multiprocessing as mp
+    import time
+
+    from slam.prefetch import stop_children
+
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    deaf = ctx.Process(target=_deaf_helper, args=(q,), daemon=True)
+    done = ctx.Process(target=int, daemon=True)  # one that has already exited
+    deaf.start()
+    done.start()
+    done.join()
+    time.sleep(0.3)  # the deaf helper is in its exit, waiting on the feeder thread
+    assert deaf.is_alive()
+    t0 = time.monotonic()
+    stop_children([deaf, done], grace_s=0.3)
+    assert time.monotonic() - t0 < 5.0
+    assert not deaf.is_alive() and deaf.exitcode == -9 and done.exitcode == 0
+    q.close()
+    q.cancel_join_thread()
+
+
+def _orphan_maker(w: int) -> None:
+    """A helper's parent: forks a helper that sleeps, sends its pid down ``w`` and exits."""
+    from slam.prefetch import die_with_parent
+
+    me = os.getpid()
+    pid = os.fork()
+    if pid == 0:
+        die_with_parent(me)
+        import time
+
+        time.sleep(60)
+        os._exit(0)
+    os.write(w, str(pid).encode())
+    os._exit(0)
+
+
+@pytest.mark.skipif(not os.uname().sysname == "Linux", reason="the kernel's parent-death signal is Linux's")
+def test_a_helper_does_not_outlive_its_parent() -> None:
+    import time
+
+    r, w = os.pipe()
+    maker = os.fork()
+    if maker == 0:
+        _orphan_maker(w)
+    os.waitpid(maker, 0)
+    helper = int(os.read(r, 32))
+    os.close(r)
+    os.close(w)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(helper, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(helper, 9)
+        raise AssertionError("the helper outlived its parent")
