@@ -231,3 +231,24 @@ def test_command_list_is_the_modules() -> None:
     assert set(cli.COMMANDS) == modules and len(cli.COMMANDS) == len(set(cli.COMMANDS))
     parser = cli.build_parser()
     assert parser.prog == "backpack-slam"
+
+
+def test_a_handled_interrupt_clears_cpythons_unhandled_mark(capsys: pytest.CaptureFixture[str]) -> None:
+    """An interrupt that escaped an extension's ``PyRun_String`` leaves CPython's mark set, and the
+    interpreter would then end by SIGINT (exit status -2) instead of 130/143."""
+    import ctypes
+    import signal
+
+    from backpack_slam.cli import EXIT_INTERRUPTED, _interrupted
+
+    try:
+        mark = ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt")
+    except ValueError:
+        pytest.skip("this interpreter has no such mark")
+    mark.value = 1
+    try:
+        assert _interrupted(signal.SIGINT) == EXIT_INTERRUPTED
+        assert mark.value == 0
+    finally:
+        mark.value = 0  # else this test process itself would end by SIGINT
+    assert capsys.readouterr().err.strip() == "backpack-slam: interrupted"
