@@ -56,8 +56,12 @@ def test_packed_solve_matches_gtsam(tmp_path: Path, seed: int) -> None:
     assert sorted(got) == sorted(interior)
     for k in interior:
         np.testing.assert_allclose(got[k], want.at(k), rtol=1e-11, atol=1e-12)
+    parents, held = net.parent_keys().copy(), net.index_bytes
     net.spill(tmp_path)
-    assert net.data is None and net.path is not None and net.path.exists()
+    assert net.data is None and net.parents is None and net.path is not None and net.path.exists()
+    assert net.path.stat().st_size == net.nbytes + parents.nbytes  # the parents' keys on disk too
+    assert net.index_bytes == held - parents.nbytes
+    assert np.array_equal(net.parent_keys(), parents)
     again = dict(solve(net, sep))
     for k in interior:
         assert np.array_equal(again[k], got[k])  # the same numbers from disk

@@ -42,11 +42,14 @@ class PackedNet:
     ``frontals[fptr[j]:fptr[j + 1]]`` are conditional ``j``'s frontal keys, ``parents[pptr[j]:
     pptr[j + 1]]`` its parents; ``dims`` maps every key that occurs to its dimension (``keys``
     sorted, ``key_dims`` alongside); conditional ``j``'s ``[R S d]`` is ``data[mptr[j]:mptr[j + 1]]``
-    (rows = its frontals' dimension, row-major). ``data`` is None while it lies in ``path``."""
+    (rows = its frontals' dimension, row-major). ``data`` and ``parents`` are None while they lie
+    in ``path`` (the matrices, then the parents' keys): the parents are a section's largest index,
+    one key per parent per conditional (~7 kB per knot in the office hour's sections), and kept in
+    memory they made the sections' eliminations grow with the walk whatever the batch's budget."""
 
     frontals: IntArray
     fptr: IntArray
-    parents: IntArray
+    parents: IntArray | None
     pptr: IntArray
     keys: IntArray
     key_dims: IntArray
@@ -61,18 +64,28 @@ class PackedNet:
 
     @property
     def index_bytes(self) -> int:
-        """Bytes of the index arrays (always in memory)."""
-        return sum(int(a.nbytes) for a in (self.frontals, self.fptr, self.parents, self.pptr, self.keys,
-                                               self.key_dims, self.mptr))
+        """Bytes of the index arrays in memory (the parents' keys while they are not on disk)."""
+        held = [self.frontals, self.fptr, self.pptr, self.keys, self.key_dims, self.mptr]
+        if self.parents is not None:
+            held.append(self.parents)
+        return sum(int(a.nbytes) for a in held)
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes this net holds in memory: its index, and its matrices unless they are on disk."""
+        return self.index_bytes + (0 if self.data is None else self.nbytes)
 
     def spill(self, folder: Path) -> None:
-        """Move the matrices to a new file in ``folder`` (removed when this object is collected)."""
+        """Move the matrices and the parents' keys to a new file in ``folder`` (removed when this
+        object is collected)."""
         if self.data is None:
             return
+        assert self.parents is not None
         fd, name = tempfile.mkstemp(prefix="net_", suffix=".f64", dir=folder)
         with os.fdopen(fd, "wb") as f:
             f.write(np.ascontiguousarray(self.data).tobytes())
-        self.path, self.data = Path(name), None
+            f.write(np.ascontiguousarray(self.parents, dtype=np.int64).tobytes())
+        self.path, self.data, self.parents = Path(name), None, None
         weakref.finalize(self, Path(name).unlink, True)  # kept alive by weakref's registry
 
     def matrices(self) -> FloatArray:
@@ -80,7 +93,15 @@ class PackedNet:
         if self.data is not None:
             return self.data
         assert self.path is not None
-        return np.fromfile(self.path, dtype=np.float64)
+        return np.fromfile(self.path, dtype=np.float64, count=int(self.mptr[-1]))
+
+    def parent_keys(self) -> IntArray:
+        """The parents' keys (``pptr`` indexes them), from memory or read from the file (a copy
+        that the caller lets go)."""
+        if self.parents is not None:
+            return self.parents
+        assert self.path is not None
+        return np.fromfile(self.path, dtype=np.int64, count=int(self.pptr[-1]), offset=self.nbytes)
 
 
 def pack(bn: gtsam.GaussianBayesNet, dim: Callable[[int], int] = key_dim) -> PackedNet:
@@ -134,7 +155,7 @@ def solve(net: PackedNet, given: gtsam.VectorValues) -> list[tuple[int, FloatArr
         if not given.exists(k):
             raise ValueError(f"packed net: no value given for parent {gtsam.DefaultKeyFormatter(k)}")
         x[offsets[i]:offsets[i + 1]] = given.at(k)
-    p_slot = np.searchsorted(net.keys, net.parents)
+    p_slot = np.searchsorted(net.keys, net.parent_keys())
     ok = _back_substitute(net.fptr, net.pptr, f_slot, p_slot, offsets, net.key_dims, net.mptr, net.matrices(), x)
     if ok >= 0:
         raise RuntimeError(f"indeterminate system at conditional {ok} "

@@ -192,8 +192,9 @@ class SectionedBatch:
             return False
         while self._in_memory and self._nets_bytes + self._cache_bytes + n_bytes > budget:
             net = self._in_memory.pop()
-            self._nets_bytes -= net.nbytes
+            self._nets_bytes -= net.held_bytes
             net.spill(self._spill_folder())
+            self._nets_bytes += net.held_bytes
             self.nets_spilled += 1
         return self._nets_bytes + self._cache_bytes + n_bytes <= budget
 
@@ -275,13 +276,13 @@ class SectionedBatch:
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     net = pack(bn)
                     self.largest_net_bytes = max(self.largest_net_bytes, net.nbytes)
-                    self._nets_bytes += net.index_bytes
-                    if self._cache_bytes + self._nets_bytes + net.nbytes <= self.config.batch_cache_bytes:
-                        self._nets_bytes += net.nbytes
+                    if self._cache_bytes + self._nets_bytes + net.held_bytes <= self.config.batch_cache_bytes:
+                        self._nets_bytes += net.held_bytes
                         self._in_memory.append(net)
                     else:  # on disk: read back once for the back-substitution, never eliminated again
                         net.spill(self._spill_folder())
                         self.nets_spilled += 1
+                        self._nets_bytes += net.held_bytes  # its small index stays
                     nets.append(net)
                     self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
                 del lin, rest, bn
