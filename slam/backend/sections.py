@@ -257,6 +257,7 @@ class SectionedBatch:
         sep = separator_knots(sections)
         local = self.local_planes(sections, keep_planes)
         out = gtsam.GaussianFactorGraph()
+        summed: gtsam.HessianFactor | None = None  # the sections' reduced systems, added up as they come
         err = 0.0
         sep_keys: set[int] = set()
         nets: list[PackedNet] | None = [] if keep else None
@@ -272,7 +273,7 @@ class SectionedBatch:
                 bn, rest = self._eliminate(lin, interior, damping)
                 inner = set(interior)
                 sep_keys.update(k for k in keys if k not in inner)
-                out.push_back(rest)
+                summed = _summed(summed, rest)
                 if nets is not None:  # kept first: a kept elimination saves more time per byte than factors
                     net = pack(bn)
                     self.largest_net_bytes = max(self.largest_net_bytes, net.nbytes)
@@ -287,6 +288,8 @@ class SectionedBatch:
                     self.peak_kept_bytes = max(self.peak_kept_bytes, self._cache_bytes + self._nets_bytes)
                 del lin, rest, bn
                 heap.check()
+            if summed is not None:
+                out.push_back(summed)
             planes = self.plane_factors()
             if planes.size():
                 lin = planes.linearize(values)
@@ -529,6 +532,26 @@ def _is_interior(key: int, a: int, b: int, sep: set[int]) -> bool:
 
 
 def _graph_bytes(graph: gtsam.GaussianFactorGraph) -> int:
-    """Bytes of a linear graph's Jacobian factors' augmented matrices (other factors not counted)."""
-    factors = (graph.at(i) for i in range(graph.size()))
-    return 8 * sum(int(f.rows()) * int(f.cols()) for f in factors if isinstance(f, gtsam.JacobianFactor))
+    """Bytes of a linear graph's factors' matrices: a Jacobian factor's augmented matrix, a Hessian
+    factor's augmented information matrix (held square)."""
+    total = 0
+    for f in (graph.at(i) for i in range(graph.size())):
+        if isinstance(f, gtsam.JacobianFactor):
+            total += int(f.rows()) * int(f.cols())
+        elif isinstance(f, gtsam.HessianFactor):
+            total += int(f.rows()) ** 2
+    return 8 * total
+
+
+def _summed(acc: gtsam.HessianFactor | None, rest: gtsam.GaussianFactorGraph) -> gtsam.HessianFactor:
+    """``acc`` and a section's reduced system ``rest`` as one Hessian factor over their keys.
+
+    Each section's elimination leaves a dense factor over every separator plane it sees (~2,000
+    dimensions on the office walk): kept one per section, they grew with the walk (~7 kB per
+    knot, 0.55 GB at the hour, docs/memory.md "Session 34"); added up they stay the size of the
+    walk's separator, whose planes recur lap after lap."""
+    g = gtsam.GaussianFactorGraph()
+    if acc is not None:
+        g.push_back(acc)
+    g.push_back(rest)
+    return gtsam.HessianFactor(g)
