@@ -43,9 +43,9 @@ class PackedNet:
     pptr[j + 1]]`` its parents; ``dims`` maps every key that occurs to its dimension (``keys``
     sorted, ``key_dims`` alongside); conditional ``j``'s ``[R S d]`` is ``data[mptr[j]:mptr[j + 1]]``
     (rows = its frontals' dimension, row-major). ``data`` and ``parents`` are None while they lie
-    in ``path`` (the matrices, then the parents' keys): the parents are a section's largest index,
-    one key per parent per conditional (~7 kB per knot in the office hour's sections), and kept in
-    memory they made the sections' eliminations grow with the walk whatever the batch's budget."""
+    in ``path`` (the matrices, then the parents' keys): the parents are a section's largest index
+    array, one key per parent per conditional, and what a spilled net keeps in memory should not
+    grow with the walk."""
 
     frontals: IntArray
     fptr: IntArray
