@@ -348,3 +348,15 @@ def test_a_variables_dimension_comes_from_its_symbol() -> None:
     assert [key_dim(int(k(3))) for k in (X, V, B, P)] == [6, 3, 6, 3]
     with pytest.raises(ValueError, match="unknown variable l7"):
         key_dim(int(L(7)))
+
+
+def test_a_pass_holds_one_summed_separator_factor_whatever_the_sections(scene: Scene) -> None:
+    """Each section's reduced system is added into one Hessian factor as the pass goes: kept one
+    per section, they grew with the walk (docs/memory.md "Session 34")."""
+    for knots in (20, 7):
+        be = _build(scene, replace(backend_defaults(), batch_section_knots=knots, batch_whole_knots=0))
+        red = be.sections.reduce(gtsam.Values(be.graph.values), be.config.kernel, DAMPING, keep=True)
+        factors = [red.graph.at(i) for i in range(red.graph.size())]
+        assert len(be.sections.plan()) > 2
+        assert sum(isinstance(f, gtsam.HessianFactor) for f in factors) == 1
+        assert be.sections.peak_separator_bytes > 0  # the summed factor is counted
