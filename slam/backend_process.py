@@ -27,7 +27,7 @@ answered by the worker.
 
 The worker is forked (Linux), dies with its parent (the kernel kills it; it also watches its
 parent's pid) and hands any exception back as a one-line ``RuntimeError`` raised in the parent
-(no hang: the parent waits only while the worker lives, ``slam.prefetch.get_from_children``).
+(no hang: the parent waits only while the worker lives, ``slam.forked.get_from_children``).
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam.backend import Backend, BackendConfig, OptimizeSummary, RobustKernel, StepReport
 from slam.backend.ties import link_roots
+from slam.forked import can_fork_reader, die_with_parent, get_from_children, stop_children
 from slam.frontend.knots import KnotMirror
-from slam.prefetch import can_fork_reader, die_with_parent, get_from_children, stop_children
 
 FloatArray = NDArray[np.float64]
 
@@ -59,7 +59,7 @@ _RESULT, _RAISED, _FAILED = "result", "raised", "failed"
 def make_backend(config: BackendConfig, pipelined: bool | None, knots: KnotMirror,
                  recent_knots: int) -> Backend | BackendProcess:
     """The back end of a run: a :class:`BackendProcess` when ``pipelined`` (None: where a
-    process can be forked, :func:`slam.prefetch.can_fork_reader`), else an in-process
+    process can be forked, :func:`slam.forked.can_fork_reader`), else an in-process
     ``Backend``. ``knots`` is the front end's mirror of the trajectory, ``recent_knots`` how many
     of the newest knots the front end refreshes after an update."""
     on = can_fork_reader() if pipelined is None else pipelined

@@ -28,11 +28,11 @@ from common.rig import Rig
 from segmentation import Scanline
 from slam import cloud_kernels as ck
 from slam.export import CloudPlyWriter, CloudRecord, PointCounter, PointSink, cloud_ply_writer
+from slam.forked import can_fork_reader, die_with_parent, get_from_children, stop_children
 from slam.frontend.transients import TRANSIENT
 from slam.heap import HeapKeeper
 from slam.io.source import BagSource, Echo, StampWindow, StreamIndex
 from slam.pipeline import SlamResult
-from slam.prefetch import can_fork_reader, die_with_parent, get_from_children, stop_children
 from slam.rerun_map import (
     CloudView,
     CloudViewPicker,
@@ -329,7 +329,7 @@ def write_cloud(source: BagSource, rig: Rig, res: SlamResult, ply: Path, index: 
     are written when the ``index`` tells how many there can be, at strides from that count; else
     from the file after the pass).
 
-    With ``processes`` > 1 (and fork available, see ``slam.prefetch.can_fork_reader``) the pass
+    With ``processes`` > 1 (and fork available, see ``slam.forked.can_fork_reader``) the pass
     is cut into that many parts, the first written here and the others by forked processes.
 
     Without ``keep_points`` nothing is written (``ply`` is not made): the points are counted, and

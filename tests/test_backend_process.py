@@ -20,9 +20,9 @@ from simulation.run import SimulationResult, simulate
 from slam.backend import Backend, BackendConfig
 from slam.backend_process import BackendProcess, FactorIds, make_backend
 from slam.config import SlamConfig
+from slam.forked import can_fork_reader
 from slam.frontend.knots import KnotMirror
 from slam.pipeline import SlamRunner
-from slam.prefetch import can_fork_reader
 from slam.result import SlamResult
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="no fork here")

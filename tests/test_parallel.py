@@ -16,11 +16,12 @@ import pytest
 from common.rig import resolve_rig
 from simulation.run import SimulationResult, simulate
 from slam.config import SlamConfig
+from slam.forked import can_fork_reader
 from slam.frontend.scan_prep import ScanPreparer, knot_deskew
 from slam.io.bag import time_range as bag_time_range
 from slam.io.errors import InputError
 from slam.io.source import BagSource
-from slam.prefetch import can_fork_reader, prepared_scans
+from slam.prefetch import prepared_scans
 from slam.run import load_imu, run_slam
 
 pytestmark = pytest.mark.skipif(not can_fork_reader(), reason="needs fork")
@@ -240,7 +241,7 @@ def test_stopping_helpers_is_bounded_when_one_does_not_answer_sigterm() -> None:
     import multiprocessing as mp
     import time
 
-    from slam.prefetch import stop_children
+    from slam.forked import stop_children
 
     ctx = mp.get_context("fork")
     q = ctx.Queue()
@@ -261,7 +262,7 @@ def test_stopping_helpers_is_bounded_when_one_does_not_answer_sigterm() -> None:
 
 def _orphan_maker(w: int) -> None:
     """A helper's parent: forks a helper that sleeps, sends its pid down ``w`` and exits."""
-    from slam.prefetch import die_with_parent
+    from slam.forked import die_with_parent
 
     me = os.getpid()
     pid = os.fork()
@@ -282,7 +283,10 @@ def test_a_helper_does_not_outlive_its_parent() -> None:
     r, w = os.pipe()
     maker = os.fork()
     if maker == 0:
-        _orphan_maker(w)
+        try:
+            _orphan_maker(w)
+        finally:
+            os._exit(1)  # never back into pytest from the forked child
     os.waitpid(maker, 0)
     helper = int(os.read(r, 32))
     os.close(r)
